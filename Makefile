@@ -1,0 +1,35 @@
+# bearing_loc_ros: two entry points for a fresh machine, `make demo` and `make test`.
+# Everything is installed into .venv from PyPI; nothing installed by hand is needed.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+export AMENT_PREFIX_PATH := $(CURDIR)/$(VENV)
+export PYTHONDONTWRITEBYTECODE := 1
+
+.PHONY: all venv test demo bench clean
+
+all: test
+
+venv: $(STAMP)
+
+$(STAMP): requirements.txt setup.py package.xml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip 2>&1 | grep -v 'is ignored' || true
+	$(PY) -m pip install -q -r requirements.txt 2>&1 | grep -v 'is ignored' ; test $${PIPESTATUS[0]} -eq 0
+	$(PY) -m pip install -q -e . 2>&1 | grep -v 'is ignored' ; test $${PIPESTATUS[0]} -eq 0
+	$(PY) -c 'import rclpy, numpy, scipy, yaml, geometry_msgs.msg'
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest test -q -p no:cacheprovider
+
+demo: $(STAMP)
+	$(PY) -m bearing_loc_ros.demo
+
+bench: $(STAMP)
+	for f in bench/*.py; do echo "== $$f"; $(PY) $$f || exit 1; done
+
+clean:
+	rm -rf $(VENV) build install log demo_out

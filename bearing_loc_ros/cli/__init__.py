@@ -1,0 +1,63 @@
+"""The ``bearing_loc`` command line tool: ``bearing_loc <verb> ...``.
+
+Each verb lives in its own module ``bearing_loc_ros.cli.<verb>`` exposing
+``add_arguments(parser)`` and ``run(args) -> int``. Modules are imported lazily so that one
+verb's optional dependencies (matplotlib, rosbags) never slow down or break another.
+
+Exit codes: 0 success, 2 bad input (one line on stderr naming the field), 1 other failure.
+"""
+
+import argparse
+import importlib
+import sys
+
+VERBS = {
+    'locate': 'Localize emitters from bearings (JSON in, JSON out).',
+    'tma': 'Single moving station target motion analysis (JSON in, JSON out).',
+    'plan': 'Station placement: cut angle, accuracy maps, placement.',
+    'evaluate': 'Monte Carlo evaluation of estimators against the CRLB.',
+    'bag': 'rosbag2 datasets: simulate, play, process.',
+}
+
+
+class InputError(ValueError):
+    """Bad user input: reported as one line on stderr with exit code 2."""
+
+
+def _load(verb):
+    return importlib.import_module(f'{__name__}.{verb}')
+
+
+def main(argv=None):
+    """Entry point of the ``bearing_loc`` console script."""
+    argv = sys.argv[1:] if argv is None else list(argv)
+    parser = argparse.ArgumentParser(prog='bearing_loc', description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest='verb', metavar='VERB')
+    # Only the verb named on the command line is imported (keeps start-up fast).
+    wanted = argv[0] if argv and argv[0] in VERBS else None
+    for verb, help_text in VERBS.items():
+        p = sub.add_parser(verb, help=help_text)
+        if verb == wanted:
+            try:
+                _load(verb).add_arguments(p)
+            except ModuleNotFoundError as exc:
+                if exc.name != f'{__name__}.{verb}':
+                    raise
+                print(f'bearing_loc: verb {verb!r} is not available in this build',
+                      file=sys.stderr)
+                return 1
+    args = parser.parse_args(argv)
+    if args.verb is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(_load(args.verb).run(args) or 0)
+    except (InputError, ValueError) as exc:
+        print(f'bearing_loc {args.verb}: error: {exc}', file=sys.stderr)
+        return 2
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())

@@ -1,0 +1,226 @@
+"""Bearing measurements: one stamped bearing, and batches of N bearings for M problems.
+
+Conventions (DESIGN.md): ENU world frame, metres, radians; azimuth θ CCW from East,
+elevation ψ above the horizontal plane; an azimuth-only (1D) bearing has elevation NaN and
+σ_el NaN. Seed 000 eq. (1) and seed 004 (mixed 1D/2D sensors) define the measurement model
+
+    θ_i = atan2(y − y_i, x − x_i) + n_i,   ψ_i = atan2(z − z_i, ρ_i) + m_i,
+
+with n_i ~ N(0, σ_θi²), m_i ~ N(0, σ_ψi²) independent, ρ_i the horizontal range.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+HALF_PI = np.pi / 2.0
+
+
+@dataclass
+class Bearing:
+    """One stamped bearing from one station (the core twin of the ROS bearing message).
+
+    Attributes:
+        station: station id (the topic namespace, for example ``station_1``).
+        stamp_ns: observation time, integer nanoseconds on the node (ROS) clock.
+        position: station phase-centre position (3,), m, world frame.
+        azimuth: θ, rad, ENU (CCW from East).
+        elevation: ψ, rad, or NaN for an azimuth-only (1D) station.
+        sigma_azimuth: σ_θ, rad (> 0).
+        sigma_elevation: σ_ψ, rad (> 0), or NaN for a 1D station.
+        frame_id: world frame the ray is expressed in.
+        position_covariance: (3, 3) station position covariance, m².
+    """
+
+    station: str
+    stamp_ns: int
+    position: np.ndarray
+    azimuth: float
+    elevation: float = float('nan')
+    sigma_azimuth: float = 0.01
+    sigma_elevation: float = float('nan')
+    frame_id: str = 'map'
+    position_covariance: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+
+    @property
+    def has_elevation(self):
+        """True for a 2D (azimuth + elevation) bearing."""
+        return bool(np.isfinite(self.elevation))
+
+    def validate(self):
+        """Raise ``ValueError`` naming the first bad field; return self when valid."""
+        _check_bearing_fields(
+            np.asarray(self.position, dtype=float)[None, None, :],
+            np.array([[self.azimuth]], dtype=float),
+            np.array([[self.elevation]], dtype=float),
+            np.array([[self.sigma_azimuth]], dtype=float),
+            np.array([[self.sigma_elevation]], dtype=float))
+        return self
+
+
+@dataclass
+class BearingSet:
+    """N bearings for each of M independent problems (batch-first, DESIGN.md).
+
+    Attributes (arrays):
+        positions: (M, N, 3) station positions, m.
+        azimuth: (M, N) θ, rad.
+        elevation: (M, N) ψ, rad; NaN marks an azimuth-only (1D) bearing.
+        sigma_az: (M, N) σ_θ, rad.
+        sigma_el: (M, N) σ_ψ, rad; NaN where elevation is NaN.
+        stations: optional list of N station ids (shared by all M problems).
+
+    Use :meth:`from_arrays` to build one from (N, ...) or (M, N, ...) arrays; it validates.
+    """
+
+    positions: np.ndarray
+    azimuth: np.ndarray
+    elevation: np.ndarray
+    sigma_az: np.ndarray
+    sigma_el: np.ndarray
+    stations: list = None
+
+    @property
+    def M(self):
+        """Number of problems in the batch."""
+        return self.azimuth.shape[0]
+
+    @property
+    def N(self):
+        """Number of bearings per problem."""
+        return self.azimuth.shape[1]
+
+    @property
+    def has_elevation(self):
+        """(M, N) bool: True where the bearing carries an elevation (2D station)."""
+        return np.isfinite(self.elevation)
+
+    @classmethod
+    def from_arrays(cls, positions, azimuth, elevation=None, sigma_az=None, sigma_el=None,
+                    stations=None, validate=True):
+        """Build a batch from arrays shaped (N, ...) (one problem) or (M, N, ...).
+
+        ``elevation`` None means every bearing is azimuth-only. ``sigma_az``/``sigma_el`` may be
+        scalars or broadcastable arrays (rad); ``sigma_el`` is forced to NaN where elevation is
+        NaN. With ``validate`` (default) the batch is checked by :meth:`validate`.
+        """
+        pos = np.asarray(positions, dtype=float)
+        az = np.asarray(azimuth, dtype=float)
+        if pos.ndim == 2:
+            pos = pos[None]
+        if az.ndim == 1:
+            az = az[None]
+        if pos.ndim != 3 or pos.shape[-1] != 3:
+            raise ValueError(f'positions: expected shape (N, 3) or (M, N, 3), got {pos.shape}')
+        if az.ndim != 2:
+            raise ValueError(f'azimuth: expected shape (N,) or (M, N), got {az.shape}')
+        M = max(pos.shape[0], az.shape[0])
+        N = pos.shape[1]
+        try:
+            pos = np.broadcast_to(pos, (M, N, 3)).copy()
+            az = np.broadcast_to(az, (M, N)).copy()
+            el = np.broadcast_to(np.asarray(np.nan if elevation is None else elevation,
+                                            dtype=float), (M, N)).copy()
+            saz = np.broadcast_to(np.asarray(0.01 if sigma_az is None else sigma_az,
+                                             dtype=float), (M, N)).copy()
+            sel = np.broadcast_to(np.asarray(np.nan if sigma_el is None else sigma_el,
+                                             dtype=float), (M, N)).copy()
+        except ValueError as exc:
+            raise ValueError(f'bearings: inconsistent array shapes ({exc})') from None
+        sel = np.where(np.isfinite(el), sel, np.nan)
+        out = cls(pos, az, el, saz, sel, list(stations) if stations is not None else None)
+        if validate:
+            out.validate()
+        return out
+
+    @classmethod
+    def from_bearings(cls, bearings, validate=True):
+        """Build a one-problem batch (M = 1) from a sequence of :class:`Bearing`."""
+        bearings = list(bearings)
+        if not bearings:
+            raise ValueError('bearings: empty set (need at least two stations)')
+        return cls.from_arrays(
+            np.array([b.position for b in bearings], dtype=float),
+            np.array([b.azimuth for b in bearings], dtype=float),
+            np.array([b.elevation for b in bearings], dtype=float),
+            np.array([b.sigma_azimuth for b in bearings], dtype=float),
+            np.array([b.sigma_elevation for b in bearings], dtype=float),
+            stations=[b.station for b in bearings], validate=validate)
+
+    def subset(self, mask):
+        """Return the bearings selected by the (N,) boolean or index array ``mask``."""
+        idx = np.arange(self.N)[mask]
+        st = None if self.stations is None else [self.stations[i] for i in idx]
+        return BearingSet(self.positions[:, idx], self.azimuth[:, idx], self.elevation[:, idx],
+                          self.sigma_az[:, idx], self.sigma_el[:, idx], st)
+
+    def problem(self, m):
+        """Return problem ``m`` of the batch as a one-problem BearingSet (M = 1)."""
+        sl = slice(m, m + 1)
+        return BearingSet(self.positions[sl], self.azimuth[sl], self.elevation[sl],
+                          self.sigma_az[sl], self.sigma_el[sl], self.stations)
+
+    def validate(self):
+        """Check every field; raise ``ValueError`` naming the bad field. Returns self.
+
+        Rules: finite positions and azimuths; elevation finite or NaN (1D) with |ψ| < π/2;
+        σ_θ > 0 and finite; σ_ψ > 0 and finite wherever elevation is given; at least two
+        stations and at least three independent scalar constraints with at least one elevation
+        (azimuths alone never fix the height: seed 004 needs one 2D sensor).
+        """
+        _check_bearing_fields(self.positions, self.azimuth, self.elevation, self.sigma_az,
+                              self.sigma_el)
+        if self.N < 2:
+            raise ValueError(f'bearings: {self.N} station(s); a 3D fix needs at least two')
+        n_el = np.sum(self.has_elevation, axis=1)
+        if np.any(n_el == 0):
+            raise ValueError('elevation: no bearing measures elevation; azimuths alone cannot '
+                             'fix the height (need at least one 2D station)')
+        if np.any(self.N + n_el < 3):
+            raise ValueError('bearings: fewer than three independent angle measurements')
+        return self
+
+
+def _check_bearing_fields(pos, az, el, saz, sel):
+    """Shared field checks for :class:`Bearing` and :class:`BearingSet` (ValueError)."""
+    if not np.all(np.isfinite(pos)):
+        raise ValueError('position: non-finite station coordinate')
+    if not np.all(np.isfinite(az)):
+        raise ValueError('azimuth: non-finite value')
+    if np.any(np.isinf(el)):
+        raise ValueError('elevation: infinite value (use NaN/null for azimuth-only bearings)')
+    has_el = np.isfinite(el)
+    if np.any(np.abs(el[has_el]) >= HALF_PI):
+        raise ValueError('elevation: |elevation| must be < pi/2')
+    if not np.all(np.isfinite(saz)) or np.any(saz <= 0):
+        raise ValueError('sigma_azimuth: must be finite and > 0')
+    sel_given = sel[has_el]
+    if not np.all(np.isfinite(sel_given)) or np.any(sel_given <= 0):
+        raise ValueError('sigma_elevation: must be finite and > 0 where elevation is measured')
+
+
+def simulate_bearings(target, positions, sigma_az, sigma_el=None, has_elevation=True, rng=None):
+    """Noisy bearings from stations ``positions`` (N, 3) to target(s) ``target`` (M, 3) or (3,).
+
+    Model of seed 000 eq. (1) with additive Gaussian noise eq. (6): θ_i = θ_i* + n_i,
+    ψ_i = ψ_i* + m_i. ``sigma_az``/``sigma_el`` are scalars or (N,)/(M, N) arrays (rad);
+    ``has_elevation`` a bool or (N,) bool mask (False = 1D station). ``rng`` a numpy Generator
+    (None: noise-free). Returns a validated :class:`BearingSet` with M problems.
+    """
+    from .conventions import azimuth_elevation, wrap_angle
+    tgt = np.atleast_2d(np.asarray(target, dtype=float))
+    pos = np.asarray(positions, dtype=float)
+    if pos.ndim == 2:
+        pos = pos[None]
+    M = tgt.shape[0]
+    pos = np.broadcast_to(pos, (M,) + pos.shape[1:])
+    N = pos.shape[1]
+    az, el = azimuth_elevation(tgt[:, None, :] - pos)
+    saz = np.broadcast_to(np.asarray(sigma_az, dtype=float), (M, N))
+    sel = np.broadcast_to(np.asarray(saz if sigma_el is None else sigma_el, dtype=float), (M, N))
+    if rng is not None:
+        az = az + saz * rng.standard_normal((M, N))
+        el = el + sel * rng.standard_normal((M, N))
+    mask = np.broadcast_to(np.asarray(has_elevation, dtype=bool), (N,))
+    el = np.where(mask[None, :], el, np.nan)
+    return BearingSet.from_arrays(pos, wrap_angle(az), el, saz, sel)

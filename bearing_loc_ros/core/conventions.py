@@ -1,0 +1,102 @@
+"""Angle and frame conventions of bearing_loc_ros (DESIGN.md, REP-103).
+
+World frame: local ENU Cartesian (x East, y North, z Up), metres.
+
+* Azimuth θ: ENU yaw, counter-clockwise from +x (East),
+  θ = atan2(y_t − y_s, x_t − x_s)  (seed 000 eq. (1), first line).
+* Elevation ψ: angle above the local horizontal plane,
+  ψ = atan2(z_t − z_s, sqrt((x_t − x_s)² + (y_t − y_s)²))  (seed 000 eq. (1), second line).
+* Line-of-sight unit vector u = (cos ψ cos θ, cos ψ sin θ, sin ψ).
+* Compass bearing β (clockwise from North, seed 001 and most DF receivers): θ = π/2 − β.
+* A bearing as an orientation: the rotation taking +x onto u, i.e. yaw = θ, pitch = −ψ,
+  roll = 0 (REP-103 yaw-pitch-roll, Z-Y'-X''), quaternion order (x, y, z, w).
+
+All functions are vectorised: they accept scalars or arrays of any (broadcastable) shape.
+Angles are radians everywhere; nothing here handles degrees.
+"""
+
+import numpy as np
+
+TWO_PI = 2.0 * np.pi
+
+
+def wrap_angle(angle):
+    """Wrap angles to the half-open interval (−π, π].
+
+    Maths: a ↦ a − 2π·ceil((a − π) / 2π). Units: radians. NaN stays NaN.
+    Used for azimuth differences (residuals, interpolation) across the ±π wrap.
+    """
+    a = np.asarray(angle, dtype=float)
+    wrapped = a - TWO_PI * np.ceil((a - np.pi) / TWO_PI)
+    return wrapped if wrapped.ndim else float(wrapped)
+
+
+def compass_to_enu(compass):
+    """Convert a compass bearing β (clockwise from North, rad) to ENU azimuth θ = π/2 − β.
+
+    The result is wrapped to (−π, π]. DESIGN.md "Frames, units, angles".
+    """
+    return wrap_angle(np.pi / 2.0 - np.asarray(compass, dtype=float))
+
+
+def enu_to_compass(azimuth):
+    """Convert ENU azimuth θ (CCW from East, rad) to a compass bearing β = π/2 − θ in [0, 2π)."""
+    return np.mod(np.pi / 2.0 - np.asarray(azimuth, dtype=float), TWO_PI)
+
+
+def los_vector(azimuth, elevation=0.0):
+    """Line-of-sight unit vector u = (cos ψ cos θ, cos ψ sin θ, sin ψ), shape (..., 3).
+
+    ``elevation`` NaN (azimuth-only bearing) is treated as 0 (the horizontal direction).
+    """
+    az = np.asarray(azimuth, dtype=float)
+    el = np.nan_to_num(np.asarray(elevation, dtype=float), nan=0.0)
+    az, el = np.broadcast_arrays(az, el)
+    ce = np.cos(el)
+    return np.stack([ce * np.cos(az), ce * np.sin(az), np.sin(el)], axis=-1)
+
+
+def azimuth_elevation(delta):
+    """Azimuth θ and elevation ψ (rad) of the vector(s) ``delta`` (..., 3) = target − station.
+
+    θ = atan2(Δy, Δx), ψ = atan2(Δz, hypot(Δx, Δy)) (seed 000 eq. (1)). Returns (θ, ψ).
+    """
+    d = np.asarray(delta, dtype=float)
+    az = np.arctan2(d[..., 1], d[..., 0])
+    el = np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1]))
+    return az, el
+
+
+def quaternion_from_azel(azimuth, elevation=0.0):
+    """Quaternion (x, y, z, w) of the rotation yaw = θ, pitch = −ψ, roll = 0.
+
+    This rotation maps +x onto the line of sight u (DESIGN.md bearing message).
+    q = q_z(θ) ⊗ q_y(−ψ) = (sin(ψ/2) sin(θ/2), −sin(ψ/2) cos(θ/2),
+    cos(ψ/2) sin(θ/2), cos(ψ/2) cos(θ/2)). NaN elevation is treated as 0. Shape (..., 4).
+    """
+    az = np.asarray(azimuth, dtype=float)
+    el = np.nan_to_num(np.asarray(elevation, dtype=float), nan=0.0)
+    az, el = np.broadcast_arrays(az, el)
+    cy, sy = np.cos(az / 2.0), np.sin(az / 2.0)
+    cp, sp = np.cos(-el / 2.0), np.sin(-el / 2.0)
+    return np.stack([-sp * sy, sp * cy, cp * sy, cp * cy], axis=-1)
+
+
+def azel_from_quaternion(q):
+    """Azimuth θ, elevation ψ and roll (rad) of quaternion(s) q = (x, y, z, w), shape (..., 4).
+
+    Inverse of :func:`quaternion_from_azel`: the rotated +x axis gives θ and ψ; roll is the
+    REP-103 roll angle (0 for a valid bearing). q need not be normalised (it is normalised here;
+    callers that must reject non-unit quaternions check the norm themselves).
+    """
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    # First column of the rotation matrix = R @ e_x = u.
+    ux = 1.0 - 2.0 * (y * y + z * z)
+    uy = 2.0 * (x * y + w * z)
+    uz = 2.0 * (x * z - w * y)
+    az = np.arctan2(uy, ux)
+    el = np.arctan2(uz, np.hypot(ux, uy))
+    roll = np.arctan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    return az, el, roll
