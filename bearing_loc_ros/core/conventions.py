@@ -85,18 +85,24 @@ def quaternion_from_azel(azimuth, elevation=0.0):
 def azel_from_quaternion(q):
     """Azimuth θ, elevation ψ and roll (rad) of quaternion(s) q = (x, y, z, w), shape (..., 4).
 
-    Inverse of :func:`quaternion_from_azel`: the rotated +x axis gives θ and ψ; roll is the
-    REP-103 roll angle (0 for a valid bearing). q need not be normalised (it is normalised here;
+    Inverse of :func:`quaternion_from_azel`. With R the rotation matrix of q, the line of
+    sight is u = R e_x, so ψ = atan2(u_z, hypot(u_x, u_y)). The azimuth is read from the image
+    of the y axis, R e_y = (−sin θ, cos θ, 0) when roll = 0, which stays well conditioned even
+    for a nearly vertical line of sight: θ = atan2(−(R e_y)_x, (R e_y)_y). The returned roll is
+    asin((R e_y)_z): zero exactly when the bearing has no roll (the DESIGN.md contract); callers
+    reject |roll| above their tolerance. q need not be normalised (it is normalised here;
     callers that must reject non-unit quaternions check the norm themselves).
     """
     q = np.asarray(q, dtype=float)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     x, y, z, w = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    # First column of the rotation matrix = R @ e_x = u.
     ux = 1.0 - 2.0 * (y * y + z * z)
     uy = 2.0 * (x * y + w * z)
     uz = 2.0 * (x * z - w * y)
-    az = np.arctan2(uy, ux)
+    yx = 2.0 * (x * y - w * z)
+    yy = 1.0 - 2.0 * (x * x + z * z)
+    yz = 2.0 * (y * z + w * x)
+    az = np.arctan2(-yx, yy)
     el = np.arctan2(uz, np.hypot(ux, uy))
-    roll = np.arctan2(2.0 * (w * x + y * z), 1.0 - 2.0 * (x * x + y * y))
+    roll = np.arcsin(np.clip(yz, -1.0, 1.0))
     return az, el, roll
