@@ -1,0 +1,461 @@
+"""rosbag2 datasets without the ROS 2 CLI: write and read bags with the ``rosbags`` package.
+
+This module knows ROS message *types* (so it is not in ``core``) but needs neither rclpy nor
+a DDS middleware to write a bag: messages are built as ``rosbags`` typestore objects and
+serialized to CDR by ``rosbags``. Reading returns the raw CDR bytes, which
+``rclpy.serialization.deserialize_message`` (live tools) or :func:`deserialize` (``rosbags``,
+offline tools) turn back into messages.
+
+Bag layout written here is the one ``ros2 bag record`` writes in ROS 2 Jazzy
+(rosbag2 0.26.x), so ``ros2 bag info`` / ``ros2 bag play`` accept it:
+
+* ``metadata.yaml`` version 9 (:data:`BAG_VERSION`): since rosbag2 PR #1476 (0.25.0, the
+  last release before Jazzy's 0.26.0) ``offered_qos_profiles`` is a YAML *list* of maps
+  with lower-case policy names (``history: keep_last``, ``reliability: reliable`` ...)
+  instead of the older quoted YAML string with integer enums (version <= 8). Every topic
+  carries ``type_description_hash: RIHS01_<sha256>`` (metadata version >= 7, REP-2016 type
+  hashes) and ``serialization_format: cdr``.
+* MCAP storage (the rosbag2 default since Iron) with the ``ros2`` MCAP profile: schema
+  encoding ``ros2msg``, message encoding ``cdr``, channel user data ``offered_qos_profiles``
+  and, like rosbag2_storage_mcap's ``create_topic``, ``topic_type_hash``; or sqlite3
+  storage (``.db3``, schema version 4 with ``message_definitions`` and
+  ``type_description_hash`` columns).
+* Type hashes come from ``rosbags``' Jazzy typestore (``Stores.ROS2_JAZZY``); the tests
+  compare them with the hashes rosidl generated for the installed message packages
+  (``share/<pkg>/msg/<Type>.json``, ``type_hashes[0].hash_string``).
+
+Message timestamps: the bag (receive/log) time of every message written by
+:class:`BagWriter` is the caller's ``stamp_ns`` (simulated time), the same value as the
+message's ``header.stamp`` for stamped messages, so a replay with ``/clock`` reproduces the
+simulated timeline exactly.
+"""
+
+from collections import namedtuple
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from .core.conventions import quaternion_from_azel
+
+#: rosbag2 metadata version written (Jazzy, rosbag2 0.26.x, see module docstring).
+BAG_VERSION = 9
+#: Storage plugins understood by ``ros2 bag`` in Jazzy and by ``rosbags``.
+STORAGES = ('mcap', 'sqlite3')
+DEFAULT_STORAGE = 'mcap'
+
+#: Message type names used by bearing_loc_ros (DESIGN.md).
+POSE_COV_STAMPED = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+POINT_STAMPED = 'geometry_msgs/msg/PointStamped'
+CLOCK = 'rosgraph_msgs/msg/Clock'
+CLOCK_TOPIC = '/clock'
+
+#: Layout of the bearing message covariance (DESIGN.md "The bearing message"); kept equal to
+#: ``ros_conversions.IDX_EL_VAR`` etc. by test_bag.py (this module must not import rclpy
+#: message packages just to write a bag).
+IDX_EL_VAR = 4 * 6 + 4
+IDX_AZ_VAR = 5 * 6 + 5
+NO_ELEVATION = -1.0
+UNKNOWN_ROTATION_VARIANCE = 1.0e6
+NS_PER_S = 1_000_000_000
+
+BagMessage = namedtuple('BagMessage', 'topic msgtype log_time_ns raw')
+BagMessage.__doc__ = """One message read from a bag: topic, type name, bag (log) time in
+integer ns, raw CDR bytes."""
+
+TopicInfo = namedtuple('TopicInfo', 'name msgtype count qos type_hash')
+TopicInfo.__doc__ = """Topic of a bag: name, type name, message count, list of offered QoS
+profiles as dicts (metadata.yaml version 9 form), RIHS01 type description hash."""
+
+_TYPESTORE = None
+
+
+def typestore():
+    """The ``rosbags`` typestore of ROS 2 Jazzy (created once)."""
+    global _TYPESTORE
+    if _TYPESTORE is None:
+        from rosbags.typesys import get_typestore, Stores
+        _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+    return _TYPESTORE
+
+
+def type_hash(msgtype):
+    """RIHS01 type description hash (REP-2016) of a message type name, from rosbags."""
+    return typestore().hash_rihs01(msgtype)
+
+
+# --------------------------------------------------------------------------------------- QoS
+
+def qos_profile(depth=10, reliable=True, transient_local=False):
+    """An offered QoS profile as written to metadata.yaml version 9 (a dict).
+
+    history keep_last(depth); reliability reliable|best_effort; durability
+    volatile|transient_local; deadline, lifespan and liveliness lease duration 0 s 0 ns
+    (``RMW_DURATION_UNSPECIFIED``: the middleware default, i.e. none); liveliness automatic.
+    These are the rclpy defaults of ``create_publisher(type, topic, depth)``.
+    """
+    if int(depth) < 1:
+        raise ValueError(f'qos depth: must be >= 1, got {depth}')
+    zero = {'sec': 0, 'nsec': 0}
+    return {
+        'history': 'keep_last', 'depth': int(depth),
+        'reliability': 'reliable' if reliable else 'best_effort',
+        'durability': 'transient_local' if transient_local else 'volatile',
+        'deadline': dict(zero), 'lifespan': dict(zero), 'liveliness': 'automatic',
+        'liveliness_lease_duration': dict(zero), 'avoid_ros_namespace_conventions': False,
+    }
+
+
+#: Offered QoS of bearing, truth and fix publishers (rclpy default depth 10, reliable).
+DEFAULT_QOS = qos_profile(10)
+#: Offered QoS of /clock (reliable, depth 1: matches both the best-effort rclpy TimeSource
+#: subscription and reliable subscribers).
+CLOCK_QOS = qos_profile(1)
+
+
+def _qos_to_rosbags(q):
+    from rosbags.interfaces import (Qos, QosDurability, QosHistory, QosLiveliness,
+                                    QosReliability, QosTime)
+    return Qos(QosHistory[q['history'].upper()], int(q['depth']),
+               QosReliability[q['reliability'].upper()],
+               QosDurability[q['durability'].upper()],
+               QosTime(q['deadline']['sec'], q['deadline']['nsec']),
+               QosTime(q['lifespan']['sec'], q['lifespan']['nsec']),
+               QosLiveliness[q['liveliness'].upper()],
+               QosTime(q['liveliness_lease_duration']['sec'],
+                       q['liveliness_lease_duration']['nsec']),
+               bool(q['avoid_ros_namespace_conventions']))
+
+
+def _qos_from_rosbags(q):
+    return {
+        'history': q.history.name.lower(), 'depth': int(q.depth),
+        'reliability': q.reliability.name.lower(), 'durability': q.durability.name.lower(),
+        'deadline': {'sec': q.deadline.sec, 'nsec': q.deadline.nsec},
+        'lifespan': {'sec': q.lifespan.sec, 'nsec': q.lifespan.nsec},
+        'liveliness': q.liveliness.name.lower(),
+        'liveliness_lease_duration': {'sec': q.liveliness_lease_duration.sec,
+                                      'nsec': q.liveliness_lease_duration.nsec},
+        'avoid_ros_namespace_conventions': bool(q.avoid_ros_namespace_conventions),
+    }
+
+
+# ------------------------------------------------------------------------ message builders
+
+def _time(ns):
+    ns = int(ns)
+    if ns < 0:
+        raise ValueError(f'stamp: negative time {ns} ns')
+    return typestore().types['builtin_interfaces/msg/Time'](sec=ns // NS_PER_S,
+                                                            nanosec=ns % NS_PER_S)
+
+
+def _header(stamp_ns, frame_id):
+    return typestore().types['std_msgs/msg/Header'](stamp=_time(stamp_ns),
+                                                    frame_id=str(frame_id))
+
+
+def _pose_cov_stamped(stamp_ns, frame_id, position, quaternion, cov6):
+    t = typestore().types
+    p = [float(v) for v in position]
+    q = [float(v) for v in quaternion]
+    pose = t['geometry_msgs/msg/Pose'](
+        position=t['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]),
+        orientation=t['geometry_msgs/msg/Quaternion'](x=q[0], y=q[1], z=q[2], w=q[3]))
+    pwc = t['geometry_msgs/msg/PoseWithCovariance'](
+        pose=pose, covariance=np.asarray(cov6, dtype=np.float64).reshape(36).copy())
+    return t[POSE_COV_STAMPED](header=_header(stamp_ns, frame_id), pose=pwc)
+
+
+def bearing_message(bearing):
+    """Core :class:`~bearing_loc_ros.core.bearings.Bearing` -> rosbags PoseWithCovarianceStamped.
+
+    Same contract as ``ros_conversions.bearing_to_msg`` (DESIGN.md bearing message):
+    stamp = observation time, position = station, orientation = yaw θ, pitch −ψ, roll 0
+    (``quaternion_from_azel``), covariance[0..2,0..2] = station position covariance (m²),
+    covariance[4*6+4] = σ_ψ² (rad²) or −1 for an azimuth-only bearing, covariance[5*6+5] =
+    σ_θ² (rad²). test_bag.py checks the CDR bytes against the rclpy conversion.
+    """
+    has_el = math.isfinite(bearing.elevation)
+    q = quaternion_from_azel(bearing.azimuth, bearing.elevation if has_el else 0.0)
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = np.asarray(bearing.position_covariance, dtype=float)
+    cov.flat[IDX_EL_VAR] = bearing.sigma_elevation ** 2 if has_el else NO_ELEVATION
+    cov.flat[IDX_AZ_VAR] = bearing.sigma_azimuth ** 2
+    return _pose_cov_stamped(bearing.stamp_ns, bearing.frame_id, bearing.position, q, cov)
+
+
+def fix_message(position, covariance, stamp_ns, frame_id='map'):
+    """Estimate -> rosbags PoseWithCovarianceStamped, as ``ros_conversions.fix_to_msg``.
+
+    Position (3,) m, covariance (3, 3) m² in covariance[0..2,0..2]; orientation identity
+    with variance ``UNKNOWN_ROTATION_VARIANCE`` (rad²) on the three rotation axes.
+    """
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = np.asarray(covariance, dtype=float)
+    cov[3, 3] = cov[4, 4] = cov[5, 5] = UNKNOWN_ROTATION_VARIANCE
+    return _pose_cov_stamped(stamp_ns, frame_id, position, (0.0, 0.0, 0.0, 1.0), cov)
+
+
+def point_message(position, stamp_ns, frame_id='map'):
+    """Position (3,) m -> rosbags geometry_msgs/PointStamped."""
+    t = typestore().types
+    p = [float(v) for v in position]
+    return t[POINT_STAMPED](header=_header(stamp_ns, frame_id),
+                            point=t['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]))
+
+
+def clock_message(stamp_ns):
+    """Simulated time (integer ns) -> rosbags rosgraph_msgs/Clock."""
+    return typestore().types[CLOCK](clock=_time(stamp_ns))
+
+
+def serialize(msg):
+    """CDR bytes (little endian, with the 4-byte encapsulation header) of a rosbags message."""
+    return bytes(typestore().serialize_cdr(msg, msg.__msgtype__))
+
+
+def deserialize(raw, msgtype):
+    """Raw CDR bytes -> rosbags message object of type ``msgtype`` (no rclpy needed)."""
+    return typestore().deserialize_cdr(raw, msgtype)
+
+
+def stamp_ns(msg):
+    """header.stamp (or Clock.clock) of a rosbags or rclpy message, integer ns."""
+    t = msg.clock if hasattr(msg, 'clock') else msg.header.stamp
+    return int(t.sec) * NS_PER_S + int(t.nanosec)
+
+
+# ----------------------------------------------------------------------------------- writer
+
+def _mcap_writer_class():
+    """rosbags' MCAP storage writer, extended to add ``topic_type_hash`` channel metadata.
+
+    rosbag2_storage_mcap (Jazzy) ``MCAPStorage::create_topic`` stores two channel metadata
+    entries, ``offered_qos_profiles`` and ``topic_type_hash``; rosbags 0.11 writes only the
+    first, so a bare ``.mcap`` read without metadata.yaml (``ros2 bag reindex``, Foxglove)
+    would lose the type hash. Falls back to the plain writer if rosbags' internals differ.
+    """
+    from rosbags.rosbag2.storage_mcap import McapWriter
+    try:
+        from io import BytesIO
+        from rosbags.rosbag2.storage_mcap import Channel, write_channel, write_string
+    except ImportError:  # pragma: no cover - other rosbags versions
+        return McapWriter
+
+    class HashingMcapWriter(McapWriter):
+        def add_connection(self, connection, offered_qos_profiles):
+            metadata = BytesIO()
+            write_string(metadata, 'offered_qos_profiles')
+            write_string(metadata, offered_qos_profiles)
+            write_string(metadata, 'topic_type_hash')
+            write_string(metadata, connection.digest)
+            self.channels.append(Channel(connection.id, connection.msgtype, connection.topic,
+                                         connection.ext.serialization_format,
+                                         metadata.getvalue()))
+            self.channel_stats[connection.id] = 0
+            write_channel(self.chunk.bio, self.channels[-1], self.schemas)
+
+    return HashingMcapWriter
+
+
+class BagWriter:
+    """Write a rosbag2 bag (directory ``path`` with metadata.yaml + one storage file).
+
+    Usage::
+
+        with BagWriter('run1', storage='mcap') as bag:
+            bag.add_topic('/station_1/bearing', POSE_COV_STAMPED)
+            bag.write('/station_1/bearing', stamp_ns, bearing_message(b))
+
+    ``write`` takes a rosbags message object (from the builders above) or raw CDR bytes.
+    Topics must be absolute names. The target directory must not exist (rosbag2 refuses to
+    overwrite too). ``custom_data`` (str -> str) is stored in metadata.yaml ``custom_data``.
+    """
+
+    def __init__(self, path, storage=DEFAULT_STORAGE, custom_data=None):
+        from rosbags.rosbag2 import StoragePlugin, Writer
+        if storage not in STORAGES:
+            raise ValueError(f'storage: must be one of {STORAGES}, got {storage!r}')
+        self.path = Path(path)
+        if self.path.exists():
+            raise ValueError(f'out: {self.path} exists already (a bag is never overwritten)')
+
+        class _Writer(Writer):
+            STORAGE_PLUGINS = dict(Writer.STORAGE_PLUGINS)
+            STORAGE_PLUGINS[StoragePlugin.MCAP] = _mcap_writer_class()
+
+        plugin = StoragePlugin.MCAP if storage == 'mcap' else StoragePlugin.SQLITE3
+        self._writer = _Writer(self.path, version=BAG_VERSION, storage_plugin=plugin)
+        for key, value in (custom_data or {}).items():
+            self._writer.set_custom_data(str(key), str(value))
+        self._connections = {}
+        self._open = False
+
+    def open(self):
+        """Create the bag directory and storage file."""
+        self._writer.open()
+        self._open = True
+        return self
+
+    def add_topic(self, topic, msgtype, qos=None):
+        """Register ``topic`` (absolute name) with type name ``msgtype`` and offered ``qos``."""
+        if not topic.startswith('/'):
+            raise ValueError(f'topic: {topic!r} must be an absolute name')
+        if topic in self._connections:
+            raise ValueError(f'topic: {topic!r} added twice')
+        if qos is None:
+            qos = CLOCK_QOS if topic == CLOCK_TOPIC else DEFAULT_QOS
+        conn = self._writer.add_connection(topic, msgtype, typestore=typestore(),
+                                           serialization_format='cdr',
+                                           offered_qos_profiles=[_qos_to_rosbags(qos)])
+        self._connections[topic] = conn
+        return conn
+
+    def write(self, topic, log_time_ns, msg):
+        """Append one message (rosbags object or CDR bytes) at bag time ``log_time_ns``."""
+        try:
+            conn = self._connections[topic]
+        except KeyError:
+            raise ValueError(f'topic: {topic!r} was not added') from None
+        raw = msg if isinstance(msg, (bytes, bytearray, memoryview)) else serialize(msg)
+        self._writer.write(conn, int(log_time_ns), raw)
+
+    def close(self):
+        """Write the storage index and metadata.yaml."""
+        if self._open:
+            self._writer.close()
+            self._open = False
+
+    def __enter__(self):
+        return self.open()
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is None:
+            self.close()
+        else:
+            try:
+                self._writer.abort()
+            finally:
+                self._open = False
+        return False
+
+
+# ----------------------------------------------------------------------------------- reader
+
+def read_metadata(path):
+    """Parse ``<path>/metadata.yaml`` and return its ``rosbag2_bagfile_information`` dict."""
+    meta = Path(path) / 'metadata.yaml'
+    if not meta.is_file():
+        raise ValueError(f'bag: {path} has no metadata.yaml (not a rosbag2 directory?)')
+    with open(meta, encoding='utf-8') as f:
+        return yaml.safe_load(f)['rosbag2_bagfile_information']
+
+
+class BagReader:
+    """Read a rosbag2 bag (either storage, metadata version <= 9) with ``rosbags``.
+
+    ``topics`` maps topic name -> :class:`TopicInfo`; :meth:`messages` yields
+    :class:`BagMessage` in bag-time order (ties in storage order).
+    """
+
+    def __init__(self, path):
+        from rosbags.rosbag2 import Reader
+        path = Path(path)
+        if not path.is_dir():
+            raise ValueError(f'bag: {path} is not a directory')
+        try:
+            self._reader = Reader(path)
+        except Exception as exc:  # rosbags raises ReaderError and friends
+            raise ValueError(f'bag: cannot open {path}: {exc}') from None
+        self.path = path
+
+    def open(self):
+        """Open the storage file(s)."""
+        try:
+            self._reader.open()
+        except Exception as exc:
+            raise ValueError(f'bag: cannot open {self.path}: {exc}') from None
+        return self
+
+    def close(self):
+        """Close the storage file(s)."""
+        self._reader.close()
+
+    def __enter__(self):
+        return self.open()
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    @property
+    def topics(self):
+        """Dict topic -> TopicInfo(name, msgtype, count, qos list, type_hash)."""
+        out = {}
+        for conn in self._reader.connections:
+            qos = [_qos_from_rosbags(q) for q in conn.ext.offered_qos_profiles]
+            prev = out.get(conn.topic)
+            count = conn.msgcount + (prev.count if prev else 0)
+            out[conn.topic] = TopicInfo(conn.topic, conn.msgtype, count, qos, conn.digest)
+        return out
+
+    @property
+    def start_time_ns(self):
+        """Bag time of the first message, ns."""
+        return int(self._reader.start_time)
+
+    @property
+    def end_time_ns(self):
+        """Bag time just after the last message, ns (rosbags convention: last + 1)."""
+        return int(self._reader.end_time)
+
+    @property
+    def message_count(self):
+        """Total number of messages."""
+        return int(self._reader.message_count)
+
+    def messages(self, topics=None):
+        """Yield BagMessage(topic, msgtype, log_time_ns, raw bytes), optionally filtered."""
+        conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
+        if topics is not None and not conns:
+            return
+        for conn, t, raw in self._reader.messages(connections=conns):
+            yield BagMessage(conn.topic, conn.msgtype, int(t), bytes(raw))
+
+
+def station_from_topic(topic, leaf='bearing'):
+    """Station id from a bearing topic: '/station_1/bearing' -> 'station_1' (DESIGN.md).
+
+    Returns None when ``topic`` does not end in ``/<leaf>`` or has no namespace.
+    """
+    parts = topic.strip('/').split('/')
+    if len(parts) < 2 or parts[-1] != leaf:
+        return None
+    return '/'.join(parts[:-1])
+
+
+def share_type_hash(msgtype, prefix=None):
+    """RIHS01 hash rosidl generated for ``msgtype`` in an installed ROS 2 message package.
+
+    Reads ``<prefix>/share/<pkg>/msg/<Type>.json`` (rosidl_generator_type_description output,
+    ``type_hashes[0].hash_string``); ``prefix`` defaults to the entries of AMENT_PREFIX_PATH
+    and ``sys.prefix``. Returns None when no such file is installed.
+    """
+    import json
+    import sys
+    pkg, kind, name = msgtype.split('/')
+    prefixes = [prefix] if prefix else (
+        [p for p in os.environ.get('AMENT_PREFIX_PATH', '').split(os.pathsep) if p]
+        + [sys.prefix])
+    for pre in prefixes:
+        f = Path(pre) / 'share' / pkg / kind / f'{name}.json'
+        if f.is_file():
+            with open(f, encoding='utf-8') as fh:
+                data = json.load(fh)
+            for entry in data.get('type_hashes', []):
+                if entry.get('type_name') == msgtype:
+                    return entry.get('hash_string')
+    return None
