@@ -1,0 +1,214 @@
+"""simulator_node: publishes the bearings a station network would produce, from a scenario.
+
+All bearings and truth samples are generated up front by the core
+(:func:`bearing_loc_ros.core.simulation.simulate`, deterministic in ``seed``); this node only
+releases them when the simulated time reaches their publication time. Simulated time runs at
+``time_scale`` × wall time (steady clock) from ``epoch`` and is published on ``/clock``, so
+nodes started with ``use_sim_time:=true`` follow it. Topics (relative, so a namespaced
+simulator publishes under its namespace):
+
+* ``<target ns>/<station>/bearing`` geometry_msgs/PoseWithCovarianceStamped (DESIGN.md
+  bearing message, via ros_conversions.bearing_to_msg), reliable, keep-last 100;
+* ``<target ns>/truth`` geometry_msgs/PoseStamped, stamped with the true time;
+* ``/clock`` rosgraph_msgs/Clock when ``publish_clock`` is true.
+
+Parameters and the scenario format: docs/readme/simulator.md.
+"""
+
+import os
+import time
+
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from rclpy.clock import Clock, ClockType
+from rclpy.duration import Duration
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock as ClockMsg
+
+from .core.simulation import bearing_topic, load_scenario, NS_PER_S, simulate, truth_topic
+from .ros_common import declare, main_for, ParameterError
+from .ros_conversions import bearing_to_msg, ns_to_time
+
+PACKAGE = 'bearing_loc_ros'
+BEARING_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                         reliability=ReliabilityPolicy.RELIABLE)
+TRUTH_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                       reliability=ReliabilityPolicy.RELIABLE)
+CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
+                       reliability=ReliabilityPolicy.RELIABLE)
+#: Wall period of the publication tick: 10 ms of simulated time (>= 100 Hz simulated /clock)
+#: but never shorter than MIN_TICK (then /clock is published on every tick).
+SIM_TICK = 0.01
+MIN_TICK = 0.004
+#: Wall seconds to wait for subscribers to acknowledge the last reliable messages on exit.
+ACK_TIMEOUT = 2.0
+
+
+def resolve_scenario_path(path, cwd=None):
+    """Find a scenario file: absolute; else relative to ``cwd``; else in the package share.
+
+    Share candidates (installed package, via ament_index_python): ``<share>/<path>`` and
+    ``<share>/config/scenarios/<path>``. Raises ParameterError('scenario', ...) if not found.
+    """
+    if not path:
+        raise ParameterError('scenario', 'required: path of a scenario YAML, for example '
+                             'config/scenarios/seed000.yaml')
+    path = os.path.expanduser(path)
+    if os.path.isabs(path):
+        candidates = [path]
+    else:
+        candidates = [os.path.join(cwd or os.getcwd(), path)]
+        try:
+            from ament_index_python.packages import get_package_share_directory
+            share = get_package_share_directory(PACKAGE)
+            candidates += [os.path.join(share, path),
+                           os.path.join(share, 'config', 'scenarios', path)]
+        except Exception:  # package not installed with its share dir: cwd only
+            pass
+    for c in candidates:
+        if os.path.isfile(c):
+            return c
+    raise ParameterError('scenario', f'file not found: {path!r} (looked in: '
+                         f'{", ".join(candidates)})')
+
+
+def truth_to_msg(position, stamp_ns, frame_id):
+    """Ground truth -> geometry_msgs/PoseStamped (position m, identity orientation)."""
+    msg = PoseStamped()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = frame_id
+    p = msg.pose.position
+    p.x, p.y, p.z = (float(v) for v in position)
+    msg.pose.orientation.w = 1.0
+    return msg
+
+
+class SimulatorNode(Node):
+    """Replays a core Simulation in (scaled) real time over DDS."""
+
+    def __init__(self, **kwargs):
+        super().__init__('simulator', **kwargs)
+        scenario = declare(self, 'scenario', '', 'Scenario YAML path (relative: cwd, then the '
+                           'package share dir, then its config/scenarios)', read_only=True)
+        seed = declare(self, 'seed', 0, 'Random seed; same seed, same bearings',
+                       read_only=True, min_value=0)
+        self._time_scale = declare(self, 'time_scale', 1.0, 'Simulated seconds per wall '
+                                   'second (10.0 = ten times faster than real time)',
+                                   read_only=True, min_value=0.0, max_value=1.0e6)
+        if self._time_scale <= 0.0:
+            raise ParameterError('time_scale', f'must be > 0 (got {self._time_scale})')
+        self._publish_clock = declare(self, 'publish_clock', True, 'Publish /clock '
+                                      '(rosgraph_msgs/Clock) with the simulated time',
+                                      read_only=True)
+        duration = declare(self, 'duration', 0.0, 'Simulated seconds to run; 0 = the '
+                           "scenario's duration", read_only=True, min_value=0.0)
+        self._start_delay = declare(self, 'start_delay', 1.0, 'Wall seconds to wait (clock '
+                                    'held at the epoch) for subscribers before starting',
+                                    read_only=True, min_value=0.0)
+        self._exit_when_done = declare(self, 'exit_when_done', True, 'Shut the node down '
+                                       'once every message of the run has been published',
+                                       read_only=True)
+        path = resolve_scenario_path(scenario)
+        self.scenario = load_scenario(path)   # ValueError names the file and key -> exit 1
+        self.sim = simulate(self.scenario, duration=duration or None, seed=seed)
+        sc = self.scenario
+
+        self._bearing_pubs = {}          # every station/target topic, even if all dropped
+        for st in sc.stations:
+            for tg in self.sim.targets:
+                topic = bearing_topic(tg.namespace, st.id)
+                self._bearing_pubs[topic] = self.create_publisher(
+                    PoseWithCovarianceStamped, topic, BEARING_QOS)
+        self._truth_pubs = {}
+        if sc.truth_rate > 0:
+            for tg in self.sim.targets:
+                topic = truth_topic(tg.namespace)
+                self._truth_pubs[topic] = self.create_publisher(PoseStamped, topic, TRUTH_QOS)
+        self._clock_pub = (self.create_publisher(ClockMsg, '/clock', CLOCK_QOS)
+                           if self._publish_clock else None)
+
+        # one merged queue ordered by publication time (truth first on ties: it is due at the
+        # true time, which precedes or equals any bearing's publication)
+        self._queue = sorted(
+            [(e.publish_ns, 0, k, e) for k, e in enumerate(self.sim.truth)]
+            + [(e.publish_ns, 1, k, e) for k, e in enumerate(self.sim.bearings)],
+            key=lambda q: q[:3])
+        self._next = 0
+        self._sent_bearings = 0
+        self._sent_truth = 0
+        self._created = time.monotonic_ns()
+        self._wall0 = None
+        self._done = False
+        tick = max(MIN_TICK, SIM_TICK / self._time_scale)
+        self._timer = self.create_timer(tick, self._tick,
+                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
+        self.get_logger().info(
+            f'scenario {path} ({sc.name or "unnamed"}): {len(sc.stations)} stations, '
+            f'{len(self.sim.targets)} targets, {self.sim.duration:g} s, seed {seed}, '
+            f'{len(self.sim.bearings)} bearings, time_scale {self._time_scale:g}, '
+            f'start in {self._start_delay:g} s')
+
+    # ----------------------------------------------------------------------------------------
+    def sim_time_ns(self, wall_ns=None):
+        """Simulated time (ns) at steady wall time ``wall_ns``: epoch + (wall − start)·scale."""
+        if self._wall0 is None:
+            return self.scenario.epoch_ns
+        wall_ns = time.monotonic_ns() if wall_ns is None else wall_ns
+        return self.scenario.epoch_ns + int((wall_ns - self._wall0) * self._time_scale)
+
+    def _publish_clock_at(self, ns):
+        if self._clock_pub is not None:
+            self._clock_pub.publish(ClockMsg(clock=ns_to_time(ns)))
+
+    def _tick(self):
+        if self._done:
+            return
+        now = time.monotonic_ns()
+        if self._wall0 is None:
+            if now - self._created < int(self._start_delay * NS_PER_S):
+                self._publish_clock_at(self.scenario.epoch_ns)
+                return
+            self._wall0 = now
+            self.get_logger().info('simulation started')
+        sim_ns = min(self.sim_time_ns(now), self.sim.end_ns)
+        self._publish_clock_at(sim_ns)
+        frame = self.scenario.frame_id
+        q = self._queue
+        while self._next < len(q) and q[self._next][0] <= sim_ns:
+            _, kind, _, ev = q[self._next]
+            self._next += 1
+            if kind == 0:
+                self._truth_pubs[ev.topic].publish(
+                    truth_to_msg(ev.position, ev.stamp_ns, frame))
+                self._sent_truth += 1
+            else:
+                self._bearing_pubs[ev.topic].publish(bearing_to_msg(ev.bearing))
+                self._sent_bearings += 1
+        if sim_ns >= self.sim.end_ns and self._next >= len(q):
+            self._finish()
+
+    def _finish(self):
+        self._done = True
+        self._timer.cancel()
+        n_sched = sum(len(s.t) for s in self.sim.streams)
+        self.get_logger().info(
+            f'simulation done: {self._sent_bearings} bearings ({n_sched - self._sent_bearings}'
+            f' dropped), {self._sent_truth} truth samples, sim time '
+            f'{(self.sim.end_ns - self.scenario.epoch_ns) / NS_PER_S:g} s')
+        if not self._exit_when_done:
+            return
+        pubs = list(self._bearing_pubs.values()) + list(self._truth_pubs.values())
+        deadline = time.monotonic() + ACK_TIMEOUT
+        for p in pubs:
+            left = deadline - time.monotonic()
+            if left <= 0 or not p.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+                self.get_logger().warning('not every subscriber acknowledged the last messages')
+                break
+        self.context.try_shutdown()
+
+
+main = main_for(SimulatorNode)
+
+
+if __name__ == '__main__':
+    main()
