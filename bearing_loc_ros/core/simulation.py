@@ -42,6 +42,7 @@ from scipy.special import ndtr
 
 from .bearings import Bearing, HALF_PI
 from .conventions import azimuth_elevation, wrap_angle
+from .geodesy import geodetic_to_enu
 
 NS_PER_S = 1_000_000_000
 #: Largest |elevation| a simulated bearing may carry (Bearing requires |ψ| < π/2).
@@ -607,23 +608,6 @@ def _geodetic(src, value, key):
     return lat, lon, alt
 
 
-def geodetic_to_enu(lat_deg, lon_deg, alt, origin):
-    """WGS84 (lat°, lon°, alt m) -> local ENU (m) about ``origin`` (lat°, lon°, alt m).
-
-    Uses bearing_loc_ros.core.geodesy when it provides ``geodetic_to_enu``, else
-    pymap3d.geodetic2enu (the exact ellipsoidal transformation, not a flat-earth one).
-    """
-    try:
-        from . import geodesy  # owned by the station-node engineer
-        fn = getattr(geodesy, 'geodetic_to_enu', None)
-    except ImportError:
-        fn = None
-    if fn is not None:
-        return np.asarray(fn(lat_deg, lon_deg, alt, *origin), dtype=float).reshape(3)
-    import pymap3d
-    return np.array(pymap3d.geodetic2enu(lat_deg, lon_deg, alt, *origin), dtype=float)
-
-
 def _motion(src, d, where, origin, allow_random=False):
     """Parse the motion keys of a station or target into a Trajectory (or None for random)."""
     has = {k for k in MOTION_KEYS if k in d}
@@ -672,7 +656,11 @@ def _motion(src, d, where, origin, allow_random=False):
     if 'geodetic' in has:
         if origin is None:
             raise src.error(f'{where}geodetic', 'needs a scenario-level geodetic_origin')
-        p = geodetic_to_enu(*_geodetic(src, d['geodetic'], f'{where}geodetic'), origin)
+        lat, lon, alt = _geodetic(src, d['geodetic'], f'{where}geodetic')
+        try:
+            p = geodetic_to_enu(lat, lon, alt, origin).reshape(3)
+        except ValueError as exc:
+            raise src.error(f'{where}geodetic', str(exc)) from None
     elif 'position' in has:
         p = _vec(src, d['position'], f'{where}position')
     elif allow_random:
