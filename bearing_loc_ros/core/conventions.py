@@ -28,6 +28,10 @@ def wrap_angle(angle):
     """
     a = np.asarray(angle, dtype=float)
     wrapped = a - TWO_PI * np.ceil((a - np.pi) / TWO_PI)
+    # Rounding can leave the result one ulp outside (−π, π] (for example a just above −π
+    # gives 3.1415926535897936); fold those values back in.
+    wrapped = np.where(wrapped > np.pi, wrapped - TWO_PI, wrapped)
+    wrapped = np.where(wrapped <= -np.pi, wrapped + TWO_PI, wrapped)
     return wrapped if wrapped.ndim else float(wrapped)
 
 
