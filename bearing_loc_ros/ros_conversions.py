@@ -14,6 +14,14 @@ Bearing message (station -> fusion): ``geometry_msgs/PoseWithCovarianceStamped``
 
 Fix message (fusion -> users): position = estimate, position covariance = estimator
 covariance, orientation identity with rotational variance :data:`UNKNOWN_ROTATION_VARIANCE`.
+With a geodetic origin the fix is also a ``sensor_msgs/NavSatFix`` (:func:`fix_to_navsat`).
+
+Station inputs: ``geometry_msgs/Vector3Stamped`` raw readings (:func:`raw_reading_from_msg`)
+and ``nav_msgs/Odometry`` platform poses (:func:`pose_from_odometry`).
+
+Every ``*_from_msg`` function either returns a valid core object or raises
+:class:`ConversionError` (a ``ValueError``) whose ``reason`` tag is counted by the nodes;
+a message that breaks the contract is never converted.
 """
 
 import math
@@ -21,9 +29,12 @@ import math
 from builtin_interfaces.msg import Time
 from geometry_msgs.msg import PoseWithCovarianceStamped
 import numpy as np
+from sensor_msgs.msg import NavSatFix, NavSatStatus
 
+from .core import geodesy
 from .core.bearings import Bearing, HALF_PI
-from .core.conventions import azel_from_quaternion, quaternion_from_azel
+from .core.conventions import azel_from_quaternion, quaternion_from_azel, wrap_angle
+from .core.station import pose_sample, raw_reading, ReadingError
 
 #: Index of σ_ψ² (pitch) and σ_θ² (yaw) in the row-major 6x6 pose covariance.
 IDX_EL_VAR = 4 * 6 + 4
@@ -35,8 +46,13 @@ UNKNOWN_ROTATION_VARIANCE = 1.0e6
 #: Tolerances of the contract checks.
 QUATERNION_NORM_TOL = 1.0e-3
 ROLL_TOL = 1.0e-6
+#: Largest float below π/2: a received line of sight within rounding of the vertical is
+#: reported at this elevation (the azimuth stays defined by the yaw, see bearing_from_msg).
+MAX_ELEVATION = float(np.nextafter(HALF_PI, 0.0))
 
 NS_PER_S = 1_000_000_000
+#: builtin_interfaces/Time.sec is an int32.
+MAX_TIME_NS = (2 ** 31 - 1) * NS_PER_S + NS_PER_S - 1
 
 
 class ConversionError(ValueError):
@@ -48,10 +64,15 @@ class ConversionError(ValueError):
 
 
 def ns_to_time(ns):
-    """Integer nanoseconds -> builtin_interfaces/Time (sec, nanosec); ns must be >= 0."""
+    """Integer nanoseconds -> builtin_interfaces/Time (sec, nanosec), exact.
+
+    ns must be in [0, (2³¹ − 1) s + 999999999 ns] (Time.sec is an int32); else ValueError.
+    """
     ns = int(ns)
     if ns < 0:
         raise ValueError(f'stamp: negative time {ns} ns')
+    if ns > MAX_TIME_NS:
+        raise ValueError(f'stamp: {ns} ns does not fit builtin_interfaces/Time (int32 sec)')
     return Time(sec=ns // NS_PER_S, nanosec=ns % NS_PER_S)
 
 
@@ -61,7 +82,18 @@ def time_to_ns(t):
 
 
 def bearing_to_msg(bearing):
-    """Core :class:`Bearing` -> PoseWithCovarianceStamped following the contract above."""
+    """Core :class:`Bearing` -> PoseWithCovarianceStamped following the contract above.
+
+    The bearing is validated first (``Bearing.validate``: ValueError naming the field), and
+    an empty frame_id or a position covariance that is not a finite (3, 3) array is a
+    ValueError too, so a message that breaks the contract is never produced.
+    """
+    bearing.validate()
+    if not bearing.frame_id:
+        raise ValueError('frame_id: must not be empty')
+    pcov = np.asarray(bearing.position_covariance, dtype=float)
+    if pcov.shape != (3, 3) or not np.all(np.isfinite(pcov)):
+        raise ValueError('position_covariance: expected a finite (3, 3) array, m²')
     msg = PoseWithCovarianceStamped()
     msg.header.stamp = ns_to_time(bearing.stamp_ns)
     msg.header.frame_id = bearing.frame_id
@@ -72,7 +104,7 @@ def bearing_to_msg(bearing):
     o = msg.pose.pose.orientation
     o.x, o.y, o.z, o.w = map(float, q)
     cov = np.zeros((6, 6))
-    cov[:3, :3] = np.asarray(bearing.position_covariance, dtype=float)
+    cov[:3, :3] = pcov
     cov.flat[IDX_EL_VAR] = (bearing.sigma_elevation ** 2 if bearing.has_elevation
                             else NO_ELEVATION)
     cov.flat[IDX_AZ_VAR] = bearing.sigma_azimuth ** 2
@@ -86,10 +118,17 @@ def bearing_from_msg(msg, station, expected_frame=None):
     Rejected (reason tag in parentheses): empty frame_id (``empty_frame_id``), frame_id not
     equal to ``expected_frame`` when given (``wrong_frame``), non-finite position
     (``bad_position``), NaN or non-unit quaternion (``bad_quaternion``), roll ≠ 0
-    (``nonzero_roll``), azimuth variance NaN or <= 0 (``bad_azimuth_variance``), elevation
-    variance neither −1 nor finite > 0 (``bad_elevation_variance``), |elevation| >= π/2
-    (``bad_elevation``), non-finite or negative-diagonal position covariance
-    (``bad_position_covariance``).
+    (``nonzero_roll``: |sin φ cos ψ| or −cos φ cos ψ above 1e-6, so any roll of 1e-6/cos ψ or
+    more, including an upside-down φ = π), azimuth variance NaN or <= 0 (``bad_azimuth_variance``), elevation
+    variance neither −1 nor finite > 0 (``bad_elevation_variance``), non-finite or
+    negative-diagonal position covariance (``bad_position_covariance``).
+
+    The azimuth is returned wrapped to (−π, π]. Round trips through :func:`bearing_to_msg`
+    are exact up to float rounding (~1e-15 rad) for any θ and any |ψ| < π/2. A quaternion
+    can only say that a line of sight is within ~1e-16 rad of the vertical; such an
+    elevation is reported as :data:`MAX_ELEVATION` (the largest float below π/2), so a valid
+    message is never rejected because of rounding (the azimuth is read from the yaw, which
+    stays defined there).
     """
     frame = msg.header.frame_id
     if not frame:
@@ -106,8 +145,17 @@ def bearing_from_msg(msg, station, expected_frame=None):
     if not math.isfinite(norm) or abs(norm - 1.0) > QUATERNION_NORM_TOL:
         raise ConversionError('bad_quaternion', f'quaternion norm {norm:.6g} is not 1')
     az, el, roll = azel_from_quaternion(q)
-    if abs(float(roll)) > ROLL_TOL:
-        raise ConversionError('nonzero_roll', f'roll {float(roll):.3g} rad; a bearing has none')
+    az = float(wrap_angle(az))
+    el = float(np.clip(el, -MAX_ELEVATION, MAX_ELEVATION))
+    # Roll φ: (R e_y)_z = sin φ cos ψ (checked by azel_from_quaternion's roll) and
+    # (R e_z)_z = 1 − 2(x² + y²) = cos φ cos ψ, which is negative for |φ| > π/2: a roll of π
+    # leaves (R e_y)_z = 0 but flips R e_y, so without this second test the azimuth would be
+    # read off by π.
+    x, y = q[0] / norm, q[1] / norm
+    zz = 1.0 - 2.0 * (x * x + y * y)
+    if abs(float(roll)) > ROLL_TOL or zz < -ROLL_TOL:
+        phi = math.atan2(math.sin(float(roll)), zz)
+        raise ConversionError('nonzero_roll', f'roll about {phi:.3g} rad; a bearing has none')
     cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)
     var_az = cov.flat[IDX_AZ_VAR]
     if not math.isfinite(var_az) or var_az <= 0.0:
@@ -116,9 +164,7 @@ def bearing_from_msg(msg, station, expected_frame=None):
     if var_el == NO_ELEVATION:
         elevation, sigma_el = float('nan'), float('nan')
     elif math.isfinite(var_el) and var_el > 0.0:
-        elevation, sigma_el = float(el), math.sqrt(var_el)
-        if abs(elevation) >= HALF_PI:
-            raise ConversionError('bad_elevation', f'elevation {elevation} rad')
+        elevation, sigma_el = el, math.sqrt(var_el)
     else:
         raise ConversionError('bad_elevation_variance',
                               f'elevation variance {var_el} (use -1 for azimuth-only)')
@@ -126,7 +172,7 @@ def bearing_from_msg(msg, station, expected_frame=None):
     if not np.all(np.isfinite(pcov)) or np.any(np.diag(pcov) < 0.0):
         raise ConversionError('bad_position_covariance', 'non-finite or negative variance')
     return Bearing(station=station, stamp_ns=time_to_ns(msg.header.stamp), position=pos,
-                   azimuth=float(az), elevation=elevation, sigma_azimuth=math.sqrt(var_az),
+                   azimuth=az, elevation=elevation, sigma_azimuth=math.sqrt(var_az),
                    sigma_elevation=sigma_el, frame_id=frame, position_covariance=pcov.copy())
 
 
@@ -155,3 +201,103 @@ def fix_from_msg(msg):
     p = msg.pose.pose.position
     cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)[:3, :3].copy()
     return time_to_ns(msg.header.stamp), np.array([p.x, p.y, p.z]), cov
+
+
+def fix_to_navsat(position_enu, covariance_enu, stamp_ns, origin, frame_id):
+    """Estimate in the local ENU frame -> ``sensor_msgs/NavSatFix`` (``fix/navsat`` topic).
+
+    ``position_enu`` (3,) m and ``covariance_enu`` (3, 3) m² are in the ENU frame of the
+    geodetic ``origin`` (lat0_deg, lon0_deg, h0_m; WGS84). latitude/longitude (degrees) and
+    altitude (m above the WGS84 ellipsoid, as NavSatFix specifies) come from
+    :func:`bearing_loc_ros.core.geodesy.enu_to_geodetic` (pymap3d). NavSatFix's
+    position_covariance is ENU too, but in the tangent plane through the reported position,
+    so the covariance is rotated C' = R C Rᵀ with R from
+    :func:`~bearing_loc_ros.core.geodesy.enu_axes_rotation` (identity at the origin, a
+    1.6 mrad tilt 10 km away). status = STATUS_FIX, service = 0 (no GNSS involved),
+    position_covariance_type = COVARIANCE_TYPE_KNOWN. ValueError for non-finite input, a
+    bad origin or an empty frame_id.
+    """
+    p = np.asarray(position_enu, dtype=float)
+    c = np.asarray(covariance_enu, dtype=float)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise ValueError('position: expected 3 finite ENU coordinates, m')
+    if c.shape != (3, 3) or not np.all(np.isfinite(c)):
+        raise ValueError('covariance: expected a finite (3, 3) array, m²')
+    if not frame_id:
+        raise ValueError('frame_id: must not be empty')
+    lat, lon, alt = (float(v) for v in geodesy.enu_to_geodetic(p, origin))
+    R = geodesy.enu_axes_rotation(origin, lat, lon)
+    msg = NavSatFix()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.status.status = NavSatStatus.STATUS_FIX
+    msg.status.service = 0
+    msg.latitude, msg.longitude, msg.altitude = lat, lon, alt
+    msg.position_covariance = (R @ c @ R.T).ravel().tolist()
+    msg.position_covariance_type = NavSatFix.COVARIANCE_TYPE_KNOWN
+    return msg
+
+
+def navsat_to_fix(msg, origin):
+    """``sensor_msgs/NavSatFix`` -> (stamp_ns, position_enu (3,), covariance_enu (3, 3)).
+
+    Inverse of :func:`fix_to_navsat`: the position is converted to the ENU frame of
+    ``origin`` and the covariance rotated back, C = Rᵀ C' R (an unknown covariance type
+    gives NaN covariance). Rejected: status NO_FIX (``no_fix``), non-finite or out of range
+    latitude/longitude/altitude (``bad_position``).
+    """
+    if msg.status.status == NavSatStatus.STATUS_NO_FIX:
+        raise ConversionError('no_fix', 'status is STATUS_NO_FIX')
+    try:
+        pos = geodesy.geodetic_to_enu(msg.latitude, msg.longitude, msg.altitude, origin,
+                                      field='navsat')
+    except ValueError as exc:
+        raise ConversionError('bad_position', str(exc)) from None
+    if msg.position_covariance_type == NavSatFix.COVARIANCE_TYPE_UNKNOWN:
+        cov = np.full((3, 3), np.nan)
+    else:
+        R = geodesy.enu_axes_rotation(origin, msg.latitude, msg.longitude)
+        cov = R.T @ np.asarray(msg.position_covariance, dtype=float).reshape(3, 3) @ R
+    return time_to_ns(msg.header.stamp), pos, cov
+
+
+def _reading_error(exc):
+    return ConversionError(exc.reason, str(exc).partition(': ')[2])
+
+
+def raw_reading_from_msg(msg, input_units):
+    """``geometry_msgs/Vector3Stamped`` raw DF reading -> core ``RawReading``.
+
+    x = azimuth, y = elevation (NaN = not measured), in the sensor's own reference and in
+    ``input_units`` ('deg' or 'rad'); z is ignored; header.stamp is the observation time.
+    Rejected (``ConversionError`` reasons of :func:`bearing_loc_ros.core.station.raw_reading`):
+    ``bad_stamp`` (zero, i.e. not set), ``bad_azimuth`` (non-finite), ``bad_elevation``
+    (infinite).
+    """
+    try:
+        return raw_reading(time_to_ns(msg.header.stamp), msg.vector.x, msg.vector.y,
+                           input_units)
+    except ReadingError as exc:
+        raise _reading_error(exc) from None
+
+
+def pose_from_odometry(msg, expected_frame):
+    """``nav_msgs/Odometry`` -> core ``PoseSample`` (body pose in the world frame).
+
+    header.frame_id must equal ``expected_frame`` (the station's world frame), else
+    ``odometry_wrong_frame``; the pose's position, orientation (body -> world, REP-103 body
+    axes x forward, y left, z up) and position covariance block are validated by
+    :func:`bearing_loc_ros.core.station.pose_sample` (reasons ``odometry_bad_stamp``,
+    ``odometry_bad_position``, ``odometry_bad_quaternion``, ``odometry_bad_covariance``).
+    Twist is not used.
+    """
+    if msg.header.frame_id != expected_frame:
+        raise ConversionError('odometry_wrong_frame',
+                              f'frame_id {msg.header.frame_id!r} != {expected_frame!r}')
+    p, o = msg.pose.pose.position, msg.pose.pose.orientation
+    cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)[:3, :3]
+    try:
+        return pose_sample(time_to_ns(msg.header.stamp), [p.x, p.y, p.z],
+                           [o.x, o.y, o.z, o.w], cov)
+    except ReadingError as exc:
+        raise _reading_error(exc) from None
