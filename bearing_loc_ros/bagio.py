@@ -48,7 +48,7 @@ DEFAULT_STORAGE = 'mcap'
 
 #: Message type names used by bearing_loc_ros (DESIGN.md).
 POSE_COV_STAMPED = 'geometry_msgs/msg/PoseWithCovarianceStamped'
-POINT_STAMPED = 'geometry_msgs/msg/PointStamped'
+POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 CLOCK = 'rosgraph_msgs/msg/Clock'
 CLOCK_TOPIC = '/clock'
 
@@ -108,11 +108,14 @@ def qos_profile(depth=10, reliable=True, transient_local=False):
     }
 
 
-#: Offered QoS of bearing, truth and fix publishers (rclpy default depth 10, reliable).
+#: Offered QoS of topics without a more specific profile (rclpy default: depth 10, reliable).
 DEFAULT_QOS = qos_profile(10)
-#: Offered QoS of /clock (reliable, depth 1: matches both the best-effort rclpy TimeSource
-#: subscription and reliable subscribers).
-CLOCK_QOS = qos_profile(1)
+#: Offered QoS of the simulator node's publishers (simulator_node.BEARING_QOS, TRUTH_QOS,
+#: CLOCK_QOS): reliable, keep-last 100 for bearings and truth, 10 for /clock. A reliable
+#: /clock matches both the best-effort rclpy TimeSource subscription and reliable ones.
+SIM_BEARING_QOS = qos_profile(100)
+SIM_TRUTH_QOS = qos_profile(100)
+CLOCK_QOS = qos_profile(10)
 
 
 def _qos_to_rosbags(q):
@@ -199,12 +202,24 @@ def fix_message(position, covariance, stamp_ns, frame_id='map'):
     return _pose_cov_stamped(stamp_ns, frame_id, position, (0.0, 0.0, 0.0, 1.0), cov)
 
 
-def point_message(position, stamp_ns, frame_id='map'):
-    """Position (3,) m -> rosbags geometry_msgs/PointStamped."""
+def truth_message(position, stamp_ns, frame_id='map'):
+    """Ground truth (3,) m -> rosbags geometry_msgs/PoseStamped, identity orientation.
+
+    Same message as ``simulator_node.truth_to_msg`` (topic ``<target ns>/truth``).
+    """
     t = typestore().types
     p = [float(v) for v in position]
-    return t[POINT_STAMPED](header=_header(stamp_ns, frame_id),
-                            point=t['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]))
+    pose = t['geometry_msgs/msg/Pose'](
+        position=t['geometry_msgs/msg/Point'](x=p[0], y=p[1], z=p[2]),
+        orientation=t['geometry_msgs/msg/Quaternion'](x=0.0, y=0.0, z=0.0, w=1.0))
+    return t[POSE_STAMPED](header=_header(stamp_ns, frame_id), pose=pose)
+
+
+def position_of(msg):
+    """(3,) position of a PoseStamped / PoseWithCovarianceStamped (rosbags or rclpy), m."""
+    pose = msg.pose.pose if hasattr(msg.pose, 'pose') else msg.pose
+    p = pose.position
+    return np.array([p.x, p.y, p.z], dtype=float)
 
 
 def clock_message(stamp_ns):
