@@ -1,0 +1,306 @@
+"""bearing_loc_ros.core.station without ROS: datagrams, configuration, raw -> world bearings,
+platform pose interpolation.
+
+Expected bearings are computed from the geometry (target − station, seed 000 eq. (1)) and the
+reading is built the way each kind of sensor would report it, so the conversions are checked
+against the definition, not against themselves.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from bearing_loc_ros.core import geodesy
+from bearing_loc_ros.core.conventions import azimuth_elevation, wrap_angle
+from bearing_loc_ros.core.station import (ConfigError, parse_datagram, pose_sample, PoseBuffer,
+                                          raw_reading, ReadingError, station_config,
+                                          to_world_bearing)
+
+TOL = 1e-12  # radians: a few float operations on angles of order 1
+
+
+# ---------------------------------------------------------------- datagrams
+
+def test_datagram_full_and_exact_time():
+    r = parse_datagram(b'{"t": 1700000000.123456789, "azimuth_deg": 90, "elevation_deg": -45.0,'
+                       b' "sigma_deg": 2, "sigma_elevation_deg": 4.0, "extra": "ignored"}')
+    assert r.stamp_ns == 1_700_000_000_123_456_789  # exact, not float-rounded
+    assert r.azimuth == pytest.approx(math.pi / 2, abs=TOL)
+    assert r.elevation == pytest.approx(-math.pi / 4, abs=TOL)
+    assert r.sigma_azimuth == pytest.approx(math.radians(2.0))
+    assert r.sigma_elevation == pytest.approx(math.radians(4.0))
+
+
+def test_datagram_minimal_and_null_elevation():
+    for data in (b'{"t": 12, "azimuth_deg": -10.5}',
+                 '{"t": 12, "azimuth_deg": -10.5, "elevation_deg": null}'.encode()):
+        r = parse_datagram(data)
+        assert r.stamp_ns == 12 * 10 ** 9
+        assert r.azimuth == pytest.approx(math.radians(-10.5))
+        assert math.isnan(r.elevation) and math.isnan(r.sigma_azimuth)
+
+
+@pytest.mark.parametrize('data, reason', [
+    (b'', 'bad_json'),
+    (b'not json', 'bad_json'),
+    (b'\xff\xfe\x00', 'bad_json'),
+    (b'{"t": 1, "azimuth_deg": NaN}', 'bad_json'),
+    (b'{"t": 1, "azimuth_deg": Infinity}', 'bad_json'),
+    (b'[1, 2]', 'not_object'),
+    (b'"text"', 'not_object'),
+    (b'{"azimuth_deg": 1}', 'missing_t'),
+    (b'{"t": "now", "azimuth_deg": 1}', 'bad_t'),
+    (b'{"t": true, "azimuth_deg": 1}', 'bad_t'),
+    (b'{"t": -5, "azimuth_deg": 1}', 'bad_t'),
+    (b'{"t": 0, "azimuth_deg": 1}', 'bad_t'),
+    (b'{"t": 1e12, "azimuth_deg": 1}', 'bad_t'),
+    (b'{"t": 1e999999999, "azimuth_deg": 1}', 'bad_t'),
+    (b'{"t": 1}', 'missing_azimuth'),
+    (b'{"t": 1, "azimuth_deg": null}', 'bad_azimuth'),
+    (b'{"t": 1, "azimuth_deg": "10"}', 'bad_azimuth'),
+    (b'{"t": 1, "azimuth_deg": 1e400}', 'bad_azimuth'),
+    (b'{"t": 1, "azimuth_deg": 1, "elevation_deg": "up"}', 'bad_elevation'),
+    (b'{"t": 1, "azimuth_deg": 1, "elevation_deg": 1e400}', 'bad_elevation'),
+    (b'{"t": 1, "azimuth_deg": 1, "sigma_deg": 0}', 'bad_sigma'),
+    (b'{"t": 1, "azimuth_deg": 1, "sigma_deg": -1}', 'bad_sigma'),
+    (b'{"t": 1, "azimuth_deg": 1, "sigma_elevation_deg": [1]}', 'bad_sigma'),
+    (b'[' * 100000, 'bad_json'),
+])
+def test_datagram_rejections(data, reason):
+    with pytest.raises(ReadingError) as info:
+        parse_datagram(data)
+    assert info.value.reason == reason
+
+
+def test_datagram_without_t_when_restamping():
+    assert parse_datagram(b'{"azimuth_deg": 3}', require_t=False).azimuth == \
+        pytest.approx(math.radians(3))
+
+
+def test_raw_reading_units_and_rejections():
+    r = raw_reading(5, 180.0, 30.0, 'deg')
+    assert (r.azimuth, r.elevation) == pytest.approx((math.pi, math.pi / 6))
+    assert raw_reading(5, 1.0, units='rad').azimuth == 1.0
+    for kwargs, reason in (({'stamp_ns': 0}, 'bad_stamp'), ({'azimuth': math.inf},
+                                                             'bad_azimuth'),
+                           ({'elevation': -math.inf}, 'bad_elevation'),
+                           ({'sigma_azimuth': 0.0}, 'bad_sigma')):
+        args = {'stamp_ns': 5, 'azimuth': 1.0, **kwargs}
+        with pytest.raises(ReadingError) as info:
+            raw_reading(**args)
+        assert info.value.reason == reason
+    with pytest.raises(ValueError, match='units'):
+        raw_reading(5, 1.0, units='grad')
+
+
+# ---------------------------------------------------------------- configuration
+
+def test_config_enu_and_geodetic_positions():
+    c = station_config('s1', position=[1.0, 2.0, 3.0], position_covariance=[1.0, 4.0, 9.0],
+                       sigma_azimuth_deg=1.5, azimuth_offset_deg=-2.0)
+    np.testing.assert_array_equal(c.position, [1.0, 2.0, 3.0])
+    np.testing.assert_array_equal(c.position_covariance, np.diag([1.0, 4.0, 9.0]))
+    assert c.sigma_azimuth == pytest.approx(math.radians(1.5))
+    assert c.azimuth_offset == pytest.approx(math.radians(-2.0))
+    origin = [46.017, 7.750, 1673.0]
+    g = station_config('s1', geodetic_position=[45.976, 7.658, 4531.0], geodetic_origin=origin)
+    np.testing.assert_allclose(g.position, geodesy.geodetic_to_enu(45.976, 7.658, 4531.0,
+                                                                   origin))
+    m = station_config('s1', moving=True, geodetic_origin=origin)
+    assert m.position is None and m.moving
+
+
+@pytest.mark.parametrize('kwargs, field', [
+    ({}, 'position'),
+    ({'position': [1.0, 2.0]}, 'position'),
+    ({'position': [1.0, math.nan, 2.0]}, 'position'),
+    ({'position': [0.0, 0.0, 0.0], 'geodetic_position': [1.0, 2.0, 3.0]}, 'geodetic_position'),
+    ({'geodetic_position': [1.0, 2.0, 3.0]}, 'geodetic_origin'),
+    ({'geodetic_position': [1.0, 2.0, 3.0], 'geodetic_origin': [91.0, 0.0, 0.0]},
+     'geodetic_origin'),
+    ({'geodetic_position': [1.0, 200.0, 3.0], 'geodetic_origin': [1.0, 2.0, 0.0]},
+     'geodetic_position'),
+    ({'moving': True, 'position': [0.0, 0.0, 0.0]}, 'position'),
+    ({'moving': True, 'geodetic_origin': [0.0, 0.0]}, 'geodetic_origin'),
+    ({'position_covariance': [1.0, 2.0]}, 'position_covariance'),
+    ({'position_covariance': [1.0, -2.0, 3.0]}, 'position_covariance'),
+    ({'position_covariance': [1, 2, 0, 0, 1, 0, 0, 0, 1]}, 'position_covariance'),
+    ({'position_covariance': [1, 0, 0, 0, 1, 0, 0, 0, math.inf]}, 'position_covariance'),
+    ({'sigma_azimuth_deg': 0.0}, 'sigma_azimuth_deg'),
+    ({'sigma_elevation_deg': 200.0}, 'sigma_elevation_deg'),
+    ({'azimuth_reference': 'north'}, 'azimuth_reference'),
+    ({'azimuth_offset_deg': 400.0}, 'azimuth_offset_deg'),
+    ({'frame_id': ''}, 'frame_id'),
+])
+def test_config_errors_name_the_parameter(kwargs, field):
+    if 'position' not in kwargs and 'geodetic_position' not in kwargs and field != 'position' \
+            and not kwargs.get('moving'):
+        kwargs = {'position': [0.0, 0.0, 0.0], **kwargs}
+    with pytest.raises(ConfigError) as info:
+        station_config('s1', **kwargs)
+    assert info.value.field == field
+    assert str(info.value).startswith(field + ': ')
+
+
+def test_config_needs_a_station_id():
+    with pytest.raises(ConfigError) as info:
+        station_config('', position=[0.0, 0.0, 0.0])
+    assert info.value.field == 'station_id'
+
+
+# ---------------------------------------------------------------- raw -> world
+
+STATION = np.array([100.0, -50.0, 10.0])
+TARGETS = np.array([[900.0, 400.0, 300.0], [-700.0, -20.0, 5.0], [90.0, -800.0, -200.0],
+                    [-300.0, 600.0, 900.0], [99.0, -50.0 - 1e-3, 10.0]])
+
+
+@pytest.mark.parametrize('reference', ['enu', 'compass'])
+@pytest.mark.parametrize('offset_deg', [0.0, 7.5, -123.0])
+@pytest.mark.parametrize('two_d', [True, False])
+def test_fixed_station_matches_geometry(reference, offset_deg, two_d):
+    c = station_config('s1', position=STATION, azimuth_reference=reference,
+                       azimuth_offset_deg=offset_deg, measures_elevation=two_d,
+                       sigma_azimuth_deg=1.0, sigma_elevation_deg=3.0)
+    delta = math.radians(offset_deg)
+    for target in TARGETS:
+        theta, psi = (float(v) for v in azimuth_elevation(target - STATION))
+        # What the sensor reports: its own reference, minus its mounting offset.
+        raw = (theta if reference == 'enu' else math.pi / 2 - theta) - delta
+        b = to_world_bearing(raw_reading(77, raw, psi), c)
+        assert abs(wrap_angle(b.azimuth - theta)) < TOL and -math.pi < b.azimuth <= math.pi
+        assert b.stamp_ns == 77 and b.station == 's1' and b.frame_id == 'map'
+        np.testing.assert_array_equal(b.position, STATION)
+        assert b.sigma_azimuth == pytest.approx(math.radians(1.0))
+        if two_d:
+            assert b.elevation == pytest.approx(psi, abs=TOL)
+            assert b.sigma_elevation == pytest.approx(math.radians(3.0))
+        else:
+            assert not b.has_elevation and math.isnan(b.sigma_elevation)
+        b.validate()
+
+
+def test_compass_examples_and_offset_sign():
+    c = station_config('s1', position=[0.0, 0.0, 0.0], azimuth_reference='compass',
+                       azimuth_offset_deg=10.0)
+    # Compass 80° + offset 10° = 90° = due East -> ENU azimuth 0.
+    assert to_world_bearing(raw_reading(1, 80.0, units='deg'), c).azimuth == \
+        pytest.approx(0.0, abs=TOL)
+    c = station_config('s1', position=[0.0, 0.0, 0.0], azimuth_offset_deg=10.0)
+    # ENU 80° + 10° = 90° = due North.
+    assert to_world_bearing(raw_reading(1, 80.0, units='deg'), c).azimuth == \
+        pytest.approx(math.pi / 2)
+
+
+def test_reading_sigma_overrides_and_bad_elevation():
+    c = station_config('s1', position=[0.0, 0.0, 0.0], measures_elevation=True)
+    b = to_world_bearing(raw_reading(1, 0.1, 0.2, sigma_azimuth=0.05, sigma_elevation=0.07), c)
+    assert (b.sigma_azimuth, b.sigma_elevation) == (0.05, 0.07)
+    with pytest.raises(ReadingError) as info:
+        to_world_bearing(raw_reading(1, 0.1, math.pi / 2), c)
+    assert info.value.reason == 'bad_elevation'
+    # A 2D station whose reading lacks an elevation publishes an azimuth-only bearing.
+    assert not to_world_bearing(raw_reading(1, 0.1), c).has_elevation
+
+
+def _body_reading(target, pose, reference, delta):
+    """What a body-mounted sensor reports for ``target`` (REP-103 body axes)."""
+    u_b = Rotation.from_quat(pose.quaternion).inv().apply(target - pose.position)
+    theta_b, psi_b = (float(v) for v in azimuth_elevation(u_b))
+    raw = (theta_b if reference == 'enu' else -theta_b) - delta
+    return raw, psi_b
+
+
+@pytest.mark.parametrize('reference', ['enu', 'compass'])
+def test_moving_platform_matches_geometry(reference):
+    c = station_config('boat', moving=True, measures_elevation=True, azimuth_reference=reference,
+                       azimuth_offset_deg=15.0, position_covariance=[1.0, 1.0, 1.0])
+    rng = np.random.default_rng(3)
+    for k in range(20):
+        q = Rotation.from_euler('ZYX', [rng.uniform(-np.pi, np.pi), rng.uniform(-0.4, 0.4),
+                                        rng.uniform(-0.4, 0.4)]).as_quat()
+        pose = pose_sample(5, rng.uniform(-100, 100, 3), q, 0.5 * np.eye(3))
+        target = rng.uniform(-2000, 2000, 3)
+        raw, psi_b = _body_reading(target, pose, reference, math.radians(15.0))
+        b = to_world_bearing(raw_reading(5, raw, psi_b), c, pose)
+        theta, psi = (float(v) for v in azimuth_elevation(target - pose.position))
+        assert abs(wrap_angle(b.azimuth - theta)) < 1e-9
+        assert b.elevation == pytest.approx(psi, abs=1e-9)
+        np.testing.assert_array_equal(b.position, pose.position)
+        np.testing.assert_allclose(b.position_covariance, 1.5 * np.eye(3))
+
+
+def test_moving_platform_level_1d_and_relative_bearing():
+    """Heading 30° (ENU yaw); a contact 90° to starboard (compass relative 90°) is at
+    yaw 30° − 90° = −60°."""
+    c = station_config('boat', moving=True, azimuth_reference='compass')
+    pose = pose_sample(1, [1.0, 2.0, 0.0], Rotation.from_euler('z', 30, degrees=True).as_quat())
+    b = to_world_bearing(raw_reading(1, 90.0, units='deg'), c, pose)
+    assert b.azimuth == pytest.approx(math.radians(-60.0)) and not b.has_elevation
+    with pytest.raises(ValueError, match='pose'):
+        to_world_bearing(raw_reading(1, 90.0, units='deg'), c)
+
+
+# ---------------------------------------------------------------- pose buffer
+
+def _pose(t_ns, x, yaw_deg):
+    return pose_sample(t_ns, [x, 2.0 * x, 0.0],
+                       Rotation.from_euler('z', yaw_deg, degrees=True).as_quat(),
+                       np.eye(3) * (1.0 + x))
+
+
+def test_pose_buffer_interpolation():
+    buf = PoseBuffer(maxlen=10, tolerance_ns=50)
+    with pytest.raises(ReadingError) as info:
+        buf.interpolate(0)
+    assert info.value.reason == 'no_odometry'
+    assert buf.add(_pose(1000, 0.0, 0.0)) == 'ok'
+    assert buf.add(_pose(2000, 10.0, 90.0)) == 'ok'
+    p = buf.interpolate(1250)
+    np.testing.assert_allclose(p.position, [2.5, 5.0, 0.0])
+    np.testing.assert_allclose(p.position_covariance, np.eye(3) * 3.5)
+    yaw = Rotation.from_quat(p.quaternion).as_euler('ZYX', degrees=True)
+    np.testing.assert_allclose(yaw, [22.5, 0.0, 0.0], atol=1e-9)  # slerp: uniform rate
+    # Within the tolerance outside the interval: the nearest pose, held.
+    np.testing.assert_allclose(buf.interpolate(2040).position, [10.0, 20.0, 0.0])
+    np.testing.assert_allclose(buf.interpolate(960).position, [0.0, 0.0, 0.0])
+    for t, reason in ((2051, 'after_odometry'), (949, 'before_odometry')):
+        with pytest.raises(ReadingError) as info:
+            buf.interpolate(t)
+        assert info.value.reason == reason
+
+
+def test_pose_buffer_slerp_takes_the_short_way():
+    buf = PoseBuffer()
+    buf.add(_pose(0 + 1, 0.0, 170.0))
+    buf.add(_pose(100 + 1, 0.0, -170.0))
+    yaw = Rotation.from_quat(buf.interpolate(51).quaternion).as_euler('ZYX', degrees=True)[0]
+    assert abs(wrap_angle(math.radians(yaw) - math.pi)) < 1e-9
+
+
+def test_pose_buffer_bounded_ordered_and_reset():
+    buf = PoseBuffer(maxlen=3, tolerance_ns=0)
+    for k in range(1, 6):
+        buf.add(_pose(k * 100, float(k), 0.0))
+    assert len(buf) == 3 and buf.interval == (300, 500)
+    assert buf.add(_pose(500, 9.0, 0.0)) == 'duplicate'
+    assert buf.interval == (300, 500)
+    assert buf.add(_pose(50, 0.0, 0.0)) == 'reset'  # time jumped back (bag restarted)
+    assert len(buf) == 1 and buf.interval == (50, 50)
+    with pytest.raises(ValueError):
+        PoseBuffer(maxlen=1)
+
+
+def test_pose_sample_rejections():
+    q = [0.0, 0.0, 0.0, 1.0]
+    for args, reason in ((dict(stamp_ns=0), 'odometry_bad_stamp'),
+                         (dict(position=[0, math.nan, 0]), 'odometry_bad_position'),
+                         (dict(quaternion=[0, 0, 0, 2.0]), 'odometry_bad_quaternion'),
+                         (dict(quaternion=[math.nan, 0, 0, 1]), 'odometry_bad_quaternion'),
+                         (dict(position_covariance=-np.eye(3)), 'odometry_bad_covariance')):
+        kw = {'stamp_ns': 1, 'position': [0, 0, 0], 'quaternion': q, **args}
+        with pytest.raises(ReadingError) as info:
+            pose_sample(**kw)
+        assert info.value.reason == reason
