@@ -53,6 +53,8 @@ DEFAULT_ESTIMATOR = 'mle'
 #: Default reference range d_ref (m) of ``wmle`` (seed 003 eqs. (9)-(10)).
 DEFAULT_REFERENCE_RANGE = 1000.0
 
+_CHI2_STEP_TOL = 1e-10   # converged when the Gauss-Newton step is < 1e-5 standard deviations
+_COST_RTOL = 1e-12       # ... or its predicted cost decrease is below the cost's rounding
 _COMMON_OPTIONS = {'max_iterations': 50, 'tolerance': 1e-9}
 _ITERATIVE_OPTIONS = dict(_COMMON_OPTIONS, initial=None)
 
@@ -142,7 +144,7 @@ def _start(method, bearings, options, defaults):
     opts = parse_options(method, options, defaults, bearings.M)
     x0 = opts.get('initial')
     if x0 is None:
-        x0 = ls(bearings).position
+        x0 = _ls(bearings).position
     return opts, x0
 
 
@@ -215,7 +217,13 @@ def ls(bearings, **options):
     HᵀH is singular (for example parallel bearings). Options: only the common
     ``max_iterations``/``tolerance`` (ignored).
     """
+    bearings.validate()
     parse_options('ls', options, _COMMON_OPTIONS)
+    return _ls(bearings)
+
+
+def _ls(bearings):
+    """:func:`ls` without validation (the initial guess of the iterative estimators)."""
     H, Y, _ = pseudo_linear_system(bearings)
     A = np.einsum('mnki,mnkj->mij', H, H)
     b = np.einsum('mnki,mnk->mi', H, Y)
@@ -246,6 +254,7 @@ def tls(bearings, **options):
     (HᵀH)⁻¹HᵀΣH(HᵀH)⁻¹ (see :func:`ls`), m². Status degenerate_geometry where HᵀH − σ₄²I is
     singular (the TLS solution does not exist, v₄(1) = 0).
     """
+    bearings.validate()
     parse_options('tls', options, _COMMON_OPTIONS)
     H, Y, _ = pseudo_linear_system(bearings)
     A = np.einsum('mnki,mnkj->mij', H, H)
@@ -351,6 +360,10 @@ class _MLProblem:
         iterate's W_i (used to accept or reject a step); the returned weight factor is that of
         X itself. Returns (cost, A, b, scale, cost_under_old_weights, weight_factor).
         """
+        with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+            return self._evaluate(X, old_weight_scale)
+
+    def _evaluate(self, X, old_weight_scale):
         dx = X[:, 0:1] - self.px
         dy = X[:, 1:2] - self.py
         dz = X[:, 2:3] - self.pz
@@ -373,16 +386,15 @@ class _MLProblem:
                 old_cost = np.sum(old_weight_scale * (w_az * ea2 + w_el * ee2), axis=1)
             w_az = w_az * wf
             w_el = w_el * wf
-        with np.errstate(divide='ignore', invalid='ignore'):
-            # Angle gradients, crlb.angle_jacobians: ∇θ = (−dy, dx, 0)/ρ²,
-            # ∇ψ = (−dx dz, −dy dz, ρ²)/(ρ r²).
-            inv_rho2 = 1.0 / rho2
-            t = dz / (rho * r2)
-            gax = -dy * inv_rho2
-            gay = dx * inv_rho2
-            gex = -dx * t
-            gey = -dy * t
-            gez = rho / r2
+        # Angle gradients, crlb.angle_jacobians: ∇θ = (−dy, dx, 0)/ρ²,
+        # ∇ψ = (−dx dz, −dy dz, ρ²)/(ρ r²).
+        inv_rho2 = 1.0 / rho2
+        t = dz / (rho * r2)
+        gax = -dy * inv_rho2
+        gay = dx * inv_rho2
+        gex = -dx * t
+        gey = -dy * t
+        gez = rho / r2
         wax, way = w_az * gax, w_az * gay
         wex, wey, wez = w_el * gex, w_el * gey, w_el * gez
         M = X.shape[0]
@@ -409,7 +421,9 @@ def _levenberg_marquardt(problem, x0, max_iterations, tolerance):
     Step: (A + λ diag(A)) Δ = b, X ← X + Δ if the cost does not increase (else the step is
     rejected and λ ← max(10λ, 10⁻³)); λ starts at 0 (pure Gauss-Newton, eq. (8)) and is
     divided by 10 after an accepted step. Converged when the undamped Gauss-Newton step
-    A⁻¹b is shorter than ``tolerance`` × rms range. Problems are iterated together; converged
+    Δ = A⁻¹b is shorter than ``tolerance`` × rms range, or when its predicted cost decrease
+    bᵀΔ = ΔᵀAΔ (the squared step length in standard deviations) is below 1e-10 or below
+    1e-12 × cost (smaller decreases cannot be resolved in floating point). Problems are iterated together; converged
     ones are frozen, and the working set is compacted when it halves (no Python loop over
     problems). Returns (X, A at X, iterations, converged, diverged) — A is the Fisher
     information at X (seed 003 eqs. (6)-(8)), in 1/m².
@@ -462,7 +476,12 @@ def _levenberg_marquardt(problem, x0, max_iterations, tolerance):
         step = np.where((s_lam > 0)[:, None], _solve3(A_damped, s_b), step_gn)
         Xt = s_X + np.where(run[:, None], np.nan_to_num(step), 0.0)
         c_t, A_t, b_t, sc_t, c_old, wf_t = sub.evaluate(Xt, s_wf)
-        small = np.linalg.norm(step_gn, axis=1) <= tolerance * s_scale
+        # Converged: the undamped step is short relative to the range, or its predicted cost
+        # decrease bᵀA⁻¹b (χ² units: the squared step length in standard deviations) is below
+        # 1e-10 or below the rounding level of the cost itself.
+        decrease = np.einsum('mi,mi->m', s_b, step_gn)
+        small = ((np.linalg.norm(step_gn, axis=1) <= tolerance * s_scale)
+                 | (np.abs(decrease) <= np.maximum(_CHI2_STEP_TOL, _COST_RTOL * s_cost)))
         accept = run & np.isfinite(c_t) & (c_old <= s_cost) & np.all(np.isfinite(step), axis=1)
         s_X = np.where(accept[:, None], Xt, s_X)
         s_cost = np.where(accept, c_t, s_cost)

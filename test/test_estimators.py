@@ -1,0 +1,298 @@
+"""Estimators of core/estimators.py and core/ctls.py: exactness, maths, options, degenerate input.
+
+Statistical (Monte Carlo) acceptance tests live in test_estimators_mc.py.
+"""
+import numpy as np
+import pytest
+
+from bearing_loc_ros.core.bearings import BearingSet, simulate_bearings
+from bearing_loc_ros.core.crlb import crlb_for
+from bearing_loc_ros.core.ctls import ctls_cost, ctls_covariance, ctls_derivatives
+from bearing_loc_ros.core.estimators import (DEFAULT_ESTIMATOR, ESTIMATORS, FixResult, locate,
+                                             noise_model_crlb, pseudo_linear_system,
+                                             range_scaled_sigmas, STATUSES, tls)
+
+ALL = sorted(ESTIMATORS)
+
+
+def random_problems(rng, M, N, spread=10e3, sigma=2e-3, noise=False):
+    """M random geometries of N stations (mixed 1D/2D, at least one 2D) around a target.
+
+    Stations within ±spread horizontally and ±spread/20 vertically of a random origin offset,
+    the target 0.2..1 spread away horizontally and 0.05..0.5 spread above the stations.
+    """
+    offset = rng.uniform(-50e3, 50e3, size=(M, 1, 3))
+    pos = offset + rng.uniform(-1, 1, size=(M, N, 3)) * [spread, spread, spread / 20]
+    ang = rng.uniform(-np.pi, np.pi, M)
+    rad = rng.uniform(0.2, 1.0, M) * spread
+    tgt = offset[:, 0] + np.column_stack([rad * np.cos(ang), rad * np.sin(ang),
+                                          rng.uniform(0.05, 0.5, M) * spread])
+    has_el = rng.random((M, N)) < 0.5
+    has_el[:, 0] = True
+    bs = simulate_bearings(tgt, pos, sigma, rng=rng if noise else None)
+    el = np.where(has_el, bs.elevation, np.nan)
+    return tgt, BearingSet.from_arrays(bs.positions, bs.azimuth, el, bs.sigma_az, bs.sigma_el)
+
+
+def seed000_stations():
+    return np.array([[30.0, -10.0, 0.1], [30.0, 20.0, 0.2], [-30.0, 5.0, 0.15]]) * 1e3
+
+
+@pytest.mark.parametrize('N', [3, 4, 6, 10])
+@pytest.mark.parametrize('method', ALL)
+def test_noise_free_bearings_recover_the_target(method, N):
+    rng = np.random.default_rng(100 + N)
+    tgt, bs = random_problems(rng, 40, N)
+    r = locate(method, bs)
+    assert isinstance(r, FixResult) and r.method == method
+    assert r.position.shape == (40, 3) and r.covariance.shape == (40, 3, 3)
+    assert np.all(r.converged) and np.all(r.status == 'ok')
+    scale = np.sqrt(np.mean(np.sum((tgt[:, None] - bs.positions) ** 2, axis=-1), axis=1))
+    rel = np.linalg.norm(r.position - tgt, axis=1) / scale
+    assert rel.max() < 1e-6
+
+
+@pytest.mark.parametrize('method', ALL)
+def test_batch_equals_problem_by_problem(method):
+    rng = np.random.default_rng(7)
+    _, bs = random_problems(rng, 12, 5, noise=True, sigma=0.01)
+    batch = locate(method, bs)
+    for m in range(bs.M):
+        one = locate(method, bs.problem(m))
+        assert one.status[0] == batch.status[m]
+        np.testing.assert_allclose(one.position[0], batch.position[m], rtol=1e-9, atol=1e-6)
+        np.testing.assert_allclose(one.covariance[0], batch.covariance[m], rtol=1e-6)
+
+
+@pytest.mark.parametrize('method', ALL)
+def test_results_are_well_formed_on_noisy_hard_input(method):
+    # Large noise, short baselines, mixed 1D/2D: whatever happens, a converged result has a
+    # finite position and a finite symmetric positive definite covariance; NaN only for
+    # degenerate_geometry.
+    rng = np.random.default_rng(11)
+    _, bs = random_problems(rng, 300, 3, spread=2e3, sigma=0.15, noise=True)
+    r = locate(method, bs)
+    assert set(np.unique(r.status)) <= set(STATUSES)
+    assert np.array_equal(r.converged, r.status == 'ok')
+    ok = r.converged
+    assert np.all(np.isfinite(r.position[ok])) and np.all(np.isfinite(r.covariance[ok]))
+    assert np.all(np.linalg.eigvalsh(r.covariance[ok])[:, 0] > 0)
+    nan_rows = ~np.all(np.isfinite(r.position), axis=1)
+    assert np.all(r.status[nan_rows] == 'degenerate_geometry')
+    assert r.iterations.shape == (300,) and r.iterations.dtype.kind == 'i'
+
+
+def test_tls_is_the_smallest_right_singular_vector_of_minus_y_h():
+    # Seed 000 eq. (5): X_TLS = v4(2:4) / v4(1), v4 of [−Y H] (absent elevation rows dropped).
+    rng = np.random.default_rng(5)
+    _, bs = random_problems(rng, 20, 6, noise=True, sigma=0.02)
+    H, Y, mask = pseudo_linear_system(bs)
+    r = tls(bs)
+    for m in range(bs.M):
+        rows = mask[m].reshape(-1)
+        C = np.concatenate([-Y[m][..., None], H[m]], axis=-1).reshape(-1, 4)[rows]
+        v = np.linalg.svd(C)[2][-1]
+        np.testing.assert_allclose(r.position[m], v[1:] / v[0], rtol=1e-9)
+
+
+@pytest.mark.parametrize('weighting', ['paper', 'am'])
+def test_ctls_gradient_and_hessian_match_finite_differences(weighting):
+    # Seed 000 appendix A: T_n and H_n are the derivatives of f of eq. (11) (mixed 1D/2D).
+    rng = np.random.default_rng(3)
+    tgt, bs = random_problems(rng, 1, 6, spread=5e3, sigma=0.02, noise=True)
+    X = tgt + rng.normal(size=(1, 3)) * 300.0
+    f, T, Hn, _ = ctls_derivatives(X, bs, weighting)
+    assert f[0] == pytest.approx(ctls_cost(X, bs, weighting)[0])
+    h = 1e-2
+    T_num = np.zeros(3)
+    H_num = np.zeros((3, 3))
+    for i in range(3):
+        e = np.zeros((1, 3))
+        e[0, i] = h
+        T_num[i] = (ctls_cost(X + e, bs, weighting) - ctls_cost(X - e, bs, weighting))[0] / (2 * h)
+        H_num[:, i] = (ctls_derivatives(X + e, bs, weighting)[1]
+                       - ctls_derivatives(X - e, bs, weighting)[1])[0] / (2 * h)
+    np.testing.assert_allclose(T[0], T_num, rtol=1e-6, atol=1e-8 * np.abs(T_num).max())
+    np.testing.assert_allclose(Hn[0], H_num, rtol=1e-5, atol=1e-7 * np.abs(H_num).max())
+
+
+def test_ctls_am_covariance_is_the_crlb_and_paper_ctls_is_not_smaller():
+    # Eq. (30) with G⁻¹ = P_E collapses to [H*ᵀ(H_X P_E H_Xᵀ)⁻¹H*]⁻¹ = J⁻¹; any other
+    # weighting (the paper's G) gives a sandwich that is ≥ the CRLB in the PSD sense.
+    rng = np.random.default_rng(9)
+    tgt, bs = random_problems(rng, 30, 5)
+    bound = crlb_for(tgt, bs)
+    np.testing.assert_allclose(ctls_covariance(tgt, bs, 'am'), bound, rtol=1e-7)
+    P = ctls_covariance(tgt, bs, 'paper')
+    assert np.all(np.linalg.eigvalsh(P - bound)[:, 0] > -1e-9 * np.trace(bound, axis1=1,
+                                                                         axis2=2))
+
+
+def test_mle_covariance_is_the_crlb_at_the_estimate():
+    rng = np.random.default_rng(13)
+    _, bs = random_problems(rng, 25, 6, noise=True, sigma=0.01)
+    r = locate('mle', bs)
+    np.testing.assert_allclose(r.covariance, crlb_for(r.position, bs), rtol=1e-9)
+
+
+def test_origin_and_unit_dependence_of_ctls_and_invariance_of_the_others():
+    st = seed000_stations()
+    tgt = np.array([20e3, 40e3, 5e3])
+    rng = np.random.default_rng(21)
+    bs = simulate_bearings(np.tile(tgt, (20, 1)), st, 4.5e-3, rng=rng)
+    shift = np.array([-300e3, 400e3, 0.0])
+
+    def shifted(scale, origin):
+        return BearingSet((bs.positions - origin) / scale, bs.azimuth, bs.elevation,
+                          bs.sigma_az, bs.sigma_el)
+
+    # The iterations stop once a step is < 1e-5 standard deviations (~3 mm here): agreement
+    # to 1 cm is invariance up to the convergence tolerance.
+    for method in ('mle', 'ctls_am', 'wmle'):
+        base = locate(method, bs).position
+        np.testing.assert_allclose(locate(method, shifted(1.0, shift)).position + shift, base,
+                                   rtol=0, atol=1e-2)
+        np.testing.assert_allclose(locate(method, shifted(1e3, 0)).position * 1e3, base,
+                                   rtol=0, atol=1e-2)
+    base = locate('ctls', bs).position
+    moved = locate('ctls', shifted(1.0, shift)).position + shift
+    # The paper's CTLS moves by a sizeable fraction of its own error (~300 m here).
+    assert np.median(np.linalg.norm(moved - base, axis=1)) > 10.0
+
+
+def test_wmle_estimate_does_not_depend_on_reference_range_only_its_covariance_does():
+    # σ(d) = σ_ref d / d_ref scales every weight by the same (d_ref'/d_ref)², so the
+    # minimiser of eq. (3) with W of eq. (11) is unchanged; the covariance scales by the
+    # inverse factor.
+    rng = np.random.default_rng(17)
+    _, bs = random_problems(rng, 10, 6, noise=True, sigma=0.01)
+    a = locate('wmle', bs, reference_range=1000.0)
+    b = locate('wmle', bs, reference_range=4000.0)
+    np.testing.assert_allclose(a.position, b.position, rtol=1e-9, atol=1e-5)
+    np.testing.assert_allclose(a.covariance, 16.0 * b.covariance, rtol=1e-6)
+    np.testing.assert_allclose(a.covariance,
+                               noise_model_crlb('wmle', a.position, bs, reference_range=1000.0),
+                               rtol=1e-8)
+    saz, sel = range_scaled_sigmas(bs, a.position, 1000.0)
+    d = np.linalg.norm(a.position[:, None] - bs.positions, axis=-1)
+    np.testing.assert_allclose(saz, bs.sigma_az * d / 1000.0)
+    assert np.array_equal(np.isnan(sel), ~bs.has_elevation)
+
+
+def test_mle_handles_azimuth_wrap_behind_the_stations():
+    # Target due West of two stations: true azimuths ±π; noisy values straddle the wrap.
+    st = np.array([[1000.0, 300.0, 0.0], [1200.0, -400.0, 10.0], [900.0, 50.0, 5.0]])
+    tgt = np.array([-5000.0, 0.0, 800.0])
+    rng = np.random.default_rng(2)
+    bs = simulate_bearings(np.tile(tgt, (200, 1)), st, 0.01, rng=rng)
+    assert np.any(bs.azimuth > 3.0) and np.any(bs.azimuth < -3.0)
+    r = locate('mle', bs)
+    assert np.all(r.converged)
+    err = np.linalg.norm(r.position - tgt, axis=1)
+    assert np.median(err) < 3 * np.sqrt(np.trace(crlb_for(tgt[None], bs.problem(0))[0]))
+
+
+def test_mle_from_a_terrible_start_never_increases_cost_into_nan():
+    st = seed000_stations()
+    tgt = np.array([10e3, 20e3, 5e3])
+    bs = simulate_bearings(np.tile(tgt, (50, 1)), st, 3e-3, rng=np.random.default_rng(4))
+    starts = np.random.default_rng(5).uniform(-1e6, 1e6, size=(50, 3))
+    r = locate('mle', bs, initial=starts, max_iterations=200)
+    ok = r.converged
+    assert np.all(np.isfinite(r.position[ok]))
+    assert np.all(r.status[~ok] != 'ok')
+    # Most starts (even 1000 km away) still reach the ML fix near the target.
+    assert np.mean(np.linalg.norm(r.position[ok] - tgt, axis=1) < 2e3) * ok.mean() > 0.5
+
+
+def test_default_estimator_is_registered():
+    assert DEFAULT_ESTIMATOR == 'mle' and DEFAULT_ESTIMATOR in ESTIMATORS
+    bs = simulate_bearings([1e3, 2e3, 300.0], seed000_stations() / 10, 1e-3)
+    assert locate(None, bs).method == DEFAULT_ESTIMATOR
+
+
+# ---------------------------------------------------------------------------------------------
+# Options and bad input
+
+
+def _one():
+    return simulate_bearings([1e3, 2e3, 300.0], seed000_stations() / 10, 1e-3)
+
+
+@pytest.mark.parametrize('method', ALL)
+def test_unknown_option_is_named(method):
+    with pytest.raises(ValueError, match=r'^options\.bogus: unknown option'):
+        locate(method, _one(), bogus=1)
+
+
+@pytest.mark.parametrize('kwargs, field', [
+    ({'max_iterations': 0}, 'max_iterations'),
+    ({'max_iterations': 2.5}, 'max_iterations'),
+    ({'tolerance': -1.0}, 'tolerance'),
+    ({'tolerance': float('nan')}, 'tolerance'),
+    ({'initial': [1.0, 2.0]}, 'initial'),
+    ({'initial': [1.0, np.nan, 2.0]}, 'initial'),
+])
+def test_bad_option_values_are_named(kwargs, field):
+    with pytest.raises(ValueError, match=rf'^options\.{field}:'):
+        locate('mle', _one(), **kwargs)
+
+
+def test_method_specific_options():
+    with pytest.raises(ValueError, match=r'^options\.reference_range'):
+        locate('mle', _one(), reference_range=1000.0)
+    with pytest.raises(ValueError, match=r'^options\.reference_range: must be'):
+        locate('wmle', _one(), reference_range=0.0)
+    with pytest.raises(ValueError, match=r'^options\.step_decay: must be'):
+        locate('ctls', _one(), step_decay=1.5)
+    r = locate('ctls', _one(), step_decay=0.9, max_iterations=200)
+    assert r.converged[0]
+    assert locate('ls', _one(), max_iterations=3).converged[0]     # common options accepted
+    with pytest.raises(ValueError, match=r'^method: unknown estimator'):
+        locate('nope', _one())
+
+
+def test_initial_option_is_used():
+    bs = _one()
+    r = locate('mle', bs, initial=[1e3 + 5.0, 2e3 - 5.0, 310.0], max_iterations=1)
+    assert r.iterations[0] == 1
+
+
+def test_degenerate_target_on_baseline_of_two_stations():
+    st = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0]])
+    for tgt in ([3000.0, 0.0, 0.0], [500.0, 0.0, 0.0]):
+        bs = simulate_bearings(tgt, st, 1e-3)
+        for method in ALL:
+            r = locate(method, bs)
+            assert not r.converged[0], method
+            assert r.status[0] == 'degenerate_geometry', method
+            assert np.all(np.isnan(r.position[0])) and np.all(np.isinf(r.covariance[0]))
+
+
+def test_degenerate_parallel_bearings():
+    st = np.array([[0.0, 0.0, 0.0], [0.0, 500.0, 0.0], [0.0, -500.0, 0.0]])
+    bs = BearingSet.from_arrays(st, [0.0, 0.0, 0.0], [0.1, 0.1, 0.1], 1e-3, 1e-3)
+    for method in ALL:
+        r = locate(method, bs)
+        assert not r.converged[0] and r.status[0] != 'ok', method
+        assert not (np.all(np.isfinite(r.position)) and r.converged[0])
+
+
+@pytest.mark.parametrize('method', ALL)
+def test_bad_bearings_raise_value_error(method):
+    st = seed000_stations()
+    with pytest.raises(ValueError, match='at least two'):
+        locate(method, BearingSet.from_arrays(st[:1], [0.1], [0.1], 1e-3, 1e-3,
+                                              validate=False))
+    fn = ESTIMATORS[method]   # the estimators validate on their own too
+    for field, kw in (('azimuth', dict(azimuth=[0.1, np.nan, 0.2])),
+                      ('sigma_azimuth', dict(sigma_az=[1e-3, 0.0, 1e-3])),
+                      ('sigma_azimuth', dict(sigma_az=[1e-3, -1.0, 1e-3])),
+                      ('sigma_elevation', dict(sigma_el=[1e-3, 1e-3, 0.0])),
+                      ('position', dict(positions=np.where([[0], [1], [0]], np.nan, st)))):
+        args = dict(positions=st, azimuth=[0.1, 0.2, 0.3], elevation=[0.1, 0.1, 0.1],
+                    sigma_az=1e-3, sigma_el=1e-3)
+        args.update(kw)
+        bad = BearingSet.from_arrays(validate=False, **args)
+        with pytest.raises(ValueError, match=field):
+            fn(bad)
