@@ -423,10 +423,10 @@ def _levenberg_marquardt(problem, x0, max_iterations, tolerance):
     divided by 10 after an accepted step. Converged when the undamped Gauss-Newton step
     Δ = A⁻¹b is shorter than ``tolerance`` × rms range, or when its predicted cost decrease
     bᵀΔ = ΔᵀAΔ (the squared step length in standard deviations) is below 1e-10 or below
-    1e-12 × cost (smaller decreases cannot be resolved in floating point). Problems are iterated together; converged
-    ones are frozen, and the working set is compacted when it halves (no Python loop over
-    problems). Returns (X, A at X, iterations, converged, diverged) — A is the Fisher
-    information at X (seed 003 eqs. (6)-(8)), in 1/m².
+    1e-12 × cost (smaller decreases cannot be resolved in floating point). Problems are
+    iterated together; converged ones are frozen, and the working set is compacted when it
+    halves (no Python loop over problems). Returns (X, A at X, iterations, converged,
+    diverged); A is the Fisher information at X (seed 003 eqs. (6)-(8)), in 1/m².
     """
     M = x0.shape[0]
     X = x0.copy()
