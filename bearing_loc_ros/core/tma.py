@@ -440,9 +440,9 @@ def estimate_from_sums(sums, method, speed, speed_reference='relative', min_bear
     flat = ~few & (lam_q <= _chi2.isf(alpha, dof))
     status[flat] = STATUS_UNOBSERVABLE
     for idx in zip(*np.nonzero(flat)):
-        reason[idx] = (f'no significant bearing change over the window (chi2={max(lam_q[idx], 0):.3g}'
-                       f' for {int(dof[idx])} dof): constant line of sight, e.g. a collision '
-                       'course, gives no range')
+        reason[idx] = ('no significant bearing change over the window '
+                       f'(chi2={max(lam_q[idx], 0.0):.3g} for {int(dof[idx])} dof): constant '
+                       'line of sight, e.g. a collision course, gives no range')
     A0, A1, A2, B0, B1, B2 = sums.moments_at_t0()
     e0 = sums.e0
     if method == 'ple':
