@@ -1,0 +1,207 @@
+"""``bearing_loc locate``: localize emitters from bearings, JSON in, JSON out.
+
+Input (a file argument, or stdin when the argument is ``-`` or absent), one problem::
+
+    {"method": "mle",                              # optional, default DEFAULT_ESTIMATOR
+     "options": {"max_iterations": 50},            # optional, estimator options
+     "bearings": [{"station": "s1",                # optional id
+                   "position": [x, y, z],          # m, ENU world frame
+                   "azimuth": 0.52,                # rad, ENU (CCW from East)
+                   "elevation": 0.1,               # rad, or null/absent (azimuth-only)
+                   "sigma_azimuth": 0.002,         # rad, > 0
+                   "sigma_elevation": 0.002},      # rad, > 0 (required with elevation)
+                  ...]}
+
+or a batch ``{"method": ..., "options": ..., "problems": [{"bearings": [...]}, ...]}``.
+Output (stdout): ``{"method", "position", "covariance", "crlb", "converged", "iterations",
+"status"}`` for one problem, ``{"results": [...]}`` (same order) for a batch. Non-finite
+numbers (the inf covariance of a degenerate fix, its NaN position) are written as ``null``,
+so the output is always strict JSON. Exit 0 when every problem was processed (check each
+``status``), 2 with one line on stderr naming the bad field (nothing on stdout) for bad input.
+Problems with the same number of bearings are solved in one vectorised call.
+"""
+
+import json
+import math
+import numbers
+import sys
+
+import numpy as np
+
+from ..core.bearings import BearingSet
+from ..core.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, locate, noise_model_crlb
+from . import InputError
+
+BEARING_FIELDS = ('station', 'position', 'azimuth', 'elevation', 'sigma_azimuth',
+                  'sigma_elevation')
+TOP_FIELDS = ('method', 'options', 'bearings', 'problems')
+
+
+def add_arguments(parser):
+    """Command line of ``bearing_loc locate``."""
+    parser.description = ('Localize emitters from bearings: JSON in (file or stdin), JSON out '
+                          '(stdout). Format: docs/readme/estimation.md.')
+    parser.add_argument('input', nargs='?', default='-',
+                        help='input JSON file ("-" or absent: stdin)')
+    parser.add_argument('--method', choices=sorted(ESTIMATORS), default=None,
+                        help=f'estimator, overrides the input\'s "method" '
+                             f'(default: input, else {DEFAULT_ESTIMATOR})')
+    parser.add_argument('--indent', type=int, default=None,
+                        help='pretty-print the output with this indent')
+
+
+def _number(value, field, positive=False):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise InputError(f'{field}: must be a number, got {json.dumps(value)[:40]}')
+    value = float(value)
+    if not math.isfinite(value):
+        raise InputError(f'{field}: must be a finite number')
+    if positive and value <= 0:
+        raise InputError(f'{field}: must be > 0')
+    return value
+
+
+def parse_bearings(items, where='bearings'):
+    """A JSON list of bearing objects → one-problem BearingSet (ValueError names the field)."""
+    if not isinstance(items, list):
+        raise InputError(f'{where}: must be a list of bearing objects')
+    if len(items) < 2:
+        raise InputError(f'{where}: {len(items)} bearing(s); a 3D fix needs at least two')
+    pos, az, el, saz, sel, names = [], [], [], [], [], []
+    for i, b in enumerate(items):
+        f = f'{where}[{i}]'
+        if not isinstance(b, dict):
+            raise InputError(f'{f}: must be an object')
+        for key in b:
+            if key not in BEARING_FIELDS:
+                raise InputError(f'{f}.{key}: unknown field (expected one of '
+                                 f'{", ".join(BEARING_FIELDS)})')
+        for key in ('position', 'azimuth', 'sigma_azimuth'):
+            if key not in b:
+                raise InputError(f'{f}.{key}: missing')
+        station = b.get('station', f'station_{i}')
+        if not isinstance(station, str):
+            raise InputError(f'{f}.station: must be a string')
+        p = b['position']
+        if not isinstance(p, list) or len(p) != 3:
+            raise InputError(f'{f}.position: must be a list [x, y, z] of 3 numbers (m)')
+        pos.append([_number(v, f'{f}.position[{k}]') for k, v in enumerate(p)])
+        az.append(_number(b['azimuth'], f'{f}.azimuth'))
+        saz.append(_number(b['sigma_azimuth'], f'{f}.sigma_azimuth', positive=True))
+        e = b.get('elevation')
+        if e is None:
+            el.append(math.nan)
+            sel.append(math.nan)
+        else:
+            e = _number(e, f'{f}.elevation')
+            if abs(e) >= math.pi / 2:
+                raise InputError(f'{f}.elevation: |elevation| must be < pi/2 rad')
+            if b.get('sigma_elevation') is None:
+                raise InputError(f'{f}.sigma_elevation: missing (required when elevation is '
+                                 'given)')
+            el.append(e)
+            sel.append(_number(b['sigma_elevation'], f'{f}.sigma_elevation', positive=True))
+        names.append(station)
+    try:
+        return BearingSet.from_arrays(np.array(pos), np.array(az), np.array(el), np.array(saz),
+                                      np.array(sel), stations=names)
+    except ValueError as exc:
+        raise InputError(f'{where}: {exc}') from None
+
+
+def parse_request(doc, method_override=None):
+    """Validate a request document; return (method, options, [BearingSet], is_batch)."""
+    if not isinstance(doc, dict):
+        raise InputError('input: must be a JSON object with "bearings" or "problems"')
+    for key in doc:
+        if key not in TOP_FIELDS:
+            raise InputError(f'{key}: unknown field (expected one of {", ".join(TOP_FIELDS)})')
+    method = method_override or doc.get('method') or DEFAULT_ESTIMATOR
+    if not isinstance(method, str) or method not in ESTIMATORS:
+        raise InputError(f'method: unknown estimator {method!r}; choose one of '
+                         f'{", ".join(sorted(ESTIMATORS))}')
+    options = doc.get('options', {})
+    if not isinstance(options, dict):
+        raise InputError('options: must be an object')
+    if ('bearings' in doc) == ('problems' in doc):
+        raise InputError('input: give exactly one of "bearings" (one problem) or "problems" '
+                         '(a batch)')
+    if 'bearings' in doc:
+        return method, options, [parse_bearings(doc['bearings'])], False
+    problems = doc['problems']
+    if not isinstance(problems, list) or not problems:
+        raise InputError('problems: must be a non-empty list of {"bearings": [...]} objects')
+    sets = []
+    for k, prob in enumerate(problems):
+        if not isinstance(prob, dict) or 'bearings' not in prob:
+            raise InputError(f'problems[{k}]: must be an object with "bearings"')
+        for key in prob:
+            if key != 'bearings':
+                raise InputError(f'problems[{k}].{key}: unknown field (expected bearings)')
+        sets.append(parse_bearings(prob['bearings'], f'problems[{k}].bearings'))
+    return method, options, sets, True
+
+
+def _finite_or_none(x):
+    """Nested lists of floats with NaN/inf replaced by None (strict JSON null)."""
+    if isinstance(x, list):
+        return [_finite_or_none(v) for v in x]
+    return x if math.isfinite(x) else None
+
+
+def solve(method, options, sets):
+    """Run ``method`` on every one-problem BearingSet; problems of equal N in one call.
+
+    Returns one output dict per problem, in order (see module docstring).
+    """
+    out = [None] * len(sets)
+    groups = {}
+    for k, bs in enumerate(sets):
+        groups.setdefault(bs.N, []).append(k)
+    for idx in groups.values():
+        batch = BearingSet(np.concatenate([sets[k].positions for k in idx]),
+                           np.concatenate([sets[k].azimuth for k in idx]),
+                           np.concatenate([sets[k].elevation for k in idx]),
+                           np.concatenate([sets[k].sigma_az for k in idx]),
+                           np.concatenate([sets[k].sigma_el for k in idx]))
+        try:
+            res = locate(method, batch, **options)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+        bound = noise_model_crlb(method, res.position, batch, **{
+            k: v for k, v in options.items() if k == 'reference_range'})
+        for j, k in enumerate(idx):
+            out[k] = {
+                'method': method,
+                'position': _finite_or_none(res.position[j].tolist()),
+                'covariance': _finite_or_none(res.covariance[j].tolist()),
+                'crlb': _finite_or_none(bound[j].tolist()),
+                'converged': bool(res.converged[j]),
+                'iterations': int(res.iterations[j]),
+                'status': str(res.status[j]),
+            }
+    return out
+
+
+def _read(path):
+    try:
+        if path == '-':
+            return sys.stdin.read()
+        with open(path, encoding='utf-8') as f:
+            return f.read()
+    except OSError as exc:
+        raise InputError(f'input: cannot read {path!r}: {exc.strerror}') from None
+
+
+def run(args):
+    """Entry point of the verb: read, validate, solve, print. Returns the exit code."""
+    text = _read(args.input)
+    try:
+        doc = json.loads(text)
+    except ValueError as exc:
+        raise InputError(f'input: invalid JSON ({exc})') from None
+    method, options, sets, batch = parse_request(doc, args.method)
+    results = solve(method, options, sets)
+    payload = {'results': results} if batch else results[0]
+    sys.stdout.write(json.dumps(payload, allow_nan=False, indent=args.indent) + '\n')
+    return 0

@@ -1,0 +1,193 @@
+"""``bearing_loc locate``: JSON interface, batches, strict JSON output, bad input → exit 2."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from bearing_loc_ros.cli import main
+from bearing_loc_ros.core.bearings import simulate_bearings
+from bearing_loc_ros.core.crlb import crlb_for
+from bearing_loc_ros.core.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, locate
+
+EXE = os.path.join(os.path.dirname(sys.executable), 'bearing_loc')
+STATIONS = np.array([[30.0, -10.0, 0.1], [30.0, 20.0, 0.2], [-30.0, 5.0, 0.15]]) * 1e3
+TARGET = np.array([10e3, 20e3, 5e3])
+
+
+def bearings_json(target=TARGET, stations=STATIONS, sigma=1.5e-3, one_d=(), rng=None):
+    bs = simulate_bearings(target, stations, sigma, rng=rng)
+    out = []
+    for i in range(bs.N):
+        b = {'station': f's{i + 1}', 'position': bs.positions[0, i].tolist(),
+             'azimuth': float(bs.azimuth[0, i]), 'sigma_azimuth': sigma}
+        if i in one_d:
+            b['elevation'] = None
+        else:
+            b['elevation'] = float(bs.elevation[0, i])
+            b['sigma_elevation'] = sigma
+        out.append(b)
+    return out
+
+
+def run_main(tmp_path, doc, *extra, capsys):
+    path = tmp_path / 'in.json'
+    path.write_text(doc if isinstance(doc, str) else json.dumps(doc))
+    code = main(['locate', str(path), *extra])
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def test_single_problem_in_process(tmp_path, capsys):
+    doc = {'method': 'mle', 'bearings': bearings_json(one_d=(1,))}
+    code, out, err = run_main(tmp_path, doc, capsys=capsys)
+    assert code == 0 and err == ''
+    res = json.loads(out)
+    assert set(res) == {'method', 'position', 'covariance', 'crlb', 'converged', 'iterations',
+                        'status'}
+    assert res['method'] == 'mle' and res['status'] == 'ok' and res['converged'] is True
+    np.testing.assert_allclose(res['position'], TARGET, atol=1e-3)
+    assert np.array(res['covariance']).shape == (3, 3) and np.array(res['crlb']).shape == (3, 3)
+    # mle's covariance is the CRLB at the estimate, which is the "crlb" field.
+    np.testing.assert_allclose(res['covariance'], res['crlb'], rtol=1e-9)
+
+
+@pytest.mark.parametrize('method', sorted(ESTIMATORS))
+def test_every_method_matches_the_core(tmp_path, capsys, method):
+    rng = np.random.default_rng(1)
+    items = bearings_json(rng=rng)
+    opts = {'reference_range': 5000.0} if method == 'wmle' else {}
+    code, out, _ = run_main(tmp_path, {'method': method, 'options': opts, 'bearings': items},
+                            capsys=capsys)
+    assert code == 0
+    res = json.loads(out)
+    from bearing_loc_ros.cli.locate import parse_bearings
+    core = locate(method, parse_bearings(items), **opts)
+    np.testing.assert_allclose(res['position'], core.position[0], rtol=1e-12)
+    np.testing.assert_allclose(res['covariance'], core.covariance[0], rtol=1e-12)
+    assert res['iterations'] == int(core.iterations[0])
+
+
+def test_default_method_and_override(tmp_path, capsys):
+    code, out, _ = run_main(tmp_path, {'bearings': bearings_json()}, capsys=capsys)
+    assert code == 0 and json.loads(out)['method'] == DEFAULT_ESTIMATOR
+    code, out, _ = run_main(tmp_path, {'method': 'mle', 'bearings': bearings_json()},
+                            '--method', 'ls', capsys=capsys)
+    assert code == 0 and json.loads(out)['method'] == 'ls'
+
+
+def test_batch_mixed_sizes_keeps_order(tmp_path, capsys):
+    rng = np.random.default_rng(2)
+    four = np.vstack([STATIONS, [[0.0, -40e3, 0.3]]])
+    targets = [TARGET, TARGET + [5e3, 0, 0], TARGET + [0, 5e3, 1e3], TARGET - [3e3, 3e3, 0]]
+    probs = [{'bearings': bearings_json(targets[0], rng=rng)},
+             {'bearings': bearings_json(targets[1], four, rng=rng, one_d=(3,))},
+             {'bearings': bearings_json(targets[2], rng=rng)},
+             {'bearings': bearings_json(targets[3], four, rng=rng)}]
+    code, out, _ = run_main(tmp_path, {'method': 'mle', 'problems': probs}, capsys=capsys)
+    assert code == 0
+    res = json.loads(out)['results']
+    assert len(res) == 4
+    for r, t in zip(res, targets):
+        assert r['status'] == 'ok'
+        # Within 5 sigma of the truth: proves the results are not shuffled between problems.
+        err = np.array(r['position']) - t
+        assert err @ np.linalg.solve(np.array(r['covariance']), err) < 25
+
+
+def test_degenerate_fix_gives_strict_json_with_nulls(tmp_path, capsys):
+    st = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0]])
+    doc = {'method': 'mle', 'bearings': bearings_json(np.array([3000.0, 0.0, 0.0]), st)}
+    code, out, _ = run_main(tmp_path, doc, capsys=capsys)
+    assert code == 0
+    assert 'NaN' not in out and 'Infinity' not in out
+    res = json.loads(out)
+    assert res['status'] == 'degenerate_geometry' and res['converged'] is False
+    assert res['position'] == [None, None, None]
+    assert res['covariance'][0][0] is None
+
+
+def test_crlb_field_is_the_crlb_at_the_estimate(tmp_path, capsys):
+    items = bearings_json(rng=np.random.default_rng(3))
+    code, out, _ = run_main(tmp_path, {'method': 'ls', 'bearings': items}, capsys=capsys)
+    res = json.loads(out)
+    from bearing_loc_ros.cli.locate import parse_bearings
+    expect = crlb_for(np.array([res['position']]), parse_bearings(items))[0]
+    np.testing.assert_allclose(res['crlb'], expect, rtol=1e-12)
+
+
+def _bad(**change):
+    items = bearings_json()
+    for key, val in change.items():
+        idx, field = key.split('__')
+        if val is KeyError:
+            del items[int(idx[1:])][field]
+        else:
+            items[int(idx[1:])][field] = val
+    return {'method': 'mle', 'bearings': items}
+
+
+BAD_CASES = [
+    (_bad(b1__sigma_azimuth=0.0), 'bearings[1].sigma_azimuth: must be > 0'),
+    (_bad(b1__sigma_azimuth=-1e-3), 'bearings[1].sigma_azimuth: must be > 0'),
+    (_bad(b0__azimuth='north'), 'bearings[0].azimuth: must be a number'),
+    (_bad(b2__position=[1.0, 2.0]), 'bearings[2].position: must be a list'),
+    (_bad(b2__position=[1.0, 2.0, True]), 'bearings[2].position[2]: must be a number'),
+    (_bad(b0__elevation=2.0), 'bearings[0].elevation: |elevation| must be < pi/2'),
+    (_bad(b0__sigma_elevation=KeyError), 'bearings[0].sigma_elevation: missing'),
+    (_bad(b1__azimuth=KeyError), 'bearings[1].azimuth: missing'),
+    (_bad(b1__colour='red'), 'bearings[1].colour: unknown field'),
+    ('{"bearings": [1, 2', 'input: invalid JSON'),
+    ('[1, 2]', 'input: must be a JSON object'),
+    ('{"method": "mle", "bearings": [{"position": [0, 0, 0], "azimuth": NaN, '
+     '"sigma_azimuth": 0.01}, {"position": [1, 0, 0], "azimuth": 1, "sigma_azimuth": 0.01}]}',
+     'bearings[0].azimuth: must be a finite number'),
+    ({'method': 'best', 'bearings': bearings_json()}, 'method: unknown estimator'),
+    ({'method': 'mle', 'bearings': bearings_json(), 'options': {'bogus': 1}},
+     'options.bogus: unknown option'),
+    ({'method': 'mle', 'bearings': bearings_json(), 'options': {'max_iterations': 0}},
+     'options.max_iterations: must be an integer >= 1'),
+    ({'method': 'mle', 'bearings': bearings_json()[:1]}, 'bearings: 1 bearing(s)'),
+    ({'method': 'mle', 'bearings': bearings_json(one_d=(0, 1, 2))},
+     'bearings: elevation: no bearing measures elevation'),
+    ({'method': 'mle', 'problems': [{'bearings': bearings_json()},
+                                    {'bearings': _bad(b1__sigma_azimuth=0.0)['bearings']}]},
+     'problems[1].bearings[1].sigma_azimuth: must be > 0'),
+    ({'method': 'mle', 'bearings': bearings_json(), 'problems': []}, 'input: give exactly one'),
+    ({'method': 'mle', 'bearing': bearings_json()}, 'bearing: unknown field'),
+]
+
+
+@pytest.mark.parametrize('doc, message', BAD_CASES)
+def test_bad_input_in_process(tmp_path, capsys, doc, message):
+    code, out, err = run_main(tmp_path, doc, capsys=capsys)
+    assert code == 2
+    assert out == ''
+    lines = err.splitlines()
+    assert len(lines) == 1 and message in lines[0], err
+
+
+def test_missing_file_is_exit_2(tmp_path, capsys):
+    assert main(['locate', str(tmp_path / 'nope.json')]) == 2
+    out, err = capsys.readouterr()
+    assert out == '' and len(err.splitlines()) == 1 and 'input: cannot read' in err
+
+
+@pytest.mark.skipif(not os.path.exists(EXE), reason='bearing_loc console script not installed')
+def test_subprocess_stdin_and_exit_codes():
+    env = dict(os.environ)
+    doc = json.dumps({'method': 'mle', 'bearings': bearings_json(one_d=(2,))})
+    p = subprocess.run([EXE, 'locate'], input=doc, capture_output=True, text=True, env=env,
+                       timeout=60)
+    assert p.returncode == 0, p.stderr
+    res = json.loads(p.stdout)
+    assert res['status'] == 'ok'
+    np.testing.assert_allclose(res['position'], TARGET, atol=1e-3)
+    bad = json.dumps(_bad(b1__sigma_azimuth=0.0))
+    p = subprocess.run([EXE, 'locate', '-'], input=bad, capture_output=True, text=True,
+                       env=env, timeout=60)
+    assert p.returncode == 2 and p.stdout == ''
+    assert p.stderr.splitlines() == ['bearing_loc locate: error: bearings[1].sigma_azimuth: '
+                                     'must be > 0']
