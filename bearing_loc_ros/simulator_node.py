@@ -40,8 +40,9 @@ CLOCK_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=10,
 #: but never shorter than MIN_TICK (then /clock is published on every tick).
 SIM_TICK = 0.01
 MIN_TICK = 0.004
-#: Wall seconds to wait for subscribers to acknowledge the last reliable messages on exit.
-ACK_TIMEOUT = 2.0
+#: Wall seconds to wait for subscribers to acknowledge the last reliable messages on exit
+#: (Fast DDS's reliable writers send heartbeats every 3 s by default).
+ACK_TIMEOUT = 4.0
 
 
 def resolve_scenario_path(path, cwd=None):
@@ -102,9 +103,12 @@ class SimulatorNode(Node):
                                       read_only=True)
         duration = declare(self, 'duration', 0.0, 'Simulated seconds to run; 0 = the '
                            "scenario's duration", read_only=True, min_value=0.0)
-        self._start_delay = declare(self, 'start_delay', 1.0, 'Wall seconds to wait (clock '
-                                    'held at the epoch) for subscribers before starting',
-                                    read_only=True, min_value=0.0)
+        self._start_delay = declare(self, 'start_delay', 5.0, 'Maximum wall seconds to wait '
+                                    '(clock held at the epoch) for subscribers before '
+                                    'starting', read_only=True, min_value=0.0)
+        self._wait_for_subs = declare(self, 'wait_for_subscribers', True, 'Start before '
+                                      'start_delay has passed as soon as every bearing topic '
+                                      'has a matched subscriber', read_only=True)
         self._exit_when_done = declare(self, 'exit_when_done', True, 'Shut the node down '
                                        'once every message of the run has been published',
                                        read_only=True)
@@ -165,11 +169,12 @@ class SimulatorNode(Node):
             return
         now = time.monotonic_ns()
         if self._wall0 is None:
-            if now - self._created < int(self._start_delay * NS_PER_S):
+            waited = now - self._created
+            if waited < int(self._start_delay * NS_PER_S) and not self._subscribers_ready():
                 self._publish_clock_at(self.scenario.epoch_ns)
                 return
             self._wall0 = now
-            self.get_logger().info('simulation started')
+            self.get_logger().info(f'simulation started after {waited / NS_PER_S:.2f} s')
         sim_ns = min(self.sim_time_ns(now), self.sim.end_ns)
         self._publish_clock_at(sim_ns)
         frame = self.scenario.frame_id
@@ -187,6 +192,11 @@ class SimulatorNode(Node):
         if sim_ns >= self.sim.end_ns and self._next >= len(q):
             self._finish()
 
+    def _subscribers_ready(self):
+        """True when waiting may end early: every bearing topic has a matched subscriber."""
+        return self._wait_for_subs and all(p.get_subscription_count() > 0
+                                           for p in self._bearing_pubs.values())
+
     def _finish(self):
         self._done = True
         self._timer.cancel()
@@ -202,7 +212,8 @@ class SimulatorNode(Node):
         for p in pubs:
             left = deadline - time.monotonic()
             if left <= 0 or not p.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
-                self.get_logger().warning('not every subscriber acknowledged the last messages')
+                self.get_logger().warning('not every subscriber acknowledged the last messages '
+                                          f'within {ACK_TIMEOUT:g} s')
                 break
         self.context.try_shutdown()
 

@@ -1,0 +1,131 @@
+"""simulator_node over DDS: bearings honour the message contract and equal the core's, truth and
+/clock arrive, same seed gives the same bearings, bad parameters / scenarios exit 1."""
+import os
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+import yaml
+
+from bearing_loc_ros.core.simulation import load_scenario, simulate
+from bearing_loc_ros.ros_conversions import bearing_from_msg, time_to_ns
+from bearing_loc_ros.simulator_node import resolve_scenario_path
+from bearing_loc_ros.ros_common import ParameterError
+from ros_helpers import REPO, spin_until, start_node
+
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from rosgraph_msgs.msg import Clock
+
+MODULE = 'bearing_loc_ros.simulator_node'
+SCENARIO = 'config/scenarios/static3.yaml'
+STATIONS = ('station_1', 'station_2', 'station_3')
+SEED = 3
+QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+
+
+@pytest.fixture(scope='module')
+def listener():
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node('simulator_test_listener', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    yield node, ex
+    ex.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
+
+
+def _subscribe(node, msg_type, topic, box):
+    box[topic] = []
+    node.create_subscription(msg_type, topic, box[topic].append, QOS)
+
+
+def test_node_publishes_core_bearings_truth_and_clock(listener):
+    node, ex = listener
+    got = {}
+    for ns in ('', '/run_b'):
+        for st in STATIONS:
+            _subscribe(node, PoseWithCovarianceStamped, f'{ns}/{st}/bearing', got)
+    _subscribe(node, PoseStamped, '/truth', got)
+    _subscribe(node, Clock, '/clock', got)
+    common = ['-p', f'scenario:={SCENARIO}', '-p', f'seed:={SEED}', '-p', 'time_scale:=10.0',
+              '-p', 'start_delay:=15.0']   # starts once this listener is matched
+    # two runs with the same seed at once: one in the root namespace (with /clock), one in
+    # /run_b without /clock; both must publish exactly the core's bearings
+    with start_node(MODULE, common) as a, \
+            start_node(MODULE, common + ['-p', 'publish_clock:=false', '-r',
+                                         '__ns:=/run_b']) as b:
+        spin_until(ex, lambda: a.proc.poll() is not None and b.proc.poll() is not None, 30.0)
+        spin_until(ex, lambda: False, 0.3)                     # drain the last messages
+        assert a.proc.poll() == 0, a.output()                  # exit_when_done, exit code 0
+        assert b.proc.poll() == 0, b.output()
+
+    sim = simulate(load_scenario(os.path.join(REPO, SCENARIO)), seed=SEED)
+    assert sum(len(got[f'/{st}/bearing']) for st in STATIONS) == len(sim.bearings) > 20
+    for st in STATIONS:
+        expected = [e.bearing for e in sim.bearings if e.bearing.station == st]
+        for ns in ('', '/run_b'):
+            received = [bearing_from_msg(m, st, expected_frame='map')
+                        for m in got[f'{ns}/{st}/bearing']]     # the contract check
+            assert len(received) == len(expected), (ns, st)
+            for r, e in zip(received, expected):
+                assert r.stamp_ns == e.stamp_ns
+                assert np.allclose(r.position, e.position)
+                assert r.azimuth == pytest.approx(e.azimuth, abs=1e-9)
+                assert r.sigma_azimuth == pytest.approx(e.sigma_azimuth, rel=1e-12)
+                if st == 'station_3':                           # 1D station
+                    assert np.isnan(r.elevation) and np.isnan(r.sigma_elevation)
+                else:
+                    assert r.elevation == pytest.approx(e.elevation, abs=1e-9)
+
+    truth = got['/truth']
+    assert [time_to_ns(m.header.stamp) for m in truth] == [e.stamp_ns for e in sim.truth]
+    assert all(m.header.frame_id == 'map' for m in truth)
+    assert np.allclose([[m.pose.position.x, m.pose.position.y, m.pose.position.z]
+                        for m in truth], [1000.0, 1500.0, 300.0])
+
+    clock = [time_to_ns(m.clock) for m in got['/clock']]
+    assert len(clock) > 10
+    assert clock == sorted(clock)
+    assert clock[0] >= sim.scenario.epoch_ns and clock[-1] == sim.end_ns
+
+
+def test_bad_parameters_and_scenarios_exit_1(tmp_path):
+    bad = yaml.safe_load(open(os.path.join(REPO, SCENARIO), encoding='utf-8'))
+    bad['stations'][0]['rate'] = -5.0
+    bad_path = tmp_path / 'bad.yaml'
+    bad_path.write_text(yaml.safe_dump(bad))
+    ok = ['-p', f'scenario:={SCENARIO}']
+    cases = [
+        ([], "parameter 'scenario': required"),
+        (['-p', 'scenario:=config/scenarios/nope.yaml'], "parameter 'scenario': file not found"),
+        (['-p', f'scenario:={bad_path}'], f'{bad_path}: stations[0].rate: must be > 0'),
+        (ok + ['-p', 'time_scale:=-1.0'], "parameter 'time_scale'"),
+        (ok + ['-p', 'seed:=-2'], "parameter 'seed'"),
+    ]
+    procs = [(start_node(MODULE, args), expect) for args, expect in cases]
+    for p, expect in procs:
+        with p:
+            code = p.wait(30.0)
+            out = p.output()
+            assert code == 1, out
+            assert f'error: {expect}' in out, out
+
+
+def test_resolve_scenario_path_cwd_then_share(tmp_path, monkeypatch):
+    assert resolve_scenario_path(SCENARIO, cwd=REPO) == os.path.join(REPO, SCENARIO)
+    prefix = tmp_path / 'prefix'
+    (prefix / 'share/ament_index/resource_index/packages').mkdir(parents=True)
+    (prefix / 'share/ament_index/resource_index/packages/bearing_loc_ros').write_text('')
+    (prefix / 'share/bearing_loc_ros/config/scenarios').mkdir(parents=True)
+    target = prefix / 'share/bearing_loc_ros/config/scenarios/x.yaml'
+    target.write_text('duration: 1.0\n')
+    monkeypatch.setenv('AMENT_PREFIX_PATH', str(prefix))
+    elsewhere = str(tmp_path / 'cwd')
+    assert resolve_scenario_path('config/scenarios/x.yaml', cwd=elsewhere) == str(target)
+    assert resolve_scenario_path('x.yaml', cwd=elsewhere) == str(target)
+    with pytest.raises(ParameterError, match="parameter 'scenario': file not found"):
+        resolve_scenario_path('y.yaml', cwd=elsewhere)
