@@ -1,0 +1,263 @@
+"""``bearing_loc evaluate``: Monte Carlo evaluation of estimators on a scenario (seed 003 sec. 3).
+
+Example (seed 003 figures 2-4)::
+
+    bearing_loc evaluate --scenario config/scenarios/seed003.yaml \\
+        --estimators ls,tls,ctls,mle,wmle --sigma-deg 0.5,1,1.5,2,2.5,3 --trials 1000 \\
+        --out results/
+
+Prints a table and writes ``<out>/evaluation.csv``, ``<out>/evaluation.json`` and PNG
+plots ``eval_rmse_joint.png`` (σ_θ = σ_ψ = σ, seed 003 fig. 2), ``eval_rmse_azimuth.png``
+and ``eval_rmse_elevation.png`` (one angle's σ varies, the other fixed at
+``--fixed-sigma-deg``; figs. 3-4) and ``eval_az_vs_el.png`` (the two single-angle sweeps on
+one plot). The maths is core.evaluation; docs/readme/evaluation.md has the results.
+"""
+
+import csv
+import json
+import math
+import os
+import sys
+import time
+
+from . import InputError
+
+DEFAULT_ESTIMATORS = 'ls,tls,ctls,mle,wmle'
+DEFAULT_SIGMAS = '0.5,1,1.5,2,2.5,3'
+SWEEP_CHOICES = ('none', 'azimuth', 'elevation', 'both')
+CSV_NAME = 'evaluation.csv'
+JSON_NAME = 'evaluation.json'
+
+
+def add_arguments(parser):
+    """Register the ``evaluate`` options."""
+    parser.add_argument('--scenario', required=True,
+                        help='scenario YAML: stations, targets (random_static: a new draw '
+                             'per trial), σ growth (docs/readme/simulator.md)')
+    parser.add_argument('--estimators', default=DEFAULT_ESTIMATORS,
+                        help=f'comma-separated estimator names (default {DEFAULT_ESTIMATORS})')
+    parser.add_argument('--sigma-deg', default=DEFAULT_SIGMAS,
+                        help=f'comma-separated σ values, degrees (default {DEFAULT_SIGMAS})')
+    parser.add_argument('--trials', type=int, default=1000,
+                        help='Monte Carlo trials per noise level (default 1000)')
+    parser.add_argument('--seed', type=int, default=0,
+                        help='seed; trial m uses simulator seed SEED+m (default 0)')
+    parser.add_argument('--sweep', choices=SWEEP_CHOICES, default='both',
+                        help='single-angle sweeps to run besides the joint one (σ_θ = σ_ψ): '
+                             'azimuth, elevation, both (default) or none')
+    parser.add_argument('--fixed-sigma-deg', type=float, default=0.5,
+                        help='σ of the angle held fixed in a single-angle sweep, degrees '
+                             '(default 0.5, as seed 003 figs. 3-4)')
+    parser.add_argument('--range-ref', type=float, default=None, metavar='M',
+                        help="override the stations' σ growth reference range r_ref, m "
+                             '(σ(r) = σ · r / r_ref, seed 003 eqs. (9)-(10)); 0: constant σ')
+    parser.add_argument('--out', default=None,
+                        help='output directory for CSV, JSON and PNG files (created)')
+    parser.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
+    parser.add_argument('--quiet', action='store_true',
+                        help='no progress bar (it is also off when stderr is not a TTY)')
+
+
+def _csv_list(text, name, conv):
+    try:
+        vals = [conv(x.strip()) for x in str(text).split(',') if x.strip()]
+    except ValueError:
+        raise InputError(f'{name}: expected a comma-separated list, got {text!r}') from None
+    if not vals:
+        raise InputError(f'{name}: empty list')
+    return vals
+
+
+class Progress:
+    """Plain-text progress bar on stderr: ``[#####.....]  12/30  4.1 s``, redrawn with \\r.
+
+    Disabled (no output at all) when ``enabled`` is false, for example when stderr is not a
+    terminal or with --quiet.
+    """
+
+    def __init__(self, enabled, width=30, stream=None):
+        self.enabled = enabled
+        self.width = width
+        self.stream = stream or sys.stderr
+        self.t0 = time.perf_counter()
+
+    def __call__(self, done, total):
+        if not self.enabled:
+            return
+        n = int(self.width * done / max(total, 1))
+        dt = time.perf_counter() - self.t0
+        self.stream.write(f'\r[{"#" * n}{"." * (self.width - n)}] {done:4d}/{total} '
+                          f'{dt:6.1f} s')
+        if done >= total:
+            self.stream.write('\n')
+        self.stream.flush()
+
+
+def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='both',
+                   fixed_sigma_deg=0.5, progress=None, range_ref=None):
+    """Run the study; returns (rows: list of Stats, meta: dict)."""
+    from ..core import estimators as est
+    from ..core import evaluation as ev
+    from ..core.simulation import load_scenario
+    from .bag import resolve_scenario
+    unknown = [e for e in estimators if e not in est.ESTIMATORS]
+    if unknown:
+        raise InputError(f'estimators: unknown {", ".join(unknown)}; choose from '
+                         f'{", ".join(sorted(est.ESTIMATORS))}')
+    if len(set(estimators)) != len(estimators):
+        raise InputError('estimators: a name is repeated')
+    if trials < 1:
+        raise InputError(f'trials: must be >= 1 (got {trials})')
+    if seed < 0:
+        raise InputError(f'seed: must be >= 0 (got {seed})')
+    path = resolve_scenario(scenario_path)
+    scenario = load_scenario(path)
+    if range_ref is not None and not (math.isfinite(range_ref) and range_ref >= 0):
+        raise InputError(f'range_ref: must be >= 0 m (got {range_ref})')
+    tr = ev.trials_from_scenario(scenario, trials, seed, range_ref)
+    sweeps = ('joint',) + {'none': (), 'azimuth': ('azimuth',), 'elevation': ('elevation',),
+                           'both': ('azimuth', 'elevation')}[sweep]
+    options = {}
+    ref = tr.reference_range()
+    if ref is not None and 'wmle' in estimators:
+        options['wmle'] = {'reference_range': ref}     # d_ref of seed 003 eqs. (9)-(10)
+    t0 = time.perf_counter()
+    rows = ev.evaluate(estimators, tr, sigmas, sweeps, seed, fixed_sigma_deg, options,
+                       progress)
+    elapsed = time.perf_counter() - t0
+    meta = {'scenario': path, 'scenario_name': scenario.name, 'seed': seed,
+            'trials': trials, 'problems_per_level': int(tr.M), 'estimators': estimators,
+            'sigma_deg': sigmas, 'sweeps': list(sweeps), 'fixed_sigma_deg': fixed_sigma_deg,
+            'options': options, 'elapsed_s': elapsed,
+            'stations': tr.station_ids, 'reference_range_m': ref,
+            'range_ref_override_m': range_ref}
+    return rows, meta
+
+
+def format_table(rows):
+    """The result table as text (one line per sweep × σ × estimator)."""
+    head = (f'{"sweep":9s} {"σθ°":>5s} {"σψ°":>5s} {"estimator":9s} {"RMSE m":>10s} '
+            f'{"bias m":>9s} {"CRLB m":>9s} {"RMSE/CRLB":>9s} {"NEES":>9s} {"conv %":>7s} '
+            f'{"µs/fix":>7s}')
+    lines = [head, '-' * len(head)]
+    for r in rows:
+        lines.append(
+            f'{r.sweep:9s} {r.sigma_az_deg:5.2f} {r.sigma_el_deg:5.2f} {r.estimator:9s} '
+            f'{r.rmse:10.1f} {r.bias:9.1f} {r.crlb:9.1f} {r.rmse_over_crlb:9.2f} '
+            f'{r.mean_nees:9.3g} {100 * r.convergence_rate:7.1f} '
+            f'{1e6 * r.time_per_fix_s:7.1f}')
+    return '\n'.join(lines)
+
+
+def _json_safe(x):
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _json_safe(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_json_safe(v) for v in x]
+    return x
+
+
+def write_outputs(rows, meta, out, plots=True):
+    """Write CSV, JSON (NaN as null) and, with ``plots``, the PNG files into ``out``."""
+    from ..core.evaluation import findings
+    os.makedirs(out, exist_ok=True)
+    table = [r.row() for r in rows]
+    with open(os.path.join(out, CSV_NAME), 'w', newline='', encoding='utf-8') as f:
+        w = csv.DictWriter(f, fieldnames=list(table[0]))
+        w.writeheader()
+        w.writerows(table)
+    doc = dict(meta, rows=table, findings=findings(rows))
+    with open(os.path.join(out, JSON_NAME), 'w', encoding='utf-8') as f:
+        json.dump(_json_safe(doc), f, indent=1, allow_nan=False)
+    files = [CSV_NAME, JSON_NAME]
+    if plots:
+        files += plot_results(rows, meta, out)
+    return files
+
+
+ESTIMATOR_STYLE = {'ls': ('tab:red', 's'), 'tls': ('tab:orange', 'v'),
+                   'ctls': ('tab:purple', 'D'), 'ctls_am': ('tab:brown', 'P'),
+                   'mle': ('tab:blue', 'o'), 'wmle': ('tab:green', '^')}
+
+
+def plot_results(rows, meta, out):
+    """PNG plots in the style of seed 003 figs. 2-4 (log RMSE against σ, CRLB dashed)."""
+    import matplotlib
+    matplotlib.use('Agg')
+    import matplotlib.pyplot as plt
+    names = []
+    title = {'joint': 'σθ = σψ = σ (seed 003 fig. 2)',
+             'azimuth': f'azimuth σθ = σ, elevation σψ = {meta["fixed_sigma_deg"]:g}°',
+             'elevation': f'elevation σψ = σ, azimuth σθ = {meta["fixed_sigma_deg"]:g}°'}
+    for sw in meta['sweeps']:
+        sub = [r for r in rows if r.sweep == sw]
+        fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=100)
+        for est in meta['estimators']:
+            rs = [r for r in sub if r.estimator == est]
+            col, mk = ESTIMATOR_STYLE.get(est, (None, 'x'))
+            ax.plot([_x(r) for r in rs], [r.rmse for r in rs], marker=mk, color=col,
+                    label=est)
+        rs = [r for r in sub if r.estimator == meta['estimators'][0]]
+        ax.plot([_x(r) for r in rs], [r.crlb for r in rs], 'k--', label='CRLB')
+        _decorate(ax, f'{meta["scenario_name"] or "scenario"}: {title[sw]}', meta)
+        name = f'eval_rmse_{sw}.png'
+        fig.tight_layout()
+        fig.savefig(os.path.join(out, name))
+        plt.close(fig)
+        names.append(name)
+    if {'azimuth', 'elevation'} <= set(meta['sweeps']):
+        fig, ax = plt.subplots(figsize=(6.4, 4.4), dpi=100)
+        for sw, ls in (('azimuth', '-'), ('elevation', ':')):
+            for est in meta['estimators']:
+                rs = [r for r in rows if r.sweep == sw and r.estimator == est]
+                col, mk = ESTIMATOR_STYLE.get(est, (None, 'x'))
+                ax.plot([_x(r) for r in rs], [r.rmse for r in rs], ls, marker=mk, color=col,
+                        label=f'{est}, {sw} σ varies', alpha=0.8)
+            rs = [r for r in rows if r.sweep == sw and r.estimator == meta['estimators'][0]]
+            ax.plot([_x(r) for r in rs], [r.crlb for r in rs], 'k' + ls, lw=2.5,
+                    label=f'CRLB, {sw} σ varies')
+        _decorate(ax, f'azimuth (solid) vs elevation (dotted) error, other σ = '
+                      f'{meta["fixed_sigma_deg"]:g}°', meta, ncol=2, fontsize=7)
+        fig.tight_layout()
+        fig.savefig(os.path.join(out, 'eval_az_vs_el.png'))
+        plt.close(fig)
+        names.append('eval_az_vs_el.png')
+    return names
+
+
+def _x(r):
+    return r.sigma_el_deg if r.sweep == 'elevation' else r.sigma_az_deg
+
+
+def _decorate(ax, title, meta, ncol=1, fontsize=8):
+    ax.set_yscale('log')
+    ax.set_xlabel('σ of the varied angle (degrees)')
+    ax.set_ylabel('RMSE (m)')
+    ax.set_title(title, fontsize=9)
+    ax.grid(True, which='both', alpha=0.3)
+    ax.legend(fontsize=fontsize, ncol=ncol)
+    ax.text(0.99, 0.01, f'{meta["trials"]} trials/level, seed {meta["seed"]}',
+            transform=ax.transAxes, ha='right', va='bottom', fontsize=7, color='0.4')
+
+
+def run(args):
+    """``bearing_loc evaluate``."""
+    estimators = _csv_list(args.estimators, 'estimators', str)
+    sigmas = _csv_list(args.sigma_deg, 'sigma_deg', float)
+    if any(not math.isfinite(s) or s <= 0 for s in sigmas):
+        raise InputError(f'sigma_deg: every value must be > 0 (got {args.sigma_deg})')
+    if not math.isfinite(args.fixed_sigma_deg) or args.fixed_sigma_deg <= 0:
+        raise InputError(f'fixed_sigma_deg: must be > 0 (got {args.fixed_sigma_deg})')
+    progress = Progress(enabled=not args.quiet and sys.stderr.isatty())
+    rows, meta = run_evaluation(args.scenario, estimators, sigmas, args.trials, args.seed,
+                                args.sweep, args.fixed_sigma_deg, progress, args.range_ref)
+    print(f'{meta["scenario"]}: {args.trials} trials x {len(sigmas)} σ x '
+          f'{len(meta["sweeps"])} sweeps x {len(estimators)} estimators, seed {args.seed}, '
+          f'{meta["elapsed_s"]:.2f} s')
+    print(format_table(rows))
+    if args.out:
+        files = write_outputs(rows, meta, args.out, plots=not args.no_plots)
+        print(f'wrote {", ".join(os.path.join(args.out, f) for f in files)}')
+    return 0

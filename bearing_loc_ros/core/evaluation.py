@@ -1,0 +1,357 @@
+"""Monte Carlo evaluation of bearing-only estimators against the Cramér-Rao lower bound.
+
+Pure numpy (no rclpy). One vectorised estimator call per (noise level, estimator): the M
+trials of a noise level are one :class:`~bearing_loc_ros.core.bearings.BearingSet` batch.
+
+Experiment (seed 003 section 3): stations s_i fixed, one target X_m per trial m (for seed 003
+drawn uniformly from a box), bearings θ_mi = θ_i(X_m) + n_mi, ψ_mi = ψ_i(X_m) + m_mi with
+n_mi ~ N(0, σ_θ,mi²), m_mi ~ N(0, σ_ψ,mi²) (seed 003 sec. 1; seed 000 eq. (1)). The σ that
+generates the noise may grow with range, σ_mi = σ · clip(d_mi / d_ref, f_min, f_max) (seed
+003 eqs. (9)-(10); the stations' ``sigma_growth`` of the scenario, core.simulation), while
+the bearings *report* σ (the value at d_ref), as a DF receiver that does not know the range
+would. The estimators see only the reported values.
+
+Statistics over the trials m whose estimate converged (error e_m = X̂_m − X_m, m):
+
+* RMSE = sqrt(mean_m |e_m|²)                                    (seed 003 figs. 2-4)
+* bias = |mean_m e_m| (norm of the mean error vector)
+* CRLB = sqrt(mean_m trace(J_m⁻¹)), J_m the Fisher information of trial m at the true target
+  with the *true* (generating) σ (seed 003 eqs. (6)-(8), :func:`~.crlb.crlb`): the root of
+  the smallest mean squared error any unbiased estimator can reach over the same targets.
+  RMSE/CRLB >= 1 up to Monte Carlo error (and up to estimator bias).
+* mean NEES = mean_m e_mᵀ P_m⁻¹ e_m with P_m the estimator's reported covariance: 3 for a
+  consistent estimator in 3D (chi-square with 3 degrees of freedom); > 3 means the
+  estimator claims more accuracy than it delivers.
+* convergence rate = fraction of trials with ``converged`` True; time per fix = wall time
+  of the batched call / M.
+* standard errors for comparing rows: SE(RMSE) = sd_m(|e_m|²) / (2 RMSE sqrt(n)) (delta
+  method on the mean of |e|²) and SE(mean NEES) = sd_m(NEES_m) / sqrt(n). They describe the
+  Monte Carlo spread of the statistic itself, so tests and plots can say whether two curves
+  differ by more than chance.
+"""
+
+from dataclasses import asdict, dataclass, field
+import time
+
+import numpy as np
+
+from .bearings import simulate_bearings
+from .crlb import crlb as crlb_matrix
+from .crlb import safe_inverse
+
+#: Sweeps of seed 003: ``joint`` σ_θ = σ_ψ = σ (fig. 2); ``azimuth`` σ_θ varies, σ_ψ fixed;
+#: ``elevation`` σ_ψ varies, σ_θ fixed (figs. 3-4).
+SWEEPS = ('joint', 'azimuth', 'elevation')
+#: Expected mean NEES of a consistent 3D estimator (chi-square, 3 degrees of freedom).
+NEES_DOF = 3
+
+
+@dataclass
+class NoiseLevel:
+    """One noise level: σ_θ, σ_ψ (rad) reported by the bearings, the same in degrees as
+    given by the user (exact labels for tables), and ``x_deg``, the swept value."""
+
+    sigma_az: float
+    sigma_el: float
+    x_deg: float
+    sigma_az_deg: float = float('nan')
+    sigma_el_deg: float = float('nan')
+
+
+@dataclass
+class Stats:
+    """Statistics of one estimator at one noise level (see the module docstring)."""
+
+    estimator: str
+    sweep: str
+    sigma_az_deg: float
+    sigma_el_deg: float
+    trials: int
+    converged: int
+    rmse: float
+    bias: float
+    crlb: float
+    rmse_over_crlb: float
+    mean_nees: float
+    convergence_rate: float
+    time_per_fix_s: float
+    median_error: float
+    rmse_se: float = float('nan')
+    nees_se: float = float('nan')
+    bias_vector: list = field(default_factory=list)
+
+    def row(self):
+        """A flat dict (CSV/JSON row)."""
+        d = asdict(self)
+        bx, by, bz = (d.pop('bias_vector') or [np.nan] * 3)
+        d.update(bias_x=bx, bias_y=by, bias_z=bz)
+        return d
+
+
+def noise_levels(sigmas_deg, sweep='joint', fixed_deg=0.5):
+    """Noise levels of a sweep from σ values in degrees.
+
+    ``joint``: σ_θ = σ_ψ = σ (seed 003 fig. 2); ``azimuth``: σ_θ = σ, σ_ψ = ``fixed_deg``;
+    ``elevation``: σ_ψ = σ, σ_θ = ``fixed_deg`` (seed 003 figs. 3-4, fixed value 0.5°).
+    Returns a list of :class:`NoiseLevel` in radians. Raises ValueError for σ <= 0.
+    """
+    if sweep not in SWEEPS:
+        raise ValueError(f'sweep: must be one of {SWEEPS}, got {sweep!r}')
+    sig = np.atleast_1d(np.asarray(sigmas_deg, dtype=float))
+    if sig.size == 0 or not np.all(np.isfinite(sig)) or np.any(sig <= 0):
+        raise ValueError('sigma_deg: every value must be finite and > 0')
+    if not np.isfinite(fixed_deg) or fixed_deg <= 0:
+        raise ValueError('fixed_sigma_deg: must be finite and > 0')
+    out = []
+    for s in sig:
+        az = s if sweep in ('joint', 'azimuth') else fixed_deg
+        el = s if sweep in ('joint', 'elevation') else fixed_deg
+        out.append(NoiseLevel(float(np.radians(az)), float(np.radians(el)), float(s),
+                              float(az), float(el)))
+    return out
+
+
+@dataclass
+class Trials:
+    """Geometry of M Monte Carlo trials (one target per trial, N stations).
+
+    Attributes:
+        stations: (M, N, 3) station positions, m (the same row for static stations).
+        targets: (M, 3) target positions, m.
+        has_elevation: (N,) bool, True for 2D stations.
+        range_ref: (N,) reference range r_ref of σ growth, m (NaN: constant σ).
+        min_factor, max_factor: (N,) clip bounds of the growth factor.
+        report_actual: (N,) bool, True if the bearing reports σ(r) instead of σ_ref.
+        station_ids: N station ids; trial_seed: (M,) simulator seed of each trial.
+    """
+
+    stations: np.ndarray
+    targets: np.ndarray
+    has_elevation: np.ndarray
+    range_ref: np.ndarray
+    min_factor: np.ndarray
+    max_factor: np.ndarray
+    report_actual: np.ndarray
+    station_ids: list = field(default_factory=list)
+    trial_seed: np.ndarray = None
+
+    @property
+    def M(self):
+        """Number of trials."""
+        return self.targets.shape[0]
+
+    def sigma_factor(self):
+        """(M, N) growth factor f = clip(r / r_ref, f_min, f_max), 1 without growth.
+
+        Seed 003 eqs. (9)-(10), as core.simulation.SigmaGrowth.factor: σ(r) = σ_ref · f.
+        """
+        r = np.linalg.norm(self.targets[:, None, :] - self.stations, axis=-1)
+        grow = np.isfinite(self.range_ref)
+        ref = np.where(grow, self.range_ref, 1.0)
+        f = np.clip(r / ref, self.min_factor, self.max_factor)
+        return np.where(grow[None, :], f, 1.0)
+
+    def reference_range(self):
+        """The common r_ref of every station with σ growth, or None (none or different)."""
+        refs = set(self.range_ref[np.isfinite(self.range_ref)].tolist())
+        return refs.pop() if len(refs) == 1 else None
+
+
+def trials_from_scenario(scenario, trials, seed=0, range_ref=None):
+    """Monte Carlo geometry of a scenario (core.simulation): trial m uses simulator seed seed+m.
+
+    Targets come from ``core.simulation.realize_targets(scenario, seed + m)`` (a
+    ``random_static`` target is drawn anew from its box each trial, seed 003 section 3.1; a
+    Monte Carlo run = a simulator seed, so ``bearing_loc bag simulate --seed <seed+m>``
+    replays trial m's target). Moving targets and stations are taken at scenario time
+    t_m = duration · m / trials. A scenario with T targets gives T problems per trial
+    (M = trials · T), target-major within a trial. σ growth and 1D/2D come from the stations.
+    ``range_ref`` (m) overrides every station's growth reference range r_ref (stations
+    without growth get σ(r) = σ · r / r_ref, unclipped); 0 turns growth off (constant σ).
+    """
+    from .simulation import realize_targets, station_position, target_position
+    trials = int(trials)
+    if trials < 1:
+        raise ValueError(f'trials: must be >= 1, got {trials}')
+    if int(seed) < 0:
+        raise ValueError(f'seed: must be >= 0, got {seed}')
+    seeds = int(seed) + np.arange(trials)
+    t = scenario.duration * np.arange(trials) / trials
+    tg_rows, st_rows, seed_rows = [], [], []
+    for m in range(trials):
+        for tg in realize_targets(scenario, int(seeds[m])):
+            tg_rows.append(target_position(tg, t[m]))
+            st_rows.append([station_position(s, t[m]) for s in scenario.stations])
+            seed_rows.append(seeds[m])
+    g = [s.sigma_growth for s in scenario.stations]
+    if range_ref is not None:
+        from .simulation import SigmaGrowth
+        if not (np.isfinite(range_ref) and range_ref >= 0):
+            raise ValueError(f'range_ref: must be >= 0 m, got {range_ref}')
+        g = [None if range_ref == 0 else
+             (SigmaGrowth(float(range_ref), x.min_factor, x.max_factor, x.report) if x
+              else SigmaGrowth(float(range_ref))) for x in g]
+    return Trials(
+        stations=np.asarray(st_rows, dtype=float), targets=np.asarray(tg_rows, dtype=float),
+        has_elevation=np.array([s.dims == 2 for s in scenario.stations]),
+        range_ref=np.array([x.range_ref if x else np.nan for x in g], dtype=float),
+        min_factor=np.array([x.min_factor if x else 1.0 for x in g], dtype=float),
+        max_factor=np.array([x.max_factor if x else 1.0 for x in g], dtype=float),
+        report_actual=np.array([bool(x and x.report == 'actual') for x in g]),
+        station_ids=[s.id for s in scenario.stations], trial_seed=np.asarray(seed_rows))
+
+
+def _deg(label, rad):
+    return float(label) if np.isfinite(label) else float(np.degrees(rad))
+
+
+def error_statistics(estimator, sweep, level, truth, result, crlb_cov, elapsed_s):
+    """:class:`Stats` of one batched run (see the module docstring for the definitions).
+
+    ``truth`` (M, 3) m; ``result`` a FixResult; ``crlb_cov`` (M, 3, 3) m² at the true
+    targets; ``elapsed_s`` wall time of the estimator call. Trials whose estimate is not
+    converged or not finite are excluded from RMSE, bias and NEES (and counted in the
+    convergence rate); NEES also skips trials whose covariance is not invertible. A statistic
+    with no trial to average is NaN (never a fake number).
+    """
+    truth = np.asarray(truth, dtype=float)
+    M = truth.shape[0]
+    est = np.asarray(result.position, dtype=float)
+    conv = np.asarray(result.converged, dtype=bool) & np.all(np.isfinite(est), axis=1)
+    e = est[conv] - truth[conv]
+    sq = np.einsum('mi,mi->m', e, e)
+    n = int(conv.sum())
+    rmse = float(np.sqrt(sq.mean())) if n else float('nan')
+    bias_vec = e.mean(axis=0) if n else np.full(3, np.nan)
+    tr = np.trace(crlb_cov, axis1=-2, axis2=-1)
+    tr = tr[np.isfinite(tr)]
+    bound = float(np.sqrt(tr.mean())) if tr.size else float('nan')
+    P = np.asarray(result.covariance, dtype=float)[conv]
+    Pinv = safe_inverse(P) if n else np.zeros((0, 3, 3))
+    ok = np.all(np.isfinite(Pinv), axis=(-2, -1))
+    nees = np.einsum('mi,mij,mj->m', e[ok], Pinv[ok], e[ok])
+    rmse_se = (float(sq.std(ddof=1) / (2.0 * rmse * np.sqrt(n)))
+               if n > 1 and rmse > 0 else float('nan'))
+    nees_se = float(nees.std(ddof=1) / np.sqrt(nees.size)) if nees.size > 1 else float('nan')
+    return Stats(
+        estimator=estimator, sweep=sweep,
+        sigma_az_deg=_deg(level.sigma_az_deg, level.sigma_az),
+        sigma_el_deg=_deg(level.sigma_el_deg, level.sigma_el),
+        trials=M, converged=n, rmse=rmse, bias=float(np.linalg.norm(bias_vec)),
+        crlb=bound, rmse_over_crlb=rmse / bound if n and bound > 0 else float('nan'),
+        mean_nees=float(nees.mean()) if nees.size else float('nan'),
+        convergence_rate=n / M if M else float('nan'),
+        time_per_fix_s=float(elapsed_s) / M if M else float('nan'),
+        median_error=float(np.sqrt(np.median(sq))) if n else float('nan'),
+        rmse_se=rmse_se, nees_se=nees_se,
+        bias_vector=[float(v) for v in bias_vec])
+
+
+def run_level(estimators, trials, level, rng, sweep='joint', options=None, locate=None,
+              on_run=None):
+    """Evaluate ``estimators`` at one noise level on :class:`Trials`; returns [Stats].
+
+    One noisy bearing batch (M = trials.M problems) is drawn from ``rng`` with the true
+    σ_mi = σ · f_mi (:meth:`Trials.sigma_factor`) and shared by every estimator (common
+    random numbers: differences between estimators are not blurred by different noise
+    draws). The bearings report σ (or σ · f for stations with ``report: actual``). Each
+    estimator is one vectorised ``locate(name, bearings, **options[name])`` call, timed with
+    ``time.perf_counter``. The CRLB uses the true σ at the true targets.
+    """
+    if locate is None:
+        from .estimators import locate
+    options = options or {}
+    f = trials.sigma_factor()
+    saz, sel = level.sigma_az * f, level.sigma_el * f
+    noisy = simulate_bearings(trials.targets, trials.stations, saz, sel,
+                              has_elevation=trials.has_elevation, rng=rng)
+    rep = trials.report_actual[None, :]
+    noisy.sigma_az = np.where(rep, saz, level.sigma_az)
+    noisy.sigma_el = np.where(noisy.has_elevation, np.where(rep, sel, level.sigma_el), np.nan)
+    bound = crlb_matrix(trials.targets, trials.stations, saz, sel, trials.has_elevation)
+    out = []
+    for name in estimators:
+        t0 = time.perf_counter()
+        res = locate(name, noisy, **options.get(name, {}))
+        dt = time.perf_counter() - t0
+        out.append(error_statistics(name, sweep, level, trials.targets, res, bound, dt))
+        if on_run is not None:
+            on_run()
+    return out
+
+
+def level_rng(seed, sweep, index):
+    """Independent, reproducible generator for noise level ``index`` of ``sweep``.
+
+    numpy SeedSequence(seed, spawn_key=(sweep number, index)): results do not depend on which
+    other sweeps, levels or estimators are run.
+    """
+    return np.random.default_rng(np.random.SeedSequence(
+        int(seed), spawn_key=(SWEEPS.index(sweep) + 1, int(index))))
+
+
+def targets_rng(seed):
+    """Reproducible generator for target sampling (spawn key 0, distinct from the noise)."""
+    return np.random.default_rng(np.random.SeedSequence(int(seed), spawn_key=(0,)))
+
+
+def evaluate(estimators, trials, sigmas_deg, sweeps=('joint',), seed=0, fixed_sigma_deg=0.5,
+             options=None, progress=None, locate=None):
+    """Full Monte Carlo study: every sweep × σ level × estimator; returns a list of Stats.
+
+    ``trials`` (:class:`Trials`) are used for every level. ``progress(done, total)`` is
+    called after each estimator run with the number of runs done and to do.
+    Deterministic for a given ``seed`` (noise of level k of a sweep from
+    :func:`level_rng`). The σ of the sweep replace the scenario's per-station σ_ref.
+    """
+    if not estimators:
+        raise ValueError('estimators: need at least one')
+    for sw in sweeps:
+        if sw not in SWEEPS:
+            raise ValueError(f'sweep: must be one of {SWEEPS}, got {sw!r}')
+    all_levels = [(sw, k, lv) for sw in sweeps
+                  for k, lv in enumerate(noise_levels(sigmas_deg, sw, fixed_sigma_deg))]
+    total = len(all_levels) * len(estimators)
+    rows, done = [], [0]
+
+    def on_run():
+        done[0] += 1
+        if progress is not None:
+            progress(done[0], total)
+
+    for sw, k, lv in all_levels:
+        rows.extend(run_level(estimators, trials, lv, level_rng(seed, sw, k), sw, options,
+                              locate, on_run))
+    return rows
+
+
+def findings(rows):
+    """Summaries used by the report (docs/readme/evaluation.md) and the tests.
+
+    * ``ranking``: for each sweep and swept σ, estimator names sorted by RMSE (best first).
+    * ``azimuth_vs_elevation``: for each σ present in both single-angle sweeps and each
+      estimator (and ``CRLB``), RMSE with the azimuth σ varied / RMSE with the elevation σ
+      varied (> 1: azimuth error costs more). Seed 003 sec. 3.2 conclusion 2) compares
+      exactly these two curves (its figs. 3-4).
+    """
+    def key(r):
+        return r.sigma_el_deg if r.sweep == 'elevation' else r.sigma_az_deg
+
+    ranking = {}
+    for r in rows:
+        ranking.setdefault(f'{r.sweep}@{key(r):g}', []).append((r.rmse, r.estimator))
+    ranking = {k: [n for _, n in sorted(v, key=lambda t: (np.nan_to_num(t[0], nan=np.inf),
+                                                           t[1]))]
+               for k, v in ranking.items()}
+    by = {(r.sweep, key(r), r.estimator): r for r in rows}
+    ratios = []
+    for (sw, x, est), r in sorted(by.items(), key=lambda kv: (kv[0][1], kv[0][2])):
+        if sw != 'azimuth' or ('elevation', x, est) not in by:
+            continue
+        e = by[('elevation', x, est)]
+        ratios.append({'sigma_deg': x, 'estimator': est, 'rmse_azimuth': r.rmse,
+                       'rmse_elevation': e.rmse, 'ratio': r.rmse / e.rmse})
+        if est == rows[0].estimator:
+            ratios.append({'sigma_deg': x, 'estimator': 'CRLB', 'rmse_azimuth': r.crlb,
+                           'rmse_elevation': e.crlb, 'ratio': r.crlb / e.crlb})
+    return {'ranking': ranking, 'azimuth_vs_elevation': ratios}
