@@ -89,6 +89,16 @@ def test_seed003_scenario_line_array_random_sources_and_sigma_growth():
         assert np.all(s.sigma_az_actual <= np.radians(3.0) + 1e-15)
 
 
+def test_readme_example_scenario_parses():
+    with open(os.path.join(REPO, 'docs', 'readme', 'simulator.md'), encoding='utf-8') as f:
+        block = f.read().split('```yaml\n')[1].split('```')[0]
+    sc = parse_scenario(yaml.safe_load(block), 'simulator.md')
+    assert [s.trajectory.kind for s in sc.stations] == ['constant_velocity', 'static']
+    assert [t.namespace for t in sc.targets] == ['', 'drone']
+    assert {e.topic for e in simulate(sc, duration=1.0, seed=0).bearings} == {
+        'observer/bearing', 'hill/bearing', 'drone/observer/bearing', 'drone/hill/bearing'}
+
+
 def test_static3_test_scenario_loads():
     sc = load_scenario(os.path.join(SCEN, 'static3.yaml'))
     assert [s.id for s in sc.stations] == ['station_1', 'station_2', 'station_3']

@@ -2,21 +2,20 @@
 /clock arrive, same seed gives the same bearings, bad parameters / scenarios exit 1."""
 import os
 
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 import numpy as np
 import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
 import yaml
 
 from bearing_loc_ros.core.simulation import load_scenario, simulate
+from bearing_loc_ros.ros_common import ParameterError
 from bearing_loc_ros.ros_conversions import bearing_from_msg, time_to_ns
 from bearing_loc_ros.simulator_node import resolve_scenario_path
-from bearing_loc_ros.ros_common import ParameterError
 from ros_helpers import REPO, spin_until, start_node
-
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-from rosgraph_msgs.msg import Clock
 
 MODULE = 'bearing_loc_ros.simulator_node'
 SCENARIO = 'config/scenarios/static3.yaml'
@@ -94,7 +93,8 @@ def test_node_publishes_core_bearings_truth_and_clock(listener):
 
 
 def test_bad_parameters_and_scenarios_exit_1(tmp_path):
-    bad = yaml.safe_load(open(os.path.join(REPO, SCENARIO), encoding='utf-8'))
+    with open(os.path.join(REPO, SCENARIO), encoding='utf-8') as f:
+        bad = yaml.safe_load(f)
     bad['stations'][0]['rate'] = -5.0
     bad_path = tmp_path / 'bad.yaml'
     bad_path.write_text(yaml.safe_dump(bad))
