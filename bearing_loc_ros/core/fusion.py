@@ -31,7 +31,6 @@ yet processed).
 
 from collections import Counter, deque
 from dataclasses import dataclass, field, replace
-import inspect
 import math
 
 import numpy as np
@@ -246,9 +245,9 @@ class FusionConfig:
     sync_tolerance: float = 0.05
     interpolation: bool = False
     max_interpolation_gap: float = 1.0
-    station_timeout: float = 2.0
+    station_timeout: float = 5.0
     buffer_size: int = 50
-    buffer_age: float = 5.0
+    buffer_age: float = 10.0
     min_stations: int = 2
     estimator: str = field(default_factory=default_estimator)
     estimator_options: dict = field(default_factory=dict)
@@ -276,11 +275,9 @@ class FusionConfig:
                              'bearings of an epoch are pruned before it is processed')
         if int(self.min_stations) < 2:
             raise ValueError(f'min_stations: must be >= 2, got {self.min_stations}')
-        if self.estimator not in _estimators.ESTIMATORS:
-            raise ValueError(f'estimator: unknown estimator {self.estimator!r}; choose one of '
-                             f'{sorted(_estimators.ESTIMATORS)}')
         if not isinstance(self.estimator_options, dict):
             raise ValueError('estimator_options: must be a dict')
+        check_estimator(self.estimator, self.estimator_options)
         g = float(self.outlier_gate)
         if not 0.5 <= g <= 1.0:
             raise ValueError(f'outlier_gate: probability must be in [0.5, 1], got {g}')
@@ -304,16 +301,60 @@ class FusionConfig:
         return max(1, int(round(NS_PER_S / float(self.rate))))
 
 
+#: Estimator options and the estimators that accept them (core/estimators.py module
+#: docstring): None = every estimator; others are passed only to the listed ones, so one set
+#: of node parameters serves every estimator (each rejects options it does not know).
+ESTIMATOR_OPTION_SCOPE = {
+    'max_iterations': None,
+    'tolerance': None,
+    'reference_range': ('wmle',),
+    'step_decay': ('ctls', 'ctls_am'),
+}
+
+
 def estimator_kwargs(name, options):
-    """The subset of ``options`` that estimator ``name``'s signature accepts (all with **kw)."""
-    fn = _estimators.ESTIMATORS[name]
+    """The subset of ``options`` that estimator ``name`` accepts (ESTIMATOR_OPTION_SCOPE).
+
+    Options not listed in the scope table are passed through unchanged (the estimator
+    validates them).
+    """
+    out = {}
+    for k, v in options.items():
+        scope = ESTIMATOR_OPTION_SCOPE.get(k)
+        if scope is None or name in scope:
+            out[k] = v
+    return out
+
+
+def check_estimator(name, options):
+    """Validate an estimator name and its options without side effects (ValueError).
+
+    The options are checked by running the estimator once on a fixed, well-conditioned
+    three-station problem: this uses the estimator's own validation
+    (``options.<name>: ...`` messages), so no option rule is duplicated here.
+    """
+    if name not in _estimators.ESTIMATORS:
+        raise ValueError(f'estimator: unknown estimator {name!r}; choose one of '
+                         f'{sorted(_estimators.ESTIMATORS)}')
+    pos = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0], [0.0, 1000.0, 0.0]])
+    az, el = azimuth_elevation(np.array([400.0, 500.0, 300.0]) - pos)
+    bs = BearingSet.from_arrays(pos, az, el, 0.01, 0.01)
     try:
-        params = inspect.signature(fn).parameters
-    except (TypeError, ValueError):
-        return dict(options)
-    if any(p.kind == inspect.Parameter.VAR_KEYWORD for p in params.values()):
-        return dict(options)
-    return {k: v for k, v in options.items() if k in params}
+        _estimators.locate(name, bs, **estimator_kwargs(name, options))
+    except ValueError as exc:
+        raise ValueError(f'{exc}') from None
+
+
+def noise_sigmas(estimator, bearings, position, options):
+    """(σ_θ, σ_ψ) (M, N), rad, that estimator ``estimator`` assumes at ``position`` (M, 3).
+
+    ``wmle`` grows σ with range (seed 003 eqs. (9)-(10), option ``reference_range``); every
+    other estimator uses the bearings' σ as given.
+    """
+    if estimator == 'wmle':
+        d_ref = options.get('reference_range', _estimators.DEFAULT_REFERENCE_RANGE)
+        return _estimators.range_scaled_sigmas(bearings, position, d_ref)
+    return bearings.sigma_az, bearings.sigma_el
 
 
 @dataclass
@@ -364,7 +405,8 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     Loop: build a BearingSet (validated: at least ``min_stations`` stations, one elevation,
     three angles), run ``locate(estimator, ...)``, accept only a converged ``ok`` result with
     finite position and a finite positive semi-definite covariance; compute each station's
-    d² (:func:`normalized_residuals`, station position covariance included) and, if the worst
+    d² (:func:`normalized_residuals` with the σ the estimator assumes, :func:`noise_sigmas`,
+    and the station position covariance) and, if the worst
     ratio d_i² / gate_threshold(outlier_gate, k_i) exceeds 1, drop that station and repeat,
     as long as the remaining set is still solvable; if it is not, the epoch has no fix
     (``inconsistent_bearings``). Returns a :class:`Solution`. Never raises for bad geometry
@@ -403,7 +445,9 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         if not _covariance_ok(cov):
             return Solution(BAD_COVARIANCE, **common)
         pcov = np.array([np.asarray(b.position_covariance, dtype=float) for b in used])
-        d2, dof = normalized_residuals(bs, pos, pcov[None])
+        saz, sel = noise_sigmas(estimator, bs, pos[None], kwargs)
+        gated = BearingSet(bs.positions, bs.azimuth, bs.elevation, saz, sel, bs.stations)
+        d2, dof = normalized_residuals(gated, pos, pcov[None])
         d2, dof = d2[0], dof[0]
         thr = np.array([gate_threshold(outlier_gate, int(k)) for k in dof])
         with np.errstate(invalid='ignore'):
