@@ -10,7 +10,9 @@ Sub-commands:
   error over an area, with the before/after figures (JSON) and optional maps.
 
 Stations come from a simulator scenario (``--scenario``, core.simulation.load_scenario) or
-from ``--stations 'x,y,z[,1d];x,y,z;...'`` in ``--stations-unit`` (km by default).
+from ``--stations 'x,y,z[,1d];x,y,z;...'`` in ``--stations-unit`` (km by default). A value
+that starts with a minus sign must be attached with '=' (``--area-km=-10,10,-10,10``),
+otherwise argparse takes it for an option.
 """
 
 import json
@@ -54,7 +56,8 @@ def add_arguments(parser):
         src.add_argument('--scenario', help='scenario YAML (docs/readme/simulator.md); '
                                             'station positions at t = 0')
         src.add_argument('--stations',
-                         help="'x,y,z[,1d];x,y,z;...' station positions (2D unless ',1d')")
+                         help="'x,y,z[,1d];x,y,z;...' station positions (2D unless ',1d'); "
+                              "write --stations=-1,... if it starts with a minus sign")
         p.add_argument('--stations-unit', choices=('km', 'm'), default='km',
                        help='unit of --stations coordinates (default km)')
         p.add_argument('--altitude', type=float, required=True,
@@ -71,7 +74,8 @@ def add_arguments(parser):
                             'on it; default m)')
         p.add_argument('--extent-km', default=None,
                        help='map extent: L (square [-L, L]) or XMIN,XMAX,YMIN,YMAX, km '
-                            '(map default 60; place default: area and region)')
+                            '(--extent-km=-10,...; map default 60; place default: area and '
+                            'region)')
         p.add_argument('--resolution', type=float, default=None,
                        help='map cell size, m (default: extent / 400)')
         p.add_argument('--levels', default=None,
@@ -86,10 +90,11 @@ def add_arguments(parser):
             p.add_argument('--title', default=None, help='plot title')
         else:
             p.add_argument('--area-km', required=True,
-                           help='area of interest XMIN,XMAX,YMIN,YMAX, km')
+                           help='area of interest XMIN,XMAX,YMIN,YMAX, km (write '
+                                '--area-km=-10,10,-10,10 for a negative XMIN)')
             p.add_argument('--region-km', default=None,
                            help='where the new station may go, XMIN,XMAX,YMIN,YMAX, km '
-                                '(default: the area)')
+                                '(--region-km=-30,...; default: the area)')
             p.add_argument('--height', type=float, default=None,
                            help='new station z, m (default: mean z of the stations)')
             p.add_argument('--new-1d', action='store_true',

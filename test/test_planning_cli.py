@@ -1,0 +1,132 @@
+"""``bearing_loc plan`` (cli/plan.py): cut-angle, map, place; bad input exits 2."""
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from bearing_loc_ros.cli import main
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCENARIO = os.path.join(ROOT, 'config', 'scenarios', 'seed000.yaml')
+STATIONS = '30,-10,0.1;30,20,0.2;-30,5,0.15'
+
+
+def _run(capsys, *argv):
+    rc = main(['plan', *argv])
+    out, err = capsys.readouterr()
+    return rc, out, err
+
+
+def test_cut_angle_json(capsys):
+    rc, out, _ = _run(capsys, 'cut-angle', '--k1', '1', '--k2', '0', '--elevation-deg', '0')
+    assert rc == 0
+    d = json.loads(out)
+    assert d['feasible'] is True
+    assert d['cut_angle_deg'] == pytest.approx(np.degrees(np.arccos(-1 / 3)), abs=1e-6)
+    assert d['theta2_deg'] - d['theta1_deg'] == pytest.approx(d['cut_angle_deg'])
+    assert d['f_min'] == pytest.approx(27 / 32)
+    rc, out, _ = _run(capsys, 'cut-angle', '--k1', '0.4')
+    assert rc == 0 and json.loads(out)['feasible'] is False
+
+
+def test_cut_angle_table(capsys):
+    rc, out, _ = _run(capsys, 'cut-angle', '--table', '--k1-values', '0.3:0.9:0.3',
+                      '--k2-values', '0,0.5', '--json')
+    assert rc == 0
+    rows = json.loads(out)
+    assert [(r['k2'], r['k1']) for r in rows] == [(0.0, 0.3), (0.0, 0.6), (0.0, 0.9),
+                                                  (0.5, 0.3), (0.5, 0.6), (0.5, 0.9)]
+    assert [r['feasible'] for r in rows] == [False, True, True, True, True, True]
+    rc, out, _ = _run(capsys, 'cut-angle', '--table', '--k1-values', '0.5,1', '--k2-values',
+                      '0')
+    assert rc == 0 and 'feasible' in out and '109.471' in out
+
+
+@pytest.mark.parametrize('argv,flag', [
+    (['cut-angle', '--k1', '0'], '--k1'),
+    (['cut-angle', '--k1', '1', '--k2', '-1'], '--k2'),
+    (['cut-angle', '--elevation-deg', '95'], '--elevation-deg'),
+    (['cut-angle', '--table', '--k1-values', '1:x:2'], '--k1-values'),
+    (['map', '--stations', '1,2;3,4,5', '--altitude', '5000', '--sigma-mrad', '1'],
+     '--stations'),
+    (['map', '--stations', STATIONS, '--altitude', '5000'], '--sigma-mrad'),
+    (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-mrad', '-1'],
+     '--sigma-mrad'),
+    (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-mrad', '1',
+      '--extent-km', '10,5,0,1'], '--extent-km'),
+    (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-mrad', '1',
+      '--resolution', '0'], '--resolution'),
+    (['place', '--stations', STATIONS, '--altitude', '5000', '--sigma-mrad', '1',
+      '--area-km', '0,1'], '--area-km'),
+    (['place', '--stations', STATIONS, '--altitude', '5000', '--sigma-mrad', '1',
+      '--area-km=-5,5,-5,5', '--candidates', '1'], '--candidates'),
+])
+def test_bad_input_exits_2_naming_the_flag(capsys, argv, flag):
+    rc, out, err = _run(capsys, *argv)
+    assert rc == 2 and out == ''
+    assert flag in err and len(err.strip().splitlines()) == 1
+
+
+def test_map_png_and_csv_from_stations(capsys, tmp_path):
+    png = tmp_path / 'map.png'
+    rc, out, _ = _run(capsys, 'map', '--stations', STATIONS + ';0,-40,0,1d', '--altitude',
+                      '5000', '--sigma-mrad', '1.5', '--model', 'ctls', '--extent-km', '50',
+                      '--resolution', '2500', '--png', str(png))
+    assert rc == 0
+    d = json.loads(out)
+    assert d['grid']['width'] == 40 and d['grid']['height'] == 40
+    assert [s['dims'] for s in d['stations']] == [2, 2, 2, 1]
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b'\x89PNG'
+    data = np.loadtxt(tmp_path / 'map.csv', delimiter=',', skiprows=1)
+    assert data.shape == (1600, 4)
+    assert np.all(data[:, 2] == 5000.0)
+    assert data[:, 3].max() == pytest.approx(d['stats']['max_m'], rel=1e-5)
+
+
+def test_map_from_scenario_uses_the_scenario_loader(capsys, tmp_path):
+    # seed000.yaml: 3 mrad stations at the seed 000 positions; --sigma-mrad overrides σ.
+    rc, out, _ = _run(capsys, 'map', '--scenario', SCENARIO, '--altitude', '5000',
+                      '--extent-km', '60', '--resolution', '6000', '--csv',
+                      str(tmp_path / 'g.csv'))
+    assert rc == 0
+    d = json.loads(out)
+    assert [s['position_m'] for s in d['stations']][0] == [30000.0, -10000.0, 100.0]
+    assert d['stations'][0]['sigma_az_mrad'] == pytest.approx(3.0)
+    rc, out2, _ = _run(capsys, 'map', '--scenario', SCENARIO, '--altitude', '5000',
+                       '--extent-km', '60', '--resolution', '6000', '--sigma-mrad', '1.5')
+    d2 = json.loads(out2)
+    assert d2['stats']['mean_m'] == pytest.approx(d['stats']['mean_m'] / 2, rel=1e-9)
+    rc, _, err = _run(capsys, 'map', '--scenario', str(tmp_path / 'missing.yaml'),
+                      '--altitude', '5000')
+    assert rc == 2 and 'missing.yaml' in err
+
+
+def test_place_json_and_maps(capsys, tmp_path):
+    rc, out, _ = _run(capsys, 'place', '--stations', '20,0,0;-20,0,0;0,20,0;0,-20,0',
+                      '--sigma-mrad', '2', '--altitude', '3000', '--area-km=-10,10,-10,10',
+                      '--region-km=-30,30,-30,30', '--height', '0', '--area-cells', '10',
+                      '--candidates', '10', '--png-before', str(tmp_path / 'b.png'),
+                      '--png-after', str(tmp_path / 'a.png'), '--resolution', '2000')
+    assert rc == 0
+    d = json.loads(out)
+    assert np.hypot(*d['position_m'][:2]) < 50.0
+    assert d['after_m'] < d['before_m'] and d['improvement_m'] > 0
+    assert (tmp_path / 'b.png').stat().st_size > 10_000
+    assert (tmp_path / 'a.png').stat().st_size > 10_000
+
+
+def test_console_script_subprocess(tmp_path):
+    exe = os.path.join(os.path.dirname(sys.executable), 'bearing_loc')
+    if not os.path.exists(exe):
+        pytest.skip('bearing_loc console script not installed in this environment')
+    res = subprocess.run([exe, 'plan', 'cut-angle', '--k1', '0.8', '--k2', '0',
+                          '--elevation-deg', '0'], capture_output=True, text=True, timeout=60)
+    assert res.returncode == 0, res.stderr
+    d = json.loads(res.stdout)
+    assert d['feasible'] is True and 90.0 < d['cut_angle_deg'] < 110.0
+    res = subprocess.run([exe, 'plan', 'cut-angle', '--k1', '-3'], capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 2 and '--k1' in res.stderr
