@@ -150,7 +150,7 @@ class SimulatorNode(Node):
             f'scenario {path} ({sc.name or "unnamed"}): {len(sc.stations)} stations, '
             f'{len(self.sim.targets)} targets, {self.sim.duration:g} s, seed {seed}, '
             f'{len(self.sim.bearings)} bearings, time_scale {self._time_scale:g}, '
-            f'start in {self._start_delay:g} s')
+            f'start within {self._start_delay:g} s')
 
     # ----------------------------------------------------------------------------------------
     def sim_time_ns(self, wall_ns=None):
