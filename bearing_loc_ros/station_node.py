@@ -1,0 +1,317 @@
+"""station_node: raw direction-finding readings -> world-frame bearings on ``bearing``.
+
+Runs on a station computer (``ros2 run bearing_loc_ros station_node --ros-args
+-r __ns:=/station_1 -p position:=[0.0,0.0,2.0]``). Inputs:
+
+* ``raw_bearing`` (geometry_msgs/Vector3Stamped): x = azimuth, y = elevation (NaN = none), in
+  the sensor's reference (``azimuth_reference``) and units (``input_units``); header.stamp =
+  observation time.
+* UDP (``udp_port`` > 0): one JSON object per datagram, ``{"t": unix_s, "azimuth_deg": a,
+  "elevation_deg": e | null, "sigma_deg": s}``; read non-blocking from a steady-clock timer,
+  so the executor never blocks.
+* ``platform_odometry`` (nav_msgs/Odometry topic, optional): the station is on a moving
+  platform; readings are in the body frame and rotated into the world frame with the pose
+  interpolated to each reading's stamp.
+
+Outputs: ``bearing`` (geometry_msgs/PoseWithCovarianceStamped, DESIGN.md contract) and
+``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period_s``).
+
+The node is thin: parameters -> :func:`bearing_loc_ros.core.station.station_config`,
+messages/datagrams -> core readings (:mod:`bearing_loc_ros.ros_conversions`,
+:func:`~bearing_loc_ros.core.station.parse_datagram`), the core computes the bearing
+(:func:`~bearing_loc_ros.core.station.to_world_bearing`), the node publishes it. Bad
+parameters exit with code 1 and a message naming the parameter; bad readings are counted by
+reason, logged (throttled) and never stop the node.
+"""
+
+from collections import Counter
+import socket
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
+from nav_msgs.msg import Odometry
+from rclpy.clock import Clock, ClockType
+from rclpy.node import Node
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+from . import ros_common as rcm
+from .core.station import (ConfigError, parse_datagram, PoseBuffer, ReadingError,
+                           station_config, to_world_bearing, UNITS)
+from .ros_conversions import (bearing_to_msg, ConversionError, pose_from_odometry,
+                              raw_reading_from_msg)
+
+#: Period of the non-blocking UDP poll (s, steady clock) and datagrams read per poll.
+UDP_POLL_PERIOD_S = 0.01
+UDP_MAX_PER_POLL = 256
+UDP_STAMPS = ('datagram', 'receive')
+LOG_THROTTLE_S = 5.0
+
+#: Inputs accept best-effort and reliable publishers; outputs are reliable.
+INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                       reliability=ReliabilityPolicy.BEST_EFFORT)
+OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                        reliability=ReliabilityPolicy.RELIABLE)
+
+
+class StationNode(Node):
+    """One DF station: raw readings (topic and/or UDP) -> ``bearing``; see module docstring."""
+
+    def __init__(self, **kwargs):
+        super().__init__('station_node', **kwargs)
+        self._sock = None
+        p = self._declare_parameters()
+        station = p['station_id'] or rcm.station_id_from_namespace(self.get_namespace())
+        try:
+            self.config = station_config(
+                station, frame_id=p['frame_id'], position=p['position'],
+                geodetic_position=p['geodetic_position'], geodetic_origin=p['geodetic_origin'],
+                position_covariance=p['position_covariance'],
+                sigma_azimuth_deg=p['sigma_azimuth_deg'],
+                sigma_elevation_deg=p['sigma_elevation_deg'],
+                measures_elevation=p['measures_elevation'],
+                azimuth_reference=p['azimuth_reference'],
+                azimuth_offset_deg=p['azimuth_offset_deg'],
+                moving=bool(p['platform_odometry']))
+        except ConfigError as exc:
+            raise rcm.ParameterError(exc.field, exc.problem) from None
+        if p['input_units'] not in UNITS:
+            raise rcm.ParameterError('input_units', f"{p['input_units']!r} is not one of "
+                                                    f'{UNITS}')
+        if p['udp_stamp'] not in UDP_STAMPS:
+            raise rcm.ParameterError('udp_stamp', f"{p['udp_stamp']!r} is not one of "
+                                                  f'{UDP_STAMPS}')
+        self.input_units = p['input_units']
+        self.restamp_udp = p['udp_stamp'] == 'receive'
+        self.published = 0
+        self.rejected = Counter()
+        self.received = Counter()
+        self.last_stamp_ns = None
+        self._rejected_reported = 0
+        self._published_reported = 0
+        self.sources = []
+
+        self.pub = self.create_publisher(PoseWithCovarianceStamped, 'bearing', OUTPUT_QOS)
+        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.raw_sub = self.create_subscription(Vector3Stamped, 'raw_bearing', self._on_raw,
+                                                INPUT_QOS)
+        self.sources.append(f'topic {self.raw_sub.topic_name} ({self.input_units})')
+        self.poses = None
+        if self.config.moving:
+            self.poses = PoseBuffer(p['odometry_buffer_size'],
+                                    int(round(p['odometry_tolerance_s'] * 1e9)))
+            self.odom_sub = self.create_subscription(Odometry, p['platform_odometry'],
+                                                     self._on_odometry, INPUT_QOS)
+            self.sources.append(f'odometry {self.odom_sub.topic_name}')
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        if p['udp_port']:
+            self._open_udp(p['udp_address'], p['udp_port'])
+            self.create_timer(UDP_POLL_PERIOD_S, self._poll_udp, clock=steady)
+            self.sources.append(f"udp {p['udp_address']}:{p['udp_port']} "
+                                f"(stamp: {p['udp_stamp']})")
+            if self.restamp_udp is False and self.get_parameter('use_sim_time').value:
+                self.get_logger().warning(
+                    'use_sim_time is true but udp_stamp is "datagram": UDP stamps are wall '
+                    '(unix) time and will not match /clock; set udp_stamp:=receive')
+        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics, clock=steady)
+        c = self.config
+        where = 'moving platform' if c.moving else f'position {c.position.tolist()} m'
+        self.get_logger().info(
+            f"station '{c.station}' in frame '{c.frame_id}', {where}, "
+            f"{'2D' if c.measures_elevation else '1D'}, reference {c.azimuth_reference}, "
+            f"inputs: {'; '.join(self.sources)}")
+
+    # ------------------------------------------------------------------ parameters
+
+    def _declare_parameters(self):
+        d, da = rcm.declare, rcm.declare_array
+        p = {}
+        p['frame_id'] = d(self, 'frame_id', 'map', 'World frame of the published bearings '
+                          '(must equal the fusion node frame_id)', read_only=True)
+        p['station_id'] = d(self, 'station_id', '', 'Station id for logs and diagnostics; '
+                            'empty = the node namespace', read_only=True)
+        p['position'] = da(self, 'position', [], 'Station (array phase centre) position '
+                           '[x, y, z] in the ENU world frame, m', read_only=True)
+        p['geodetic_position'] = da(self, 'geodetic_position', [], 'Station position '
+                                    '[lat_deg, lon_deg, alt_m] (WGS84, ellipsoidal height); '
+                                    'instead of position', read_only=True)
+        p['geodetic_origin'] = da(self, 'geodetic_origin', [], 'Geodetic origin of the ENU '
+                                  'world frame [lat_deg, lon_deg, alt_m]', read_only=True)
+        p['position_covariance'] = da(self, 'position_covariance', [], 'Station position '
+                                      'covariance, 3 (diagonal) or 9 (row-major) values, m^2',
+                                      read_only=True)
+        p['sigma_azimuth_deg'] = d(self, 'sigma_azimuth_deg', 2.0, 'Azimuth standard '
+                                   'deviation, degrees (unless a datagram gives sigma_deg)',
+                                   read_only=True, min_value=1e-6, max_value=180.0)
+        p['sigma_elevation_deg'] = d(self, 'sigma_elevation_deg', 2.0, 'Elevation standard '
+                                     'deviation, degrees', read_only=True, min_value=1e-6,
+                                     max_value=180.0)
+        p['measures_elevation'] = d(self, 'measures_elevation', False, 'True for a 2D '
+                                    '(azimuth + elevation) station; False ignores elevations',
+                                    read_only=True)
+        p['azimuth_reference'] = d(self, 'azimuth_reference', 'enu', "Raw azimuth reference: "
+                                   "'enu' (CCW from East / from the bow) or 'compass' (CW from "
+                                   "North / from the bow)", read_only=True,
+                                   additional_constraints="one of 'enu', 'compass'")
+        p['azimuth_offset_deg'] = d(self, 'azimuth_offset_deg', 0.0, 'Added to the raw '
+                                    'azimuth in its own reference and sense before conversion, '
+                                    'degrees', read_only=True, min_value=-360.0,
+                                    max_value=360.0)
+        p['input_units'] = d(self, 'input_units', 'rad', "Units of raw_bearing x/y: 'deg' or "
+                             "'rad'", read_only=True, additional_constraints="'deg' or 'rad'")
+        p['udp_port'] = d(self, 'udp_port', 0, 'UDP port for JSON datagrams; 0 = off',
+                          read_only=True, min_value=0, max_value=65535)
+        p['udp_address'] = d(self, 'udp_address', '127.0.0.1', 'Address to bind the UDP '
+                             'socket to (0.0.0.0 = all interfaces)', read_only=True)
+        p['udp_stamp'] = d(self, 'udp_stamp', 'datagram', "'datagram': stamp = the datagram's "
+                           "t (unix time); 'receive': node clock at receipt", read_only=True,
+                           additional_constraints="'datagram' or 'receive'")
+        p['platform_odometry'] = d(self, 'platform_odometry', '', 'nav_msgs/Odometry topic of '
+                                   'a moving platform; empty = fixed station', read_only=True)
+        p['odometry_tolerance_s'] = d(self, 'odometry_tolerance_s', 0.1, 'Readings up to this '
+                                      'far outside the buffered odometry use the nearest pose; '
+                                      'further out they are dropped, s', read_only=True,
+                                      min_value=0.0, max_value=60.0)
+        p['odometry_buffer_size'] = d(self, 'odometry_buffer_size', 200, 'Odometry messages '
+                                      'kept for interpolation', read_only=True, min_value=2,
+                                      max_value=100000)
+        p['diagnostics_period_s'] = d(self, 'diagnostics_period_s', 1.0, 'Period of the '
+                                      '/diagnostics status, s', read_only=True, min_value=0.05,
+                                      max_value=3600.0)
+        return p
+
+    # ------------------------------------------------------------------ inputs
+
+    def _open_udp(self, address, port):
+        try:
+            infos = socket.getaddrinfo(address, port, type=socket.SOCK_DGRAM)
+        except (socket.gaierror, UnicodeError) as exc:
+            raise rcm.ParameterError('udp_address', f'{address!r}: {exc}') from None
+        family, stype, proto, _, sockaddr = infos[0]
+        sock = socket.socket(family, stype, proto)
+        try:
+            sock.setblocking(False)
+            sock.bind(sockaddr)
+        except OSError as exc:
+            sock.close()
+            raise rcm.ParameterError('udp_port', f'cannot bind {address}:{port}: '
+                                                 f'{exc.strerror or exc}') from None
+        self._sock = sock
+
+    def _on_raw(self, msg):
+        self.received['raw_bearing'] += 1
+        try:
+            reading = raw_reading_from_msg(msg, self.input_units)
+        except ConversionError as exc:
+            self._reject(exc.reason, 'raw_bearing', exc)
+            return
+        self._process(reading, 'raw_bearing')
+
+    def _poll_udp(self):
+        for _ in range(UDP_MAX_PER_POLL):
+            try:
+                data, sender = self._sock.recvfrom(65535)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:  # e.g. ICMP errors surfaced on the socket; keep going
+                self.get_logger().warning(f'UDP receive error: {exc}',
+                                          throttle_duration_sec=LOG_THROTTLE_S)
+                return
+            self.received['udp'] += 1
+            try:
+                reading = parse_datagram(data, require_t=not self.restamp_udp)
+            except ReadingError as exc:
+                self._reject(exc.reason, f'udp from {sender[0]}:{sender[1]}', exc)
+                continue
+            if self.restamp_udp:
+                now = self.get_clock().now().nanoseconds
+                if now <= 0:
+                    self._reject('no_clock', 'udp', 'node clock is 0 (no /clock yet?)')
+                    continue
+                reading.stamp_ns = now
+            self._process(reading, 'udp')
+
+    def _on_odometry(self, msg):
+        self.received['odometry'] += 1
+        try:
+            pose = pose_from_odometry(msg, self.config.frame_id)
+        except ConversionError as exc:
+            self._reject(exc.reason, 'odometry', exc)
+            return
+        status = self.poses.add(pose)
+        if status == 'duplicate':
+            self._reject('odometry_duplicate', 'odometry', 'same stamp as the previous pose')
+        elif status == 'reset':
+            self.received['odometry_resets'] += 1
+            self.get_logger().warning('odometry time jumped backwards: pose buffer cleared',
+                                      throttle_duration_sec=LOG_THROTTLE_S)
+
+    # ------------------------------------------------------------------ processing
+
+    def _process(self, reading, source):
+        try:
+            pose = self.poses.interpolate(reading.stamp_ns) if self.config.moving else None
+            msg = bearing_to_msg(to_world_bearing(reading, self.config, pose))
+        except ReadingError as exc:
+            self._reject(exc.reason, source, exc)
+            return
+        except ValueError as exc:  # the finished bearing failed validation
+            self._reject('invalid_bearing', source, exc)
+            return
+        self.pub.publish(msg)
+        self.published += 1
+        self.last_stamp_ns = reading.stamp_ns
+
+    def _reject(self, reason, source, detail):
+        self.rejected[reason] += 1
+        self.get_logger().warning(f'rejected {source} input ({reason}): {detail}',
+                                  throttle_duration_sec=LOG_THROTTLE_S)
+
+    # ------------------------------------------------------------------ diagnostics
+
+    def diagnostic_status(self):
+        """The station's DiagnosticStatus: WARN when inputs were rejected since last report."""
+        total_rej = sum(self.rejected.values())
+        new_rej = total_rej - self._rejected_reported
+        new_pub = self.published - self._published_reported
+        self._rejected_reported, self._published_reported = total_rej, self.published
+        values = {
+            'station': self.config.station,
+            'frame_id': self.config.frame_id,
+            'sources': '; '.join(self.sources),
+            'published': self.published,
+            'published_since_last_report': new_pub,
+            'rejected': total_rej,
+            'last_stamp_ns': self.last_stamp_ns if self.last_stamp_ns is not None else '',
+            'last_stamp_s': (f'{self.last_stamp_ns / 1e9:.9f}'
+                             if self.last_stamp_ns is not None else ''),
+        }
+        values.update({f'received_{k}': v for k, v in sorted(self.received.items())})
+        values.update({f'rejected_{k}': v for k, v in sorted(self.rejected.items())})
+        if new_rej:
+            level = rcm.WARN
+            message = f'{new_rej} input(s) rejected since last report'
+        elif self.published == 0:
+            level, message = rcm.OK, 'waiting for readings'
+        else:
+            level, message = rcm.OK, f'{new_pub} bearing(s) published since last report'
+        return rcm.diagnostic_status(f'{self.get_name()}: {self.config.station}', level,
+                                     message, values, hardware_id=self.config.station)
+
+    def _publish_diagnostics(self):
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [self.diagnostic_status()]
+        self.diag_pub.publish(arr)
+
+    def destroy_node(self):
+        """Close the UDP socket, then destroy the node."""
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+        return super().destroy_node()
+
+
+main = rcm.main_for(StationNode)
+
+if __name__ == '__main__':
+    main()
