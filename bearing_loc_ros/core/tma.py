@@ -517,10 +517,11 @@ def constrained_crlb(J, grad):
     """Constrained CRLB (Stoica & Ng 1998) C = U (Uᵀ J U)⁻¹ Uᵀ (T15), shape (…, 6, 6).
 
     U (…, 6, 5) is an orthonormal basis of the null space of the constraint gradient ``grad``
-    (…, 6); J the Fisher information (…, 6, 6). inf where UᵀJU is singular (unobservable).
+    (…, 6) (broadcast to J's leading shape); J the Fisher information (…, 6, 6). inf where
+    UᵀJU is singular (unobservable).
     """
     J = np.asarray(J, dtype=float)
-    g = np.asarray(grad, dtype=float)
+    g = np.broadcast_to(np.asarray(grad, dtype=float), J.shape[:-1])
     Qm, _ = np.linalg.qr(g[..., :, None], mode='complete')
     U = Qm[..., :, 1:]
     red = np.swapaxes(U, -1, -2) @ J @ U
@@ -605,7 +606,7 @@ def _finish(method, data, p0, v, status, reason, iterations, converged, opts):
 
 
 def _options(options):
-    unknown = set(options) - set(DEFAULTS) - {'start', 'max_iterations', 'xtol'}
+    unknown = set(options) - set(DEFAULTS) - {'start', 'max_iterations', 'xtol', 'dtol'}
     if unknown:
         raise ValueError(f'options: unknown TMA option(s) {sorted(unknown)}')
     opts = dict(DEFAULTS)
@@ -720,18 +721,21 @@ def mle(bearings, times, speed, **options):
     θ̂, ψ̂ of p_k = p0 + v τ_k − δ_k (T3, the observer positions are used exactly) subject to
     (T5). The constraint is kept exactly by the parametrisation v = v_c s (− v_o for
     'ground') with s a unit vector updated on its tangent plane, s ← normalise(s + E δ):
-    5 unknowns (p0, δ). Marquardt damping: a step is accepted only if it lowers the cost, so
-    the result is never worse than the start and never NaN. Start: ``start`` = (p0, v) arrays,
+    5 unknowns (p0, δ). Marquardt damping with Nielsen's gain-ratio update: a step is
+    accepted only if it lowers the cost, so the result is never worse than the start and
+    never NaN. Converged when the step is shorter than ``dtol`` (1e-3) standard deviations
+    (hᵀJᵀJh < dtol²: far below the statistical error) or ``xtol`` (1e-10) relative.
+    Start: ``start`` = (p0, v) arrays,
     else the closed form (:func:`ctls`, :func:`ctls6`, :func:`ple`) with the lowest cost.
     Efficient (reaches the CRLB (T15)) at small noise: the reference of the benchmark.
-    Options as :func:`ple` plus ``start``, ``max_iterations`` (50) and ``xtol`` (1e-8,
-    relative step for convergence).
+    Options as :func:`ple` plus ``start``, ``max_iterations`` (50), ``dtol``, ``xtol``.
     Status max_iterations: not converged, estimate kept (cost reduced).
     """
     opts = _options(options)
     start = opts.pop('start', None)
     max_it = int(opts.pop('max_iterations', 50))
-    xtol = float(opts.pop('xtol', 1e-8))
+    xtol = float(opts.pop('xtol', 1e-10))
+    dtol = float(opts.pop('dtol', 1e-3))
     data = _prepare(bearings, times, speed, opts['speed_reference'])
     if start is None:
         sums = batch_sums(bearings, data.tau + data.t0[:, None])
@@ -754,7 +758,8 @@ def mle(bearings, times, speed, **options):
     v = vc[:, None] * s - off
     e, d = _residuals(data, p0, v)
     cost = np.sum(e * e, axis=(1, 2))
-    mu = np.full(M, 1e-6)
+    mu = np.full(M, 1e-9)
+    nu = np.full(M, 2.0)
     iters = np.zeros(M, dtype=int)
     converged = np.zeros(M, dtype=bool)
     running = active & np.isfinite(cost)
@@ -766,11 +771,11 @@ def mle(bearings, times, speed, **options):
         E = _tangent_basis(s[r])
         g_t, g_p = angle_jacobians(np.zeros((len(r), 3)), -d[r])
         G = np.stack([g_t / data.s_az[r][..., None], g_p / data.s_el[r][..., None]], -2)
-        tau_r = data.tau[r][..., None, None]
-        Jv = np.einsum('mkai,mij->mkaj', G, vc[r, None, None] * E) * tau_r
-        J = np.concatenate([G, Jv], axis=-1)                         # (m, K, 2, 5)
-        JtJ = np.einsum('mkai,mkaj->mij', J, J)
-        Jte = np.einsum('mkai,mka->mi', J, e[r])
+        Jv = (G @ (vc[r, None, None] * E)[:, None]) * data.tau[r][..., None, None]
+        J = np.concatenate([G, Jv], axis=-1).reshape(len(r), -1, 5)     # (m, 2K, 5)
+        Jt = np.swapaxes(J, -1, -2)
+        JtJ = Jt @ J
+        Jte = (Jt @ e[r].reshape(len(r), -1, 1))[..., 0]
         dg = np.diagonal(JtJ, axis1=1, axis2=2)
         dg = np.where(dg > 0, dg, 1.0)
         A = JtJ + (mu[r, None] * dg)[:, :, None] * np.eye(5)
@@ -787,17 +792,28 @@ def mle(bearings, times, speed, **options):
                     data.s_az[r], data.s_el[r], vc[r], data.v_o[r], data.delta[r])
         e_new, d_new = _residuals(sub, p_new, v_new)
         c_new = np.sum(e_new * e_new, axis=(1, 2))
-        acc = np.isfinite(c_new) & (c_new <= cost[r])
+        # Gain ratio ρ = actual / predicted decrease of the cost |e + J h|² (Nielsen 1999).
+        dec = np.einsum('mi,mij,mj->m', step, JtJ, step)
+        pred = -2.0 * np.sum(step * Jte, -1) - dec
+        acc = np.isfinite(c_new) & (c_new < cost[r])
+        with np.errstate(divide='ignore', invalid='ignore'):
+            rho = np.where(pred > 0, (cost[r] - c_new) / pred, 0.0)
         ra = r[acc]
+        p0[ra], s[ra], v[ra] = p_new[acc], s_new[acc], v_new[acc]
+        e[ra], d[ra], cost[ra] = e_new[acc], d_new[acc], c_new[acc]
+        mu[ra] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * np.clip(rho[acc], 0, 1) - 1.0) ** 3)
+        mu[ra] = np.maximum(mu[ra], 1e-15)
+        nu[ra] = 2.0
+        rj = r[~acc]
+        mu[rj] *= nu[rj]
+        nu[rj] *= 2.0
         rel = np.maximum(np.linalg.norm(step[:, :3], axis=-1)
                          / np.maximum(np.linalg.norm(p_new, axis=-1), 1e-300),
                          np.linalg.norm(step[:, 3:], axis=-1))
-        p0[ra], s[ra], v[ra] = p_new[acc], s_new[acc], v_new[acc]
-        e[ra], d[ra], cost[ra] = e_new[acc], d_new[acc], c_new[acc]
-        mu[ra] = np.maximum(mu[ra] / 10.0, 1e-15)
-        mu[r[~acc]] *= 10.0
-        # A step below xtol ends the iteration even when rounding made it rejected.
-        done = (rel < xtol) | (~acc & (mu[r] > 1e10))
+        # Converged when the step is below dtol standard deviations (its Mahalanobis length
+        # in the Fisher information JᵀJ) or below xtol relative; a rejected step that small
+        # also ends the iteration (rounding), the current estimate is kept.
+        done = (dec < dtol ** 2) | (rel < xtol) | (mu[r] > 1e12)
         converged[r[done]] = True
         running[r[done]] = False
     status = status.copy()
