@@ -1,0 +1,237 @@
+"""``bearing_loc tma``: one moving station, target motion analysis (seed 001), JSON in/out.
+
+Input (a file argument, or stdin when the argument is ``-`` or absent), one problem::
+
+    {"method": "ctls",                 # optional: ple | ctls | ctls6 | mle (default ctls)
+     "speed": 380.0,                   # prior speed v_c, m/s (> 0)
+     "speed_reference": "relative",    # optional: relative (seed 001) | ground
+     "options": {"alpha": 1e-3},       # optional estimator options (core.tma.DEFAULTS)
+     "sigma_azimuth": 0.0017,          # optional default σ_θ, rad
+     "sigma_elevation": 0.0017,        # optional default σ_ψ, rad
+     "observations": [{"t": 0.0,                 # s
+                       "observer": [x, y, z],    # m, ENU world frame
+                       "azimuth": 0.78,          # rad, ENU (CCW from East; --compass: CW
+                                                 #   from North as in seed 001)
+                       "elevation": 0.07,        # rad, above the horizontal (required)
+                       "sigma_azimuth": 0.0017,  # rad, > 0 (or the default above)
+                       "sigma_elevation": 0.0017},
+                      ...]}
+
+or a batch ``{"method": ..., "speed": ..., "problems": [{"observations": [...]}, ...]}``
+(a problem may override ``speed``). Observations are sorted by time. Output (stdout), the
+target at the last observation time: ``{"method", "t", "position", "velocity",
+"covariance" (6x6 of position and velocity, the constrained CRLB at the estimate), "status",
+"reason", "t0", "position0", "range", "iterations", "converged"}`` for one problem,
+``{"results": [...]}`` in input order for a batch. Non-finite numbers (no fix: status
+``unobservable``) are ``null``. Exit 0 when every problem was processed (check each
+``status``), 2 with one line on stderr naming the bad field (nothing on stdout).
+"""
+
+import json
+import math
+import numbers
+import sys
+
+import numpy as np
+
+from ..core.bearings import BearingSet
+from ..core.conventions import compass_to_enu
+from ..core.tma import SPEED_REFERENCES, tma, TMA_ESTIMATORS
+from . import InputError
+
+DEFAULT_METHOD = 'ctls'
+TOP_FIELDS = ('method', 'speed', 'speed_reference', 'options', 'sigma_azimuth',
+              'sigma_elevation', 'observations', 'problems')
+OBS_FIELDS = ('t', 'observer', 'azimuth', 'elevation', 'sigma_azimuth', 'sigma_elevation')
+
+
+def add_arguments(parser):
+    """Command line of ``bearing_loc tma``."""
+    parser.description = ('Target motion analysis from one moving station with a speed prior '
+                          '(seed 001): JSON in (file or stdin), JSON out. Format: '
+                          'docs/readme/tma.md.')
+    parser.add_argument('input', nargs='?', default='-',
+                        help='input JSON file ("-" or absent: stdin)')
+    parser.add_argument('--method', choices=sorted(TMA_ESTIMATORS), default=None,
+                        help=f'estimator, overrides the input\'s "method" (default: input, '
+                             f'else {DEFAULT_METHOD})')
+    parser.add_argument('--speed', type=float, default=None,
+                        help='prior speed v_c in m/s, overrides the input\'s "speed"')
+    parser.add_argument('--compass', action='store_true',
+                        help='azimuths are compass bearings (clockwise from North, seed 001); '
+                             'converted to ENU as pi/2 - azimuth')
+    parser.add_argument('--indent', type=int, default=None,
+                        help='pretty-print the output with this indent')
+
+
+def _number(value, field, positive=False):
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise InputError(f'{field}: must be a number, got {json.dumps(value)[:40]}')
+    value = float(value)
+    if not math.isfinite(value):
+        raise InputError(f'{field}: must be a finite number')
+    if positive and value <= 0:
+        raise InputError(f'{field}: must be > 0')
+    return value
+
+
+def parse_observations(items, where, defaults, compass=False):
+    """A JSON list of observations -> (BearingSet (1, K), times (1, K)), sorted by time."""
+    if not isinstance(items, list) or not items:
+        raise InputError(f'{where}: must be a non-empty list of observation objects')
+    rows = []
+    for i, ob in enumerate(items):
+        f = f'{where}[{i}]'
+        if not isinstance(ob, dict):
+            raise InputError(f'{f}: must be an object')
+        for key in ob:
+            if key not in OBS_FIELDS:
+                raise InputError(f'{f}.{key}: unknown field (expected one of '
+                                 f'{", ".join(OBS_FIELDS)})')
+        ob = dict(defaults, **{k: v for k, v in ob.items() if v is not None or k not in
+                               defaults})
+        for key in OBS_FIELDS:
+            if ob.get(key) is None:
+                extra = (' (3-D TMA needs azimuth and elevation)' if key == 'elevation'
+                         else '')
+                raise InputError(f'{f}.{key}: missing{extra}')
+        o = ob['observer']
+        if not isinstance(o, list) or len(o) != 3:
+            raise InputError(f'{f}.observer: must be a list [x, y, z] of 3 numbers (m)')
+        obs = [_number(v, f'{f}.observer[{k}]') for k, v in enumerate(o)]
+        az = _number(ob['azimuth'], f'{f}.azimuth')
+        el = _number(ob['elevation'], f'{f}.elevation')
+        if abs(el) >= math.pi / 2:
+            raise InputError(f'{f}.elevation: |elevation| must be < pi/2 rad')
+        rows.append((_number(ob['t'], f'{f}.t'), obs, compass_to_enu(az) if compass else az,
+                     el, _number(ob['sigma_azimuth'], f'{f}.sigma_azimuth', positive=True),
+                     _number(ob['sigma_elevation'], f'{f}.sigma_elevation', positive=True)))
+    rows.sort(key=lambda r: r[0])
+    t, obs, az, el, saz, sel = (np.array(c, dtype=float) for c in zip(*rows))
+    bs = BearingSet.from_arrays(obs, az, el, saz, sel, validate=False)
+    return bs, t[None]
+
+
+def parse_request(doc, method_override=None, speed_override=None, compass=False):
+    """Validate a request; return (method, options, [(BearingSet, times, speed)], is_batch)."""
+    if not isinstance(doc, dict):
+        raise InputError('input: must be a JSON object with "observations" or "problems"')
+    for key in doc:
+        if key not in TOP_FIELDS:
+            raise InputError(f'{key}: unknown field (expected one of {", ".join(TOP_FIELDS)})')
+    method = method_override or doc.get('method') or DEFAULT_METHOD
+    if not isinstance(method, str) or method not in TMA_ESTIMATORS:
+        raise InputError(f'method: unknown TMA estimator {method!r}; choose one of '
+                         f'{", ".join(sorted(TMA_ESTIMATORS))}')
+    options = doc.get('options', {})
+    if not isinstance(options, dict):
+        raise InputError('options: must be an object')
+    options = dict(options)
+    for key, value in options.items():
+        if key in ('alpha', 'max_range_ratio', 'dtol', 'xtol', 'min_bearings',
+                   'max_iterations'):
+            options[key] = _number(value, f'options.{key}', positive=True)
+            if key in ('min_bearings', 'max_iterations'):
+                options[key] = int(options[key])
+        elif key == 'covariance' and not isinstance(value, bool):
+            raise InputError('options.covariance: must be true or false')
+        elif key not in ('covariance', 'speed_reference'):
+            raise InputError(f'options.{key}: unknown option')
+    ref = doc.get('speed_reference', options.get('speed_reference', 'relative'))
+    if ref not in SPEED_REFERENCES:
+        raise InputError(f'speed_reference: must be one of {", ".join(SPEED_REFERENCES)}')
+    options['speed_reference'] = ref
+    defaults = {}
+    for key in ('sigma_azimuth', 'sigma_elevation'):
+        if doc.get(key) is not None:
+            defaults[key] = _number(doc[key], key, positive=True)
+
+    def speed_of(d, where):
+        if speed_override is not None:
+            return _number(speed_override, '--speed', positive=True)
+        if d.get('speed') is None:
+            raise InputError(f'{where}speed: missing (prior speed v_c, m/s)')
+        return _number(d['speed'], f'{where}speed', positive=True)
+
+    if ('observations' in doc) == ('problems' in doc):
+        raise InputError('input: give exactly one of "observations" (one problem) or '
+                         '"problems" (a batch)')
+    if 'observations' in doc:
+        bs, t = parse_observations(doc['observations'], 'observations', defaults, compass)
+        return method, options, [(bs, t, speed_of(doc, ''))], False
+    problems = doc['problems']
+    if not isinstance(problems, list) or not problems:
+        raise InputError('problems: must be a non-empty list of {"observations": [...]} '
+                         'objects')
+    out = []
+    for k, prob in enumerate(problems):
+        where = f'problems[{k}]'
+        if not isinstance(prob, dict) or 'observations' not in prob:
+            raise InputError(f'{where}: must be an object with "observations"')
+        for key in prob:
+            if key not in ('observations', 'speed'):
+                raise InputError(f'{where}.{key}: unknown field (expected observations, '
+                                 'speed)')
+        bs, t = parse_observations(prob['observations'], f'{where}.observations', defaults,
+                                   compass)
+        sp = speed_of(prob, f'{where}.') if 'speed' in prob else speed_of(doc, '')
+        out.append((bs, t, sp))
+    return method, options, out, True
+
+
+def _finite_or_none(x):
+    """Nested lists of floats with NaN/inf replaced by None (strict JSON null)."""
+    if isinstance(x, list):
+        return [_finite_or_none(v) for v in x]
+    return x if math.isfinite(x) else None
+
+
+def solve(method, options, problems):
+    """Run ``method`` on every (BearingSet, times, speed); one output dict per problem."""
+    out = []
+    for bs, t, speed in problems:
+        try:
+            res = tma(method, bs, t, speed, **options)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
+        d = res.single(0)
+        out.append({
+            'method': method,
+            't': d['t'],
+            'position': _finite_or_none(d['position']),
+            'velocity': _finite_or_none(d['velocity']),
+            'covariance': _finite_or_none(d['covariance']),
+            'status': d['status'],
+            'reason': d['reason'],
+            't0': d['t0'],
+            'position0': _finite_or_none(d['position0']),
+            'range': _finite_or_none(d['range']),
+            'iterations': d['iterations'],
+            'converged': d['converged'],
+        })
+    return out
+
+
+def _read(path):
+    try:
+        if path == '-':
+            return sys.stdin.read()
+        with open(path, encoding='utf-8') as f:
+            return f.read()
+    except OSError as exc:
+        raise InputError(f'input: cannot read {path!r}: {exc.strerror}') from None
+
+
+def run(args):
+    """Entry point of the verb: read, validate, solve, print. Returns the exit code."""
+    text = _read(args.input)
+    try:
+        doc = json.loads(text)
+    except ValueError as exc:
+        raise InputError(f'input: invalid JSON ({exc})') from None
+    method, options, problems, batch = parse_request(doc, args.method, args.speed,
+                                                     args.compass)
+    results = solve(method, options, problems)
+    payload = {'results': results} if batch else results[0]
+    sys.stdout.write(json.dumps(payload, allow_nan=False, indent=args.indent) + '\n')
+    return 0
