@@ -263,7 +263,10 @@ class StationNode(Node):
 
     def _reject(self, reason, source, detail):
         self.rejected[reason] += 1
-        self.get_logger().warning(f'rejected {source} input ({reason}): {detail}',
+        text = str(detail)
+        if text.startswith(reason + ': '):
+            text = text[len(reason) + 2:]
+        self.get_logger().warning(f'rejected {source} input ({reason}): {text}',
                                   throttle_duration_sec=LOG_THROTTLE_S)
 
     # ------------------------------------------------------------------ diagnostics
@@ -282,7 +285,8 @@ class StationNode(Node):
             'published_since_last_report': new_pub,
             'rejected': total_rej,
             'last_stamp_ns': self.last_stamp_ns if self.last_stamp_ns is not None else '',
-            'last_stamp_s': (f'{self.last_stamp_ns / 1e9:.9f}'
+            'last_stamp_s': (f'{self.last_stamp_ns // 10 ** 9}.'
+                             f'{self.last_stamp_ns % 10 ** 9:09d}'
                              if self.last_stamp_ns is not None else ''),
         }
         values.update({f'received_{k}': v for k, v in sorted(self.received.items())})
