@@ -55,6 +55,7 @@ DEFAULT_REFERENCE_RANGE = 1000.0
 
 _CHI2_STEP_TOL = 1e-10   # converged when the Gauss-Newton step is < 1e-5 standard deviations
 _COST_RTOL = 1e-12       # ... or its predicted cost decrease is below the cost's rounding
+#                          (both relative to the cost, see _levenberg_marquardt)
 _COMMON_OPTIONS = {'max_iterations': 50, 'tolerance': 1e-9}
 _ITERATIVE_OPTIONS = dict(_COMMON_OPTIONS, initial=None)
 
@@ -138,13 +139,19 @@ def parse_options(method, options, defaults, M=None):
     return out
 
 
-def _start(method, bearings, options, defaults):
-    """Validate bearings and options; return (options, initial positions (M, 3))."""
-    bearings.validate()
+def _start(method, bearings, options, defaults, ml_problem=None, validated=False):
+    """Validate bearings and options; return (options, initial positions (M, 3)).
+
+    The initial positions are option ``initial`` or else ``ls`` (seed 000 eq. (4), the
+    pseudo-linear start both seeds use), computed from ``ml_problem``'s station-major arrays
+    when given (faster for large batches).
+    """
+    if not validated:
+        bearings.validate()
     opts = parse_options(method, options, defaults, bearings.M)
     x0 = opts.get('initial')
     if x0 is None:
-        x0 = _ls(bearings).position
+        x0 = _ls(bearings).position if ml_problem is None else ml_problem.pseudo_linear_start()
     return opts, x0
 
 
@@ -303,116 +310,162 @@ def range_scaled_sigmas(bearings, position, reference_range):
     return bearings.sigma_az * f, bearings.sigma_el * f
 
 
-def _solve3(A, b):
-    """Solve M symmetric 3 × 3 systems A x = b in closed form (cofactors); NaN where singular."""
-    a00, a01, a02 = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
-    a11, a12, a22 = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
+# Rows of the packed per-problem state of the ML iteration (see _MLProblem.pack).
+_A00, _A01, _A02, _A11, _A12, _A22, _B0, _B1, _B2, _COST, _SCALE, _OLD = range(12)
+
+
+def _solve3_packed(a00, a01, a02, a11, a12, a22, b0, b1, b2):
+    """Solve symmetric 3 × 3 systems from their 6 unique entries (cofactors); NaN if det ≤ 0."""
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
     det = a00 * c00 + a01 * c01 + a02 * c02
-    b0, b1, b2 = b[:, 0], b[:, 1], b[:, 2]
     with np.errstate(divide='ignore', invalid='ignore'):
         inv_det = np.where(det > 0, 1.0 / det, np.nan)
-        x = np.stack([c00 * b0 + c01 * b1 + c02 * b2,
-                      c01 * b0 + c11 * b1 + c12 * b2,
-                      c02 * b0 + c12 * b1 + c22 * b2], axis=1) * inv_det[:, None]
-    return x
+    return ((c00 * b0 + c01 * b1 + c02 * b2) * inv_det,
+            (c01 * b0 + (a00 * a22 - a02 * a02) * b1 + (a01 * a02 - a00 * a12) * b2) * inv_det,
+            (c02 * b0 + (a01 * a02 - a00 * a12) * b1 + (a00 * a11 - a01 * a01) * b2) * inv_det)
+
+
+def _solve3(A, b):
+    """Solve M symmetric 3 × 3 systems A x = b (A (M, 3, 3), b (M, 3)); NaN where singular."""
+    return np.stack(_solve3_packed(A[:, 0, 0], A[:, 0, 1], A[:, 0, 2], A[:, 1, 1], A[:, 1, 2],
+                                   A[:, 2, 2], b[:, 0], b[:, 1], b[:, 2]), axis=1)
 
 
 class _MLProblem:
-    """Per-problem arrays of the ML cost of seed 003 eqs. (3)-(5) for a subset of problems.
+    """Per-bearing arrays of the ML cost of seed 003 eqs. (3)-(5), station-major (N, M).
 
-    The cost is J(X) = Σ_k w_θk e_θk² + w_ψk e_ψk² with e = measured − predicted angle
-    (azimuth wrapped to (−π, π]) and w = 1/σ², seed 003 eq. (3) with W of eq. (4) (or of
-    eq. (11) when ``d_ref`` is set: σ_k = σ_ref,k · d_k / d_ref, d_k = |X − S_k| evaluated at
-    the current iterate).
+    The cost is J(X) = Σ_k (e_θk/σ_θk)² + (e_ψk/σ_ψk)² with e = measured − predicted angle
+    (azimuth wrapped to (−π, π]), seed 003 eq. (3) with W of eq. (4); with ``d_ref`` set,
+    σ_k = σ_ref,k · d_k / d_ref (eqs. (9)-(11)), d_k = |X − S_k| at the current iterate.
+    Arrays are stored (N, M) so the sums over stations are fast row additions for small N
+    and large M; 1D bearings have 1/σ_ψ = 0 (no elevation term).
     """
 
     def __init__(self, bearings, d_ref=None):
         pos = bearings.positions
-        self.px, self.py, self.pz = pos[..., 0], pos[..., 1], pos[..., 2]
-        has_el = bearings.has_elevation
-        self.az = bearings.azimuth
-        self.el = np.where(has_el, bearings.elevation, 0.0)
-        self.w_az = 1.0 / bearings.sigma_az ** 2
-        self.w_el = np.where(has_el, 1.0 / np.where(has_el, bearings.sigma_el, 1.0) ** 2, 0.0)
-        self.d_ref2 = None if d_ref is None else float(d_ref) ** 2
+        self.px = np.ascontiguousarray(pos[..., 0].T)
+        self.py = np.ascontiguousarray(pos[..., 1].T)
+        self.pz = np.ascontiguousarray(pos[..., 2].T)
+        has_el = bearings.has_elevation.T
+        self.az = np.ascontiguousarray(bearings.azimuth.T)
+        self.el = np.where(has_el, bearings.elevation.T, 0.0)
+        self.sa = 1.0 / bearings.sigma_az.T                       # sqrt of W⁻¹, eq. (4)
+        self.se = np.where(has_el, 1.0 / np.where(has_el, bearings.sigma_el.T, 1.0), 0.0)
+        self.d_ref = None if d_ref is None else float(d_ref)
+        self.n_measurements = bearings.N + np.count_nonzero(has_el, axis=0)
+
+    def pseudo_linear_start(self):
+        """X_LS of seed 000 eq. (4) (M, 3) from the station-major arrays; NaN if degenerate.
+
+        Same maths as :func:`ls`: HᵀH and HᵀY summed over the rows of eq. (2), solved by
+        cofactors. H's rows are unit vectors, so HᵀH is dimensionless with trace N + n_2D;
+        it is treated as singular when det(HᵀH) ≤ 1e-12 (trace/3)³ (≈ reciprocal condition
+        number 1e-12, the threshold of crlb.safe_inverse used by ``ls``).
+        """
+        s, c = np.sin(self.az), np.cos(self.az)
+        m = (self.se > 0).astype(float)
+        sp, cp = np.sin(self.el), np.cos(self.el)
+        y1 = s * self.px - c * self.py                          # azimuth row of eq. (2)
+        h20, h21, h22 = m * c * sp, m * s * sp, -m * cp          # elevation row (0 for 1D)
+        y2 = h20 * self.px + h21 * self.py + h22 * self.pz
+        a00 = (s * s + h20 * h20).sum(axis=0)
+        a01 = (-s * c + h20 * h21).sum(axis=0)
+        a02 = (h20 * h22).sum(axis=0)
+        a11 = (c * c + h21 * h21).sum(axis=0)
+        a12 = (h21 * h22).sum(axis=0)
+        a22 = (h22 * h22).sum(axis=0)
+        b0 = (s * y1 + h20 * y2).sum(axis=0)
+        b1 = (-c * y1 + h21 * y2).sum(axis=0)
+        b2 = (h22 * y2).sum(axis=0)
+        det = (a00 * (a11 * a22 - a12 * a12) + a01 * (a02 * a12 - a01 * a22)
+               + a02 * (a01 * a12 - a02 * a11))
+        ok = det > 1e-12 * ((a00 + a11 + a22) / 3.0) ** 3
+        x = np.stack(_solve3_packed(a00, a01, a02, a11, a12, a22, b0, b1, b2), axis=1)
+        x[~ok] = np.nan
+        return x
 
     def take(self, idx):
         """The same problem restricted to the problems ``idx``."""
         out = object.__new__(_MLProblem)
-        for name in ('px', 'py', 'pz', 'az', 'el', 'w_az', 'w_el'):
-            setattr(out, name, getattr(self, name)[idx])
-        out.d_ref2 = self.d_ref2
+        for name in ('px', 'py', 'pz', 'az', 'el', 'sa', 'se'):
+            setattr(out, name, getattr(self, name)[:, idx])
+        out.d_ref = self.d_ref
+        out.n_measurements = self.n_measurements[idx]
         return out
 
-    def evaluate(self, X, old_weight_scale=None):
-        """Cost, normal matrix A = JᵀW⁻¹J (3 × 3), b = JᵀW⁻¹e, rms range, at X (M, 3).
+    def pack(self, x, y, z, old_factor=None):
+        """Packed state at X = (x, y, z), each (M,): rows _A00.._OLD of a (12, M) array.
 
-        Seed 003 eq. (7): J holds the angle gradients (crlb.angle_jacobians; the paper's J_i
-        is −J because its e is measured − predicted), so the Gauss-Newton step of eq. (8) is
-        X_{i+1} = X_i + A⁻¹ b. For range weighting, ``old_weight_scale`` (M, N) (the weight
-        factor d_ref²/d² of the current iterate) gives the cost of X under the current
-        iterate's W_i (used to accept or reject a step); the returned weight factor is that of
-        X itself. Returns (cost, A, b, scale, cost_under_old_weights, weight_factor).
+        A = JᵀW⁻¹J (6 unique entries, 1/m²) and b = JᵀW⁻¹e (1/m) of seed 003 eqs. (7)-(8),
+        where J holds the angle gradients of crlb.angle_jacobians (the paper's J_i is −J,
+        because its e is measured − predicted, so the Gauss-Newton step X_{i+1} = X_i −
+        (J_iᵀW⁻¹J_i)⁻¹J_iᵀW⁻¹e of eq. (8) is X + A⁻¹b here); the cost J(X); the rms range
+        (m); and, for range weighting, the cost of X under the weights W_i of the previous
+        iterate (``old_factor`` = its d_ref²/d², (N, M)). Also returns this X's weight factor
+        (None without range weighting).
         """
         with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-            return self._evaluate(X, old_weight_scale)
+            dx = x - self.px
+            dy = y - self.py
+            dz = z - self.pz
+            rho2 = dx * dx + dy * dy
+            r2 = rho2 + dz * dz
+            rho = np.sqrt(rho2)
+            # Residuals e = measured − predicted (seed 003 eq. (5)); azimuth wrapped (−π, π].
+            e_az = self.az - np.arctan2(dy, dx)
+            e_az -= 2.0 * np.pi * np.ceil((e_az - np.pi) / (2.0 * np.pi))
+            e_el = self.el - np.arctan2(dz, rho)
+            sa, se = self.sa, self.se
+            ra = sa * e_az                                     # whitened residuals
+            re = se * e_el
+            q = np.empty((12, x.shape[0]))
+            factor = None
+            if self.d_ref is not None:
+                # Seed 003 eqs. (9)-(11): σ_k(d) = σ_ref (d_k / d_ref).
+                factor = self.d_ref * self.d_ref / r2
+                rr = ra * ra + re * re
+                q[_OLD] = (rr * (factor if old_factor is None else old_factor)).sum(axis=0)
+                f = np.sqrt(factor)
+                sa, se, ra, re = sa * f, se * f, ra * f, re * f
+            # Whitened angle gradients (crlb.angle_jacobians): ∇θ = (−dy, dx, 0)/ρ²,
+            # ∇ψ = (−dx dz, −dy dz, ρ²)/(ρ r²).
+            qa = sa / rho2
+            ax = -dy * qa
+            ay = dx * qa
+            t = se * dz / (rho * r2)
+            ex = -dx * t
+            ey = -dy * t
+            ez = se * rho / r2
+            q[_A00] = (ax * ax + ex * ex).sum(axis=0)
+            q[_A01] = (ax * ay + ex * ey).sum(axis=0)
+            q[_A02] = (ex * ez).sum(axis=0)
+            q[_A11] = (ay * ay + ey * ey).sum(axis=0)
+            q[_A12] = (ey * ez).sum(axis=0)
+            q[_A22] = (ez * ez).sum(axis=0)
+            q[_B0] = (ax * ra + ex * re).sum(axis=0)
+            q[_B1] = (ay * ra + ey * re).sum(axis=0)
+            q[_B2] = (ez * re).sum(axis=0)
+            q[_COST] = (ra * ra + re * re).sum(axis=0)
+            q[_SCALE] = np.sqrt(r2.mean(axis=0))
+        if self.d_ref is None:
+            q[_OLD] = q[_COST]
+        return q, factor
 
-    def _evaluate(self, X, old_weight_scale):
-        dx = X[:, 0:1] - self.px
-        dy = X[:, 1:2] - self.py
-        dz = X[:, 2:3] - self.pz
-        rho2 = dx * dx + dy * dy
-        rho = np.sqrt(rho2)
-        r2 = rho2 + dz * dz
-        # Residuals e = measured − predicted (seed 003 eq. (5)); azimuth wrapped to (−π, π].
-        e_az = self.az - np.arctan2(dy, dx)
-        e_az -= 2.0 * np.pi * np.ceil((e_az - np.pi) / (2.0 * np.pi))
-        e_el = self.el - np.arctan2(dz, rho)
-        ea2 = e_az * e_az
-        ee2 = e_el * e_el
-        w_az, w_el = self.w_az, self.w_el
-        wf = None
-        old_cost = None
-        if self.d_ref2 is not None:
-            # Seed 003 eqs. (9)-(11): σ_k = σ_ref (d_k / d_ref) → weight factor d_ref² / d_k².
-            wf = self.d_ref2 / r2
-            if old_weight_scale is not None:
-                old_cost = np.sum(old_weight_scale * (w_az * ea2 + w_el * ee2), axis=1)
-            w_az = w_az * wf
-            w_el = w_el * wf
-        # Angle gradients, crlb.angle_jacobians: ∇θ = (−dy, dx, 0)/ρ²,
-        # ∇ψ = (−dx dz, −dy dz, ρ²)/(ρ r²).
-        inv_rho2 = 1.0 / rho2
-        t = dz / (rho * r2)
-        gax = -dy * inv_rho2
-        gay = dx * inv_rho2
-        gex = -dx * t
-        gey = -dy * t
-        gez = rho / r2
-        wax, way = w_az * gax, w_az * gay
-        wex, wey, wez = w_el * gex, w_el * gey, w_el * gez
-        M = X.shape[0]
-        A = np.empty((M, 3, 3))
-        A[:, 0, 0] = np.sum(wax * gax + wex * gex, axis=1)
-        A[:, 0, 1] = A[:, 1, 0] = np.sum(wax * gay + wex * gey, axis=1)
-        A[:, 0, 2] = A[:, 2, 0] = np.sum(wex * gez, axis=1)
-        A[:, 1, 1] = np.sum(way * gay + wey * gey, axis=1)
-        A[:, 1, 2] = A[:, 2, 1] = np.sum(wey * gez, axis=1)
-        A[:, 2, 2] = np.sum(wez * gez, axis=1)
-        b = np.stack([np.sum(wax * e_az + wex * e_el, axis=1),
-                      np.sum(way * e_az + wey * e_el, axis=1),
-                      np.sum(wez * e_el, axis=1)], axis=1)
-        cost = np.sum(w_az * ea2 + w_el * ee2, axis=1)
-        scale = np.sqrt(np.mean(r2, axis=1))
-        if old_cost is None:
-            old_cost = cost
-        return cost, A, b, scale, old_cost, wf
+    def evaluate(self, X):
+        """Cost (M,), A (M, 3, 3), b (M, 3) and rms range (M,) at X (M, 3) (for checks)."""
+        q, _ = self.pack(X[:, 0], X[:, 1], X[:, 2])
+        return q[_COST], _unpack_matrix(q), q[[_B0, _B1, _B2]].T, q[_SCALE]
+
+
+def _unpack_matrix(q):
+    """(M, 3, 3) symmetric matrices from the packed rows _A00.._A22."""
+    A = np.empty((q.shape[1], 3, 3))
+    for (i, j), row in zip(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)),
+                           (_A00, _A01, _A02, _A11, _A12, _A22)):
+        A[:, i, j] = A[:, j, i] = q[row]
+    return A
 
 
 def _levenberg_marquardt(problem, x0, max_iterations, tolerance):
@@ -420,87 +473,102 @@ def _levenberg_marquardt(problem, x0, max_iterations, tolerance):
 
     Step: (A + λ diag(A)) Δ = b, X ← X + Δ if the cost does not increase (else the step is
     rejected and λ ← max(10λ, 10⁻³)); λ starts at 0 (pure Gauss-Newton, eq. (8)) and is
-    divided by 10 after an accepted step. Converged when the undamped Gauss-Newton step
+    divided by 10 after an accepted step (0 below 10⁻⁶). Converged when the undamped step
     Δ = A⁻¹b is shorter than ``tolerance`` × rms range, or when its predicted cost decrease
-    bᵀΔ = ΔᵀAΔ (the squared step length in standard deviations) is below 1e-10 or below
-    1e-12 × cost (smaller decreases cannot be resolved in floating point). Problems are
-    iterated together; converged ones are frozen, and the working set is compacted when it
-    halves (no Python loop over problems). Returns (X, A at X, iterations, converged,
-    diverged); A is the Fisher information at X (seed 003 eqs. (6)-(8)), in 1/m².
+    bᵀΔ = ΔᵀAΔ is below 1e-10 × cost/dof (dof = measurements − 3; i.e. the step is shorter
+    than 1e-5 of the standard deviation implied by the residual scatter, which makes the test
+    independent of the scale of σ and d_ref) or below 1e-12 × cost (smaller decreases cannot
+    be resolved in floating point). The last, sub-tolerance step is not taken. Diverged when λ
+    exceeds 10¹² (no descent step exists) or the estimate runs 10⁸ × its initial range away.
+    Problems are iterated together (all state packed in one (12, M) array); converged ones
+    are frozen and the working set is compacted when it halves: no Python loop over problems
+    or stations. Returns (X, A at X, iterations, converged, diverged); A is the Fisher
+    information at X (seed 003 eqs. (6)-(8)), in 1/m².
     """
     M = x0.shape[0]
-    X = x0.copy()
+    finite0 = np.all(np.isfinite(x0), axis=1)
+    X = np.where(finite0[:, None], x0, 0.0).T.copy()           # (3, M)
+    Q, factor = problem.pack(X[0], X[1], X[2])
     iterations = np.zeros(M, dtype=int)
     converged = np.zeros(M, dtype=bool)
-    diverged = np.zeros(M, dtype=bool)
-    finite0 = np.all(np.isfinite(X), axis=1)
-    X[~finite0] = 0.0
-    cost, A, b, scale, _, wf = problem.evaluate(X)
-    scale0 = scale.copy()
-    lam = np.zeros(M)
+    diverged = ~finite0
     active = np.flatnonzero(finite0)
-    sub = problem if active.size == M else problem.take(active)
-    s_X, s_cost, s_A, s_b, s_scale = X[active], cost[active], A[active], b[active], scale[active]
-    s_wf = None if wf is None else wf[active]
-    s_lam = lam[active]
-    s_scale0 = scale0[active]
-    s_iter = np.zeros(active.size, dtype=int)
-    s_done = np.zeros(active.size, dtype=bool)
-    s_conv = np.zeros(active.size, dtype=bool)
-    s_div = np.zeros(active.size, dtype=bool)
+    full = active.size == M
+    sub = problem if full else problem.take(active)
+    sX = X if full else X[:, active]
+    sQ = Q if full else Q[:, active]
+    sF = None if factor is None else (factor if full else factor[:, active])
+    lam = np.zeros(active.size)
+    scale0 = sQ[_SCALE].copy()
+    # Decrease threshold relative to the cost: 1e-10 × cost/dof (the squared step in units
+    # of the scatter-implied standard deviation), at least the cost's rounding level.
+    dof = np.maximum(sub.n_measurements - 3, 1)
+    rel_tol = np.maximum(_CHI2_STEP_TOL / dof, _COST_RTOL)
+    it = np.zeros(active.size, dtype=int)
+    done = np.zeros(active.size, dtype=bool)
+    conv = np.zeros(active.size, dtype=bool)
+    div = np.zeros(active.size, dtype=bool)
 
     def flush():
-        X[active] = s_X
-        A[active] = s_A
-        iterations[active] = s_iter
-        converged[active] = s_conv
-        diverged[active] = s_div
+        X[:, active] = sX
+        Q[:, active] = sQ
+        iterations[active] = it
+        converged[active] = conv
+        diverged[active] = div
 
     for _ in range(max_iterations):
-        if s_done.all():
+        if done.all():
             break
-        if 2 * np.count_nonzero(~s_done) <= s_done.size and s_done.size > 64:
+        n_run = done.size - np.count_nonzero(done)
+        if done.size > 64 and 2 * n_run <= done.size:
             flush()
-            keep = np.flatnonzero(~s_done)
-            active = active[keep]
-            sub = sub.take(keep)
-            s_X, s_cost, s_A, s_b, s_scale = (s_X[keep], s_cost[keep], s_A[keep], s_b[keep],
-                                              s_scale[keep])
-            s_wf = None if s_wf is None else s_wf[keep]
-            s_lam, s_scale0, s_iter = s_lam[keep], s_scale0[keep], s_iter[keep]
-            s_done, s_conv, s_div = s_done[keep], s_conv[keep], s_div[keep]
-        run = ~s_done
-        step_gn = _solve3(s_A, s_b)
-        diag = np.einsum('mii->mi', s_A)
-        A_damped = s_A + (s_lam[:, None] * diag)[:, :, None] * np.eye(3)
-        step = np.where((s_lam > 0)[:, None], _solve3(A_damped, s_b), step_gn)
-        Xt = s_X + np.where(run[:, None], np.nan_to_num(step), 0.0)
-        c_t, A_t, b_t, sc_t, c_old, wf_t = sub.evaluate(Xt, s_wf)
-        # Converged: the undamped step is short relative to the range, or its predicted cost
-        # decrease bᵀA⁻¹b (χ² units: the squared step length in standard deviations) is below
-        # 1e-10 or below the rounding level of the cost itself.
-        decrease = np.einsum('mi,mi->m', s_b, step_gn)
-        small = ((np.linalg.norm(step_gn, axis=1) <= tolerance * s_scale)
-                 | (np.abs(decrease) <= np.maximum(_CHI2_STEP_TOL, _COST_RTOL * s_cost)))
-        accept = run & np.isfinite(c_t) & (c_old <= s_cost) & np.all(np.isfinite(step), axis=1)
-        s_X = np.where(accept[:, None], Xt, s_X)
-        s_cost = np.where(accept, c_t, s_cost)
-        s_A = np.where(accept[:, None, None], A_t, s_A)
-        s_b = np.where(accept[:, None], b_t, s_b)
-        s_scale = np.where(accept, sc_t, s_scale)
-        if s_wf is not None:
-            s_wf = np.where(accept[:, None], wf_t, s_wf)
-        s_lam = np.where(accept, np.where(s_lam < 1e-6, 0.0, 0.1 * s_lam),
-                         np.maximum(10.0 * s_lam, 1e-3))
-        s_iter += run
+            keep = np.flatnonzero(~done)
+            active, sub = active[keep], sub.take(keep)
+            sX, sQ, lam, scale0 = sX[:, keep], sQ[:, keep], lam[keep], scale0[keep]
+            rel_tol = rel_tol[keep]
+            sF = None if sF is None else sF[:, keep]
+            it, done, conv, div = it[keep], done[keep], conv[keep], div[keep]
+        run = ~done
+        a00, a01, a02, a11, a12, a22, b0, b1, b2 = sQ[:_COST]
+        g = _solve3_packed(a00, a01, a02, a11, a12, a22, b0, b1, b2)   # A⁻¹ b, eq. (8)
+        if np.any(lam > 0):
+            k = 1.0 + lam
+            d = _solve3_packed(a00 * k, a01, a02, a11 * k, a12, a22 * k, b0, b1, b2)
+            damped = lam > 0
+            step = np.where(damped, np.stack(d), np.stack(g))
+        else:
+            step = np.stack(g)
+        # Convergence (see docstring) on the undamped step g.
+        gn = np.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
+        decrease = np.abs(b0 * g[0] + b1 * g[1] + b2 * g[2])
+        small = (gn <= tolerance * sQ[_SCALE]) | (decrease <= rel_tol * sQ[_COST])
+        if np.all(small | done):
+            # Every remaining problem has converged. A converged problem's last step is below
+            # the tolerance and is never taken (so a batch gives exactly the per-problem
+            # results); when all have converged the trial evaluation is skipped.
+            it += run
+            conv |= run
+            break
+        step_ok = np.isfinite(step).all(axis=0)
+        Xt = sX + np.where(run & step_ok, step, 0.0)
+        Qt, Ft = sub.pack(Xt[0], Xt[1], Xt[2], sF)
+        accept = run & ~small & step_ok & (Qt[_OLD] <= sQ[_COST])
+        sX = np.where(accept, Xt, sX)
+        sQ = np.where(accept, Qt, sQ)
+        if sF is not None:
+            sF = np.where(accept, Ft, sF)
+        lam = np.where(accept, np.where(lam < 1e-6, 0.0, 0.1 * lam),
+                       np.maximum(10.0 * lam, 1e-3))
+        it += run
         newly = run & small
-        s_conv |= newly
-        runaway = run & ~newly & ((s_lam > 1e12) | (s_scale > 1e8 * s_scale0))
-        s_div |= runaway
-        s_done |= newly | runaway
+        conv |= newly
+        runaway = run & ~newly & ((lam > 1e12) | (sQ[_SCALE] > 1e8 * scale0))
+        div |= runaway
+        done |= newly | runaway
     flush()
+    X = X.T.copy()
     X[~finite0] = np.nan
-    return X, A, iterations, converged & finite0, diverged | ~finite0
+    return X, _unpack_matrix(Q), iterations, converged & finite0, diverged
 
 
 def _iterative_result(method, x, cov, iterations, converged, diverged):
@@ -535,9 +603,11 @@ def mle(bearings, **options):
     estimate — the CRLB of crlb.py evaluated at X̂ (m²). Options: ``max_iterations``,
     ``tolerance``, ``initial``. Cost O(N) per iteration and problem.
     """
-    opts, x0 = _start('mle', bearings, options, _ITERATIVE_OPTIONS)
-    x, info, it, conv, div = _levenberg_marquardt(_MLProblem(bearings), x0,
-                                                  opts['max_iterations'], opts['tolerance'])
+    bearings.validate()
+    problem = _MLProblem(bearings)
+    opts, x0 = _start('mle', bearings, options, _ITERATIVE_OPTIONS, problem, validated=True)
+    x, info, it, conv, div = _levenberg_marquardt(problem, x0, opts['max_iterations'],
+                                                  opts['tolerance'])
     return _iterative_result('mle', x, safe_inverse(info), it, conv, div)
 
 
@@ -556,8 +626,10 @@ def wmle(bearings, **options):
     ``tolerance``, ``initial``.
     """
     defaults = dict(_ITERATIVE_OPTIONS, reference_range=DEFAULT_REFERENCE_RANGE)
-    opts, x0 = _start('wmle', bearings, options, defaults)
+    bearings.validate()
+    opts = parse_options('wmle', options, defaults, bearings.M)
     problem = _MLProblem(bearings, d_ref=opts['reference_range'])
+    opts, x0 = _start('wmle', bearings, options, defaults, problem, validated=True)
     x, info, it, conv, div = _levenberg_marquardt(problem, x0, opts['max_iterations'],
                                                   opts['tolerance'])
     return _iterative_result('wmle', x, safe_inverse(info), it, conv, div)
