@@ -130,3 +130,15 @@ def test_console_script_subprocess(tmp_path):
     res = subprocess.run([exe, 'plan', 'cut-angle', '--k1', '-3'], capture_output=True,
                          text=True, timeout=60)
     assert res.returncode == 2 and '--k1' in res.stderr
+
+
+def test_readme_figures_exist_and_are_small():
+    # docs/readme/planning.md shows the seed 000 maps; each PNG must exist and stay < 300 kB.
+    import re
+    with open(os.path.join(ROOT, 'docs', 'readme', 'planning.md'), encoding='utf-8') as f:
+        refs = set(re.findall(r'\((docs/img/[^)]+\.png)\)', f.read()))
+    assert len(refs) >= 5
+    for ref in refs:
+        path = os.path.join(ROOT, ref)
+        assert os.path.exists(path), ref
+        assert os.path.getsize(path) < 300_000, ref

@@ -80,6 +80,8 @@ def add_arguments(parser):
                        help='map cell size, m (default: extent / 400)')
         p.add_argument('--levels', default=None,
                        help='contour levels, m, comma-separated (default: automatic)')
+        p.add_argument('--vmin', type=float, default=None,
+                       help='lower end of the colour scale, m (default: the map minimum)')
         p.add_argument('--vmax', type=float, default=None,
                        help='upper end of the colour scale, m (default: 99th percentile)')
         if name == 'map':
@@ -293,7 +295,7 @@ def _nice_levels(err, vmax):
     return out
 
 
-def plot_map(amap, path, title=None, levels=None, vmax=None, extra=None):
+def plot_map(amap, path, title=None, levels=None, vmax=None, extra=None, vmin=None):
     """Heat map (log colour scale) with labelled contours in metres and the stations.
 
     ``extra``: optional dict with 'area'/'region' boxes (m) and 'new' station (3,) to draw.
@@ -308,7 +310,7 @@ def plot_map(amap, path, title=None, levels=None, vmax=None, extra=None):
     fin = err[np.isfinite(err) & (err > 0)]
     if not fin.size:
         raise InputError('map: no finite error anywhere (unobservable layout); nothing to plot')
-    vmin = float(fin.min())
+    vmin = float(fin.min()) if vmin is None else float(vmin)
     vmax = float(np.percentile(fin, 99)) if vmax is None else float(vmax)
     vmax = max(vmax, vmin * 1.01)
     fig, ax = plt.subplots(figsize=(6.4, 5.2), dpi=100)
@@ -380,8 +382,9 @@ def run_map(args):
     st = load_stations(args)
     grid = _grid(args, parse_box_km('60', '--extent-km'))
     levels = _levels(args)
-    if args.vmax is not None:
-        _finite(args.vmax, '--vmax', True)
+    for flag, v in (('--vmin', args.vmin), ('--vmax', args.vmax)):
+        if v is not None:
+            _finite(v, flag, True)
     amap = accuracy_map(st, grid, args.model, _ctls_unit(args))
     out = {'model': args.model, 'stations': _stations_json(st), 'grid': _grid_json(grid),
            'stats': amap.stats()}
@@ -389,7 +392,7 @@ def run_map(args):
     if csv is None and args.png:
         csv = os.path.splitext(args.png)[0] + '.csv'
     if args.png:
-        plot_map(amap, args.png, args.title, levels, args.vmax)
+        plot_map(amap, args.png, args.title, levels, args.vmax, vmin=args.vmin)
         out['png'] = args.png
     if csv:
         write_csv(amap, csv)
@@ -443,7 +446,7 @@ def run_place(args):
                                                                _ctls_unit(args))
             ex = dict(extra, new=res_new.position) if key == 'after' else extra
             plot_map(amap, path, f'{args.model.upper()} error {key} adding a station, '
-                                 f'altitude {alt / KM:g} km', levels, vmax, ex)
+                                 f'altitude {alt / KM:g} km', levels, vmax, ex, args.vmin)
             out[f'png_{key}'] = path
     print(json.dumps(out))
     return 0
