@@ -22,13 +22,16 @@ Note on ``ctls``: G mixes the dimensionless F_1..F_3 with F_4, whose entries are
 coordinates, so the model depends on the coordinate origin and the length unit
 (``length_unit``; the paper does not say which it used). At the true angles H_X is
 diag(−ρ_i, −r_i) (horizontal and slant range), so W_i = H_X⁻ᵀ G_i H_X⁻¹ and the estimator is
-efficient (P = CRLB) only where G_i ∝ P_Ei⁻¹. Where a station's line of sight is
-perpendicular to its position vector, F_4's azimuth entry −(cos θ x_i + sin θ y_i) vanishes,
-that station's azimuth loses almost all weight and the error jumps: these are the "narrow
-regions" of seed 000 section 4, an artefact of the weighting (the CRLB map has none).
+efficient (P = CRLB) only if G_i = c P_Ei⁻¹ with one c for all stations. Where a station's line of sight is
+perpendicular to its position vector, p = cos θ x_i + sin θ y_i = 0 and G_i's elevation entry
+1 + (cos ψ p + sin ψ z_i)² collapses (from ~1e7 to ~1e4 in metres, seed 000 layout at 1.5 km
+from a station): that station's elevation equation loses almost all its weight and the error
+jumps. These are the "narrow regions" of seed 000 section 4, an artefact of the weighting
+(the CRLB map has none).
 """
 
 from dataclasses import dataclass, field
+import warnings
 
 import numpy as np
 
@@ -479,13 +482,11 @@ class PlacementResult:
 def _objective(err, objective):
     """Mean or max of ε over the area points (last axis), m; +inf if any point is
     unobservable; NaN points (on a station's vertical axis, azimuth undefined) are skipped."""
-    with np.errstate(invalid='ignore'):
-        import warnings
-        with warnings.catch_warnings():
-            warnings.simplefilter('ignore', RuntimeWarning)
-            if objective == 'max':
-                return np.nanmax(err, axis=-1)
-            return np.nanmean(err, axis=-1)
+    with warnings.catch_warnings():
+        warnings.simplefilter('ignore', RuntimeWarning)  # all-NaN rows give NaN
+        if objective == 'max':
+            return np.nanmax(err, axis=-1)
+        return np.nanmean(err, axis=-1)
 
 
 def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=None,
