@@ -24,7 +24,9 @@ Angle conventions (DESIGN.md, REP-103), with a = raw azimuth and δ = ``azimuth_
   ``enu`` sensor and clockwise for a ``compass`` sensor. Use it for the array's mounting
   angle or a calibration: if a sensor reads a − δ for a true direction a, set δ.
 * Fixed station: ``enu`` gives θ = a_c (ENU yaw, CCW from East); ``compass`` gives
-  θ = π/2 − a_c (compass bearings are clockwise from North; DESIGN.md).
+  θ = π/2 − a_c (compass bearings are clockwise from North; DESIGN.md). With a geodetic
+  origin, North and the horizontal are the station's own (true North, local vertical), and
+  the line of sight is rotated into the origin's ENU axes (``StationConfig.local_to_world``).
 * Moving platform: the reading is in the body frame (REP-103: x forward, y left, z up).
   ``enu`` gives the body yaw θ_b = a_c (CCW from the bow); ``compass`` is a relative bearing
   clockwise from the bow, θ_b = −a_c. The body line of sight u_b = (cos ψ_b cos θ_b,
@@ -195,6 +197,10 @@ class StationConfig:
         azimuth_reference: 'enu' or 'compass' (module docstring).
         azimuth_offset: δ, rad, added to the raw azimuth in the sensor's reference.
         moving: True when the pose comes from a platform odometry.
+        local_to_world: (3, 3) rotation taking vectors in the station's own ENU axes (true
+            North and the local horizontal at the station) into the world frame's axes (the
+            ENU frame of the geodetic origin), or None when no geodetic origin is set (the
+            world is then a flat ENU frame and the two coincide).
     """
 
     station: str
@@ -207,6 +213,7 @@ class StationConfig:
     azimuth_reference: str = 'enu'
     azimuth_offset: float = 0.0
     moving: bool = False
+    local_to_world: np.ndarray = None
 
 
 def _covariance(values, name):
@@ -241,13 +248,28 @@ def station_config(station, frame_id='map', position=(), geodetic_position=(),
     exactly one of them unless ``moving`` (then neither: the platform odometry gives it).
     ``position_covariance``: 3 (diagonal) or 9 (row-major) values, m², symmetric PSD.
     σ in degrees, > 0 and ≤ 180. Raises :class:`ConfigError` naming the parameter.
+
+    With a geodetic origin, a fixed station's readings are taken to be relative to its own
+    true North and local horizontal, which differ from the origin's ENU axes by the meridian
+    convergence (λ − λ0) sin φ and a tilt of about distance / Earth radius (0.5 mrad per
+    3 km); ``local_to_world`` = Rᵀ with R from
+    :func:`bearing_loc_ros.core.geodesy.enu_axes_rotation` corrects for it. (A moving
+    platform's odometry orientation is already in the world frame.)
     """
     from . import geodesy
+
+    def geo(values, name):
+        try:
+            return geodesy.geodetic_triplet(values, name)
+        except ValueError as exc:
+            raise ConfigError(name, str(exc).partition(': ')[2]) from None
+
     if not station:
         raise ConfigError('station_id', 'empty (run the node in a namespace or set it)')
     if not frame_id:
         raise ConfigError('frame_id', 'must not be empty')
     pos = None
+    origin = geo(geodetic_origin, 'geodetic_origin') if len(geodetic_origin) else None
     if len(position) and len(geodetic_position):
         raise ConfigError('geodetic_position', 'give either position (ENU m) or '
                                                'geodetic_position, not both')
@@ -261,25 +283,19 @@ def station_config(station, frame_id='map', position=(), geodetic_position=(),
             raise ConfigError('position', f'expected 3 finite values [x, y, z] in m, got '
                                           f'{list(position)}')
     elif len(geodetic_position):
-        if not len(geodetic_origin):
+        if origin is None:
             raise ConfigError('geodetic_origin', 'required with geodetic_position '
                                                  '([lat_deg, lon_deg, alt_m])')
-        try:
-            origin = geodesy.geodetic_triplet(geodetic_origin, 'geodetic_origin')
-            lla = geodesy.geodetic_triplet(geodetic_position, 'geodetic_position')
-        except ValueError as exc:
-            name, _, problem = str(exc).partition(': ')
-            raise ConfigError(name, problem) from None
+        lla = geo(geodetic_position, 'geodetic_position')
         pos = geodesy.geodetic_to_enu(*lla, origin)
     elif not moving:
         raise ConfigError('position', 'required: set position ([x, y, z] ENU m), '
                                       'geodetic_position + geodetic_origin, or '
                                       'platform_odometry')
-    elif len(geodetic_origin):
-        try:
-            geodesy.geodetic_triplet(geodetic_origin, 'geodetic_origin')
-        except ValueError as exc:
-            raise ConfigError('geodetic_origin', str(exc).partition(': ')[2]) from None
+    local_to_world = None
+    if pos is not None and origin is not None:
+        lat, lon, _ = geodesy.enu_to_geodetic(pos, origin)
+        local_to_world = geodesy.enu_axes_rotation(origin, lat, lon).T
     cov = _covariance(position_covariance, 'position_covariance')
     for name, val in (('sigma_azimuth_deg', sigma_azimuth_deg),
                       ('sigma_elevation_deg', sigma_elevation_deg)):
@@ -297,7 +313,8 @@ def station_config(station, frame_id='map', position=(), geodetic_position=(),
                          sigma_elevation=math.radians(sigma_elevation_deg),
                          measures_elevation=bool(measures_elevation),
                          azimuth_reference=azimuth_reference,
-                         azimuth_offset=math.radians(azimuth_offset_deg), moving=bool(moving))
+                         azimuth_offset=math.radians(azimuth_offset_deg), moving=bool(moving),
+                         local_to_world=local_to_world)
 
 
 @dataclass
@@ -450,6 +467,11 @@ def to_world_bearing(reading, config, pose=None):
         cov = pose.position_covariance + config.position_covariance
     else:
         az = math.pi / 2.0 - a if compass else a
+        if config.local_to_world is not None:
+            u = config.local_to_world @ los_vector(az, el if has_el else 0.0)
+            az, el_w = (float(v) for v in azimuth_elevation(u))
+            if has_el:
+                el = el_w
         position = config.position
         cov = config.position_covariance
     s_az = reading.sigma_azimuth if math.isfinite(reading.sigma_azimuth) \
