@@ -185,11 +185,11 @@ def _ring(m, centre, radius, angles_deg):
 
 
 def test_seed000_narrow_bad_region_near_each_station(seed000_maps):
-    # CTLS at 5 km: a narrow ridge of high error runs through each station along the line
-    # where the line of sight is perpendicular to the station's position vector (there G's
-    # elevation entry collapses and the station's elevation loses its weight). On a 1.5 km ring around each station
-    # the ridge direction is >= 1.25x the ring median (values 1.29-1.84 on both sides) and
-    # contains the ring maximum (within 15°); the CRLB map has no ridge (<= 1.15x).
+    # CTLS at 5 km: a narrow ridge of high error runs through each station along the line where
+    # the line of sight is perpendicular to the station's position vector (there G's elevation
+    # entry collapses and the station's elevation loses its weight). On a 1.5 km ring around each
+    # station the ridge direction is >= 1.25x the ring median (values 1.29-1.84 on both sides)
+    # and contains the ring maximum (within 15°); the CRLB map has no ridge (<= 1.15x).
     ctls = seed000_maps['ctls', 1.5e-3, 5 * KM]
     crlb_map = seed000_maps['crlb', 1.5e-3, 5 * KM]
     angles = np.arange(0.0, 360.0, 2.0)
