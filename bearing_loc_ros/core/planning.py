@@ -15,19 +15,20 @@ error is ε = sqrt(trace P), seed 000 eq. (32)):
 
 Block-diagonal structure: F_j, G, H_X, W and P_E are block diagonal with one 2×2 block per
 station (rows: azimuth equation, elevation equation of eq. (2)), so A and B are sums of
-per-station 3×3 terms computed with einsum over (G, N, 2, 2) / (G, N, 2, 3) arrays; no
-2N×2N matrix is ever formed. A 1D station has no elevation row (its row is masked out).
+per-station 3×3 terms: the 2×2 block entries are computed elementwise on (G, N) arrays and
+summed over stations with batched products; no 2N×2N matrix is ever formed. A 1D station
+has no elevation row (its row is masked out).
 
 Note on ``ctls``: G mixes the dimensionless F_1..F_3 with F_4, whose entries are station
 coordinates, so the model depends on the coordinate origin and the length unit
-(``length_unit``; the paper does not say which it used). At the true angles H_X is diag(−ρ_i,
-−r_i) (horizontal and slant range), so W_i = H_X⁻ᵀ G_i H_X⁻¹ and the estimator is efficient (P
-= CRLB) only if G_i = c P_Ei⁻¹ with one c for all stations. Where a station's line of sight is
-perpendicular to its position vector, p = cos θ x_i + sin θ y_i = 0 and G_i's elevation entry 1
-+ (cos ψ p + sin ψ z_i)² collapses (from ~1e7 to ~1e4 in metres, seed 000 layout at 1.5 km from
-a station): that station's elevation equation loses almost all its weight and the error jumps.
-These are the "narrow regions" of seed 000 section 4, an artefact of the weighting (the CRLB
-map has none).
+(``length_unit``; the paper does not say which it used). At the true angles
+H_X = diag(−ρ_i, −r_i) (horizontal and slant range), so W_i = H_X⁻ᵀ G_i H_X⁻¹ and the
+estimator is efficient (P = CRLB) only if G_i = c P_Ei⁻¹ with one c for all stations.
+Where a station's line of sight is perpendicular to its position vector,
+p = cos θ x_i + sin θ y_i = 0 and G_i's elevation entry 1 + (cos ψ p + sin ψ z_i)² collapses
+(from ~1e7 to ~1e4 in metres for the seed 000 layout at 1.5 km from a station): that
+station's elevation equation loses almost all its weight and the error jumps. These are the
+"narrow regions" of seed 000 section 4, an artefact of the weighting (the CRLB map has none).
 """
 
 from dataclasses import dataclass, field
