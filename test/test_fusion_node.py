@@ -1,0 +1,336 @@
+"""fusion_node in-process: a FusionNode and a test node on one SingleThreadedExecutor, stepped
+with spin_once; simulated time comes from a /clock publisher of the test node (use_sim_time),
+so station time-outs take no wall time. Each test uses its own namespace."""
+import itertools
+import math
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+import numpy as np
+import pytest
+from rcl_interfaces.srv import SetParameters
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import NavSatFix
+from visualization_msgs.msg import Marker, MarkerArray
+
+from bearing_loc_ros.core.bearings import Bearing
+from bearing_loc_ros.core.conventions import azimuth_elevation
+from bearing_loc_ros.core.fusion import FusionConfig, FusionCore, replay
+from bearing_loc_ros.core.geodesy import enu_to_geodetic
+from bearing_loc_ros.core.simulation import load_scenario, simulate
+from bearing_loc_ros.fusion_node import FusionNode
+from bearing_loc_ros.ros_conversions import (bearing_from_msg, bearing_to_msg, fix_from_msg,
+                                             ns_to_time, time_to_ns)
+from ros_helpers import spin_until
+
+pytestmark = pytest.mark.ros
+
+S = 1_000_000_000
+QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
+TARGET = np.array([2500.0, 3000.0, 800.0])
+POSITIONS = {'s1': [0.0, 0.0, 0.0], 's2': [5000.0, 0.0, 20.0], 's3': [0.0, 6000.0, 40.0],
+             's4': [6000.0, 6000.0, 10.0]}
+ORIGIN = (48.0, 11.0, 500.0)
+_ns = itertools.count(1)
+
+
+@pytest.fixture(scope='module')
+def ros():
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+class Harness:
+    """A FusionNode plus a test node publishing bearings and /clock and recording outputs."""
+
+    def __init__(self, ctx, stations=('s1', 's2', 's3'), **params):
+        self.ns = f'fn{next(_ns)}'
+        self.ctx = ctx
+        params.setdefault('stations', list(stations))
+        params.setdefault('use_sim_time', True)
+        params.setdefault('diagnostics_period', 0.1)
+        params.setdefault('estimator', 'mle')
+        overrides = [Parameter(k, value=v) for k, v in params.items()]
+        self.fusion = FusionNode(context=ctx, namespace=self.ns, parameter_overrides=overrides)
+        self.node = rclpy.create_node('harness', namespace=self.ns, context=ctx)
+        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex.add_node(self.fusion)
+        self.ex.add_node(self.node)
+        self.clock_pub = self.node.create_publisher(Clock, '/clock', 10)
+        self.pubs = {}
+        self.fixes, self.navsat, self.markers, self.diags = [], [], [], []
+        self.node.create_subscription(PoseWithCovarianceStamped, 'fix', self.fixes.append, QOS)
+        self.node.create_subscription(NavSatFix, 'fix/navsat', self.navsat.append, QOS)
+        self.node.create_subscription(MarkerArray, 'markers', self.markers.append, QOS)
+        self.node.create_subscription(DiagnosticArray, '/diagnostics', self._on_diag, QOS)
+        self.t = None
+
+    def _on_diag(self, msg):
+        mine = [s for s in msg.status if s.name.startswith(f'{self.ns}/fusion: ')]
+        if mine:
+            self.diags.append({s.name.split(': ', 1)[1]: s for s in mine})
+
+    def close(self):
+        self.ex.shutdown()
+        self.fusion.destroy_node()
+        self.node.destroy_node()
+
+    def spin(self, predicate, timeout=5.0):
+        return spin_until(self.ex, predicate, timeout)
+
+    def publisher(self, station):
+        if station not in self.pubs:
+            pub = self.node.create_publisher(PoseWithCovarianceStamped, f'{station}/bearing',
+                                             QOS)
+            self.pubs[station] = pub
+        pub = self.pubs[station]
+        if station in self.fusion._subs:
+            assert self.spin(lambda: pub.get_subscription_count() > 0), station
+        return pub
+
+    def set_clock(self, t_ns):
+        """Publish /clock = t and spin until the fusion node's clock shows it."""
+        self.t = int(t_ns)
+        self.clock_pub.publish(Clock(clock=ns_to_time(self.t)))
+        assert self.spin(lambda: self.fusion.now_ns() == self.t), 'clock not received'
+        self.ex.spin_once(timeout_sec=0.0)
+
+    def send(self, msg, station):
+        self.publisher(station).publish(msg)
+
+    def send_round(self, t_ns, stations=('s1', 's2', 's3'), target=TARGET, wait_fix=True):
+        n = len(self.fixes)
+        rx = {s: self.fusion.core.station_stats(s).received
+              if s in self.fusion.core.stations else 0 for s in stations}
+        for s in stations:
+            self.send(bearing_to_msg(truth_bearing(s, t_ns, target)), s)
+        assert self.spin(lambda: all(self.fusion.core.station_stats(s).received > rx[s]
+                                     for s in stations)), 'bearings not received'
+        if wait_fix:
+            assert self.spin(lambda: len(self.fixes) > n), 'no fix'
+
+    def diag(self, predicate=lambda d: True, timeout=3.0):
+        n = len(self.diags)
+        assert self.spin(lambda: any(predicate(d) for d in self.diags[n:]), timeout)
+        return [d for d in self.diags[n:] if predicate(d)][-1]
+
+    def set_parameter(self, name, value):
+        """Set a parameter through the node's parameter service (like `ros2 param set`)."""
+        cli = self.node.create_client(SetParameters, f'/{self.ns}/fusion/set_parameters')
+        assert cli.wait_for_service(timeout_sec=5.0)
+        req = SetParameters.Request(parameters=[Parameter(name, value=value)
+                                                .to_parameter_msg()])
+        fut = cli.call_async(req)
+        assert self.spin(fut.done)
+        self.node.destroy_client(cli)
+        return fut.result().results[0]
+
+
+def truth_bearing(station, t_ns, target=TARGET, sigma=1e-3, frame='map'):
+    p = np.array(POSITIONS[station])
+    az, el = azimuth_elevation(np.asarray(target) - p)
+    return Bearing(station=station, stamp_ns=int(t_ns), position=p, azimuth=float(az),
+                   elevation=float(el), sigma_azimuth=sigma, sigma_elevation=sigma,
+                   frame_id=frame)
+
+
+@pytest.fixture
+def harness(ros):
+    made = []
+
+    def make(**kw):
+        h = Harness(ros, **kw)
+        made.append(h)
+        return h
+
+    yield make
+    for h in made:
+        h.close()
+
+
+def test_fix_navsat_markers_and_diagnostics(harness):
+    h = harness(geodetic_origin=list(ORIGIN), ellipsoid_sigma=1.0)
+    h.set_clock(100 * S)
+    h.send_round(100 * S)
+    stamp, pos, cov = fix_from_msg(h.fixes[-1])
+    assert stamp == 100 * S and h.fixes[-1].header.frame_id == 'map'
+    np.testing.assert_allclose(pos, TARGET, atol=1e-3)
+    core_cov = h.fusion.core.last_epoch.covariance
+    np.testing.assert_allclose(cov, core_cov, rtol=1e-12)
+    # NavSatFix: the same fix in WGS84 (core.geodesy / pymap3d).
+    assert h.spin(lambda: h.navsat)
+    lat, lon, alt = enu_to_geodetic(TARGET, ORIGIN)
+    nav = h.navsat[-1]
+    assert nav.latitude == pytest.approx(float(lat), abs=1e-9)
+    assert nav.longitude == pytest.approx(float(lon), abs=1e-9)
+    assert nav.altitude == pytest.approx(float(alt), abs=1e-3)
+    # Markers: three rays from the stations, the fix sphere and its 1-sigma ellipsoid.
+    assert h.spin(lambda: h.markers)
+    ms = {m.ns: m for m in h.markers[-1].markers}
+    rays = ms['bearings']
+    assert rays.type == Marker.LINE_LIST and len(rays.points) == 6
+    starts = sorted((p.x, p.y, p.z) for p in rays.points[::2])
+    assert starts == sorted(tuple(v) for k, v in POSITIONS.items() if k != 's4')
+    for a, b in zip(rays.points[::2], rays.points[1::2]):   # each ray passes the target
+        a, b = np.array([a.x, a.y, a.z]), np.array([b.x, b.y, b.z])
+        u = (b - a) / np.linalg.norm(b - a)
+        d = TARGET - a
+        assert np.linalg.norm(d - (d @ u) * u) < 1e-3
+    ell = ms['ellipsoid']
+    assert ell.type == Marker.SPHERE
+    w = np.linalg.eigvalsh(core_cov)
+    np.testing.assert_allclose(sorted([ell.scale.x, ell.scale.y, ell.scale.z]),
+                               2 * np.sqrt(w), rtol=1e-6)
+    d = h.diag(lambda d: d['fusion'].values and
+               {kv.key: kv.value for kv in d['fusion'].values}.get('fixes') == '1')
+    values = {kv.key: kv.value for kv in d['fusion'].values}
+    assert values['estimator'] == 'mle' and values['no_fix.too_few_stations'] == '0'
+    assert set(d) == {'fusion', 'station s1', 'station s2', 'station s3'}
+
+
+def test_bad_messages_are_rejected_counted_and_do_not_stop_fixes(harness):
+    h = harness(stations=('s1', 's2', 's3', 's4'))
+    h.set_clock(100 * S)
+    h.send_round(100 * S, stations=('s1', 's2', 's3', 's4'))
+    bad = []
+    m = bearing_to_msg(truth_bearing('s4', 101 * S))
+    m.pose.pose.orientation.x = float('nan')            # NaN angle
+    bad.append(m)
+    bad.append(bearing_to_msg(truth_bearing('s4', 101 * S, frame='odom')))   # wrong frame
+    m = bearing_to_msg(truth_bearing('s4', 101 * S))
+    cov = list(m.pose.covariance)
+    cov[35] = -1e-6                                        # negative azimuth variance
+    m.pose.covariance = cov
+    bad.append(m)
+    m = bearing_to_msg(truth_bearing('s4', 101 * S))
+    o = m.pose.pose.orientation
+    o.x, o.y, o.z, o.w = 2 * o.x, 2 * o.y, 2 * o.z, 2 * o.w   # non-unit quaternion
+    bad.append(m)
+    for m in bad:
+        h.send(m, 's4')
+    assert h.spin(lambda: h.fusion.core.station_stats('s4').received == 5)
+    # s4 sent only bad bearings at 101 s: it is still alive (its 100 s bearing is recent),
+    # so the event trigger waits for it; the timer tick after station_timeout moves on.
+    n = len(h.fixes)
+    for k in range(101, 108):
+        h.set_clock(k * S)
+        h.send_round(k * S, wait_fix=False)
+    assert h.spin(lambda: len(h.fixes) > n)
+    st = h.fusion.core.station_stats('s4')
+    assert dict(st.bad) == {'bad_quaternion': 2, 'wrong_frame': 1, 'bad_azimuth_variance': 1}
+    d = h.diag(lambda d: 'station s4' in d)
+    values = {kv.key: kv.value for kv in d['station s4'].values}
+    assert values['bad.bad_quaternion'] == '2' and values['bad.wrong_frame'] == '1'
+    assert values['bad.bad_azimuth_variance'] == '1'
+    fusion_values = {kv.key: kv.value for kv in d['fusion'].values}
+    assert fusion_values['bad_messages'] == '4'
+
+
+def test_station_drops_out_and_comes_back(harness):
+    h = harness(station_timeout=2.0)
+    for k in range(100, 103):
+        h.set_clock(k * S)
+        h.send_round(k * S)
+    assert h.fusion.core.last_epoch.stations == ['s1', 's2', 's3']
+    # s3 goes silent: after 2 s it is stale, fixes continue from s1 and s2.
+    for k in range(103, 107):
+        h.set_clock(k * S)
+        h.send_round(k * S, stations=('s1', 's2'), wait_fix=False)
+    assert h.spin(lambda: h.fusion.core.station_state('s3') == 'stale')
+    assert h.spin(lambda: h.fusion.core.last_epoch.stamp_ns == 106 * S)
+    ep = h.fusion.core.last_epoch
+    assert ep.ok and ep.stations == ['s1', 's2'] and ep.stale == ['s3']
+    d = h.diag(lambda d: 'station s3' in d)
+    assert d['station s3'].message.startswith('stale')
+    # s3 comes back: from the next round on it is in the fix again.
+    for k in range(107, 109):
+        h.set_clock(k * S)
+        h.send_round(k * S)
+    assert h.fusion.core.station_state('s3') == 'alive'
+    assert h.fusion.core.last_epoch.stations == ['s1', 's2', 's3']
+
+
+def test_switch_estimator_at_run_time(harness):
+    h = harness()
+    h.set_clock(100 * S)
+    h.send_round(100 * S)
+    res = h.set_parameter('estimator', 'magic')
+    assert not res.successful and 'unknown estimator' in res.reason
+    assert h.fusion.core.config.estimator == 'mle'
+    res = h.set_parameter('tolerance', -1.0)            # out of the declared range
+    assert not res.successful
+    res = h.set_parameter('estimator', 'ls')
+    assert res.successful, res.reason
+    assert h.fusion.core.config.estimator == 'ls'
+    h.set_clock(101 * S)
+    h.send_round(101 * S)
+    assert h.fusion.core.last_epoch.estimator == 'ls'
+    res = h.set_parameter('frame_id', 'odom')           # read-only
+    assert not res.successful
+    res = h.set_parameter('outlier_gate', 0.9999)
+    assert res.successful and h.fusion.core.config.outlier_gate == 0.9999
+
+
+def test_station_joins_through_discovery(harness):
+    h = harness(stations=('s1', 's2'), discover=True, discovery_period=0.1)
+    pub = h.publisher('s3')           # a new */bearing topic appears in the namespace
+    assert h.spin(lambda: 's3' in h.fusion._subs)
+    assert h.spin(lambda: pub.get_subscription_count() > 0)
+    h.set_clock(100 * S)
+    h.send_round(100 * S)
+    assert h.fusion.core.last_epoch.stations == ['s1', 's2', 's3']
+    # Outside the namespace or of another type: ignored.
+    other = h.node.create_publisher(PoseWithCovarianceStamped, '/elsewhere/s9/bearing', QOS)
+    h.spin(lambda: False, timeout=0.4)
+    assert 's9' not in h.fusion._subs and 'elsewhere/s9' not in h.fusion._subs
+    h.node.destroy_publisher(other)
+
+
+def test_time_going_backwards_clears_the_buffers(harness):
+    h = harness(trigger='timer', max_latency=0.2)
+    for k in (500, 501):
+        h.set_clock(k * S)
+        h.send_round(k * S, wait_fix=False)
+        h.set_clock(k * S + 300 * 1_000_000)
+    assert h.spin(lambda: len(h.fixes) == 2)
+    h.set_clock(10 * S)             # a bag loops / the simulation restarts
+    assert h.spin(lambda: h.fusion.core.time_jumps == 1)
+    assert all(h.fusion.core.station_state(s) == 'waiting' for s in ('s1', 's2', 's3'))
+    # Timer epochs need the tick timer, which must keep running after the jump.
+    for k in (11, 12):
+        h.set_clock(k * S)
+        h.send_round(k * S, wait_fix=False)
+        h.set_clock(k * S + 300 * 1_000_000)
+    assert h.spin(lambda: len(h.fixes) == 4)
+    assert [fix_from_msg(m)[0] for m in h.fixes] == [500 * S, 501 * S, 11 * S, 12 * S]
+
+
+def test_live_fixes_equal_the_offline_replay(harness):
+    # The bag-process contract: the node's fixes are FusionCore's for the same arrivals.
+    sc = load_scenario('config/scenarios/seed000.yaml')
+    sim = simulate(sc, duration=20.0, seed=1)
+    h = harness(stations=[s.id for s in sc.stations])
+    for e in sim.bearings:
+        if h.t != e.publish_ns:
+            h.set_clock(e.publish_ns)
+        h.send(bearing_to_msg(e.bearing), e.bearing.station)
+        st = h.fusion.core.station_stats(e.bearing.station)
+        n = st.received
+        assert h.spin(lambda: st.received > n)
+    assert h.spin(lambda: len(h.fixes) == 10)
+    # Offline, bearings go through the same message conversion (as read from a bag).
+    core = FusionCore(FusionConfig(estimator='mle'), stations=[s.id for s in sc.stations])
+    items = [(e.publish_ns, bearing_from_msg(bearing_to_msg(e.bearing), e.bearing.station))
+             for e in sim.bearings]
+    offline = [ep for ep in replay(core, items) if ep.ok]
+    live = [fix_from_msg(m) for m in h.fixes]
+    assert [t for t, _, _ in live] == [ep.stamp_ns for ep in offline]
+    for (_, p, c), ep in zip(live, offline):
+        assert np.array_equal(p, ep.position) and np.array_equal(c, ep.covariance)
+    assert time_to_ns(h.fixes[0].header.stamp) == sc.epoch_ns and not math.isnan(p[0])
