@@ -9,6 +9,7 @@ of maps with policy *names*, rosbag2 PR #1476), ``type_description_hash`` (versi
 (>= 5), ``custom_data`` (>= 6) and ``ros_distro`` (>= 8). Type hashes are compared with the
 hashes rosidl generated for the installed message packages (share/<pkg>/msg/<Type>.json).
 """
+import math
 import os
 import sys
 
@@ -313,3 +314,147 @@ def test_bag_play_publishes_every_message_with_clock(bags):
     # the bag's own /clock is replayed: monotonic, from the first to the last bag instant
     assert clock and np.all(np.diff(clock) >= 0)
     assert clock[-1] == end_ns and len(clock) == len(want['/clock'])
+
+
+FUSION_PARAMS = """\
+/**:
+  ros__parameters:
+    use_sim_time: true
+    stations: [station_1, station_2, station_3]
+    estimator: mle
+    publish_markers: false
+"""
+
+
+@pytest.fixture(scope='module')
+def processed(bags, tmp_path_factory):
+    """`bag process` of the static3 MCAP bag with the fusion params file used live below."""
+    root = tmp_path_factory.mktemp('proc')
+    params = root / 'fusion.yaml'
+    params.write_text(FUSION_PARAMS)
+    _, paths = bags
+    out = root / 'fixes'
+    assert cli_main(['bag', 'process', str(paths['mcap']), '--params-file', str(params),
+                     '--out', str(out)]) == 0
+    return params, out
+
+
+def test_bag_process_writes_fixes_bag_and_csv(bags, processed, capsys):
+    import csv
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.serialization import deserialize_message
+
+    from bearing_loc_ros.ros_conversions import fix_from_msg
+    _, out = processed
+    with open(str(out) + '.csv', encoding='utf-8') as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) >= 5
+    with bagio.BagReader(out) as r:
+        assert set(r.topics) == {'/fix'}
+        msgs = [(m.log_time_ns, deserialize_message(m.raw, PoseWithCovarianceStamped))
+                for m in r.messages()]
+    assert len(msgs) == len(rows)
+    for (t, msg), row in zip(msgs, rows):
+        stamp, pos, cov = fix_from_msg(msg)
+        assert stamp == int(row['stamp_ns']) and t == int(row['produced_ns'])
+        assert pos.tolist() == [float(row['x']), float(row['y']), float(row['z'])]
+        assert cov[0, 1] == float(row['cov_xy']) and cov[2, 2] == float(row['cov_zz'])
+        # truth of static3: (1000, 1500, 300) m; errors are a few tens of metres
+        assert [float(row['truth_x']), float(row['truth_y']), float(row['truth_z'])] == \
+            [1000.0, 1500.0, 300.0]
+        assert float(row['error_m']) == pytest.approx(math.dist(pos, (1000, 1500, 300)))
+    # same input, same fixes (deterministic); an unknown parameter names itself
+    scenario, paths = bags
+    capsys.readouterr()
+    assert cli_main(['bag', 'process', str(paths['sqlite3']), '--out', str(out) + '_b',
+                     '--params-file', str(processed[0])]) == 0
+    text = capsys.readouterr().out
+    assert 'error against truth (%d fixes): RMSE' % len(rows) in text
+    with open(str(out) + '_b.csv', encoding='utf-8') as f:
+        assert list(csv.DictReader(f)) == rows     # both storages, identical fixes
+    assert cli_main(['bag', 'process', str(paths['mcap']), '--out', str(out) + '_c',
+                     '-p', 'nonsense=1']) == 2
+    assert 'nonsense' in capsys.readouterr().err
+    assert cli_main(['bag', 'process', str(paths['mcap']), '--out', str(out)]) == 2
+    assert 'exists' in capsys.readouterr().err
+
+
+def test_fusion_defaults_mirror_the_node():
+    """bag process starts from the fusion node's own parameter defaults."""
+    import rclpy
+
+    from bearing_loc_ros import fusion_node
+    from bearing_loc_ros.cli import bag as bagcli
+    from bearing_loc_ros.core import estimators
+    assert bagcli.FUSION_ESTIMATOR_OPTIONS == fusion_node.ESTIMATOR_OPTIONS
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    try:
+        node = fusion_node.FusionNode(context=ctx)
+        try:
+            want = dict(bagcli.FUSION_NODE_DEFAULTS,
+                        estimator=estimators.DEFAULT_ESTIMATOR,
+                        reference_range=float(estimators.DEFAULT_REFERENCE_RANGE))
+            for name, value in want.items():
+                if name == 'stations':      # an empty string array is 'not set' in rclpy
+                    assert node._parameters[name].value in (None, []), name
+                    continue
+                assert node.get_parameter(name).value == value, name
+            declared = set(node._parameters)
+            assert set(want) | set(bagcli.FUSION_DISPLAY_PARAMS) >= declared
+        finally:
+            node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
+
+
+@pytest.mark.ros
+def test_offline_process_equals_live_fusion(bags, processed):
+    """fusion_node (use_sim_time) fed by `bag play` publishes the fixes `bag process` wrote.
+
+    Three processes over DDS: the fusion node, the player and this test's listener.
+    """
+    import csv
+    import rclpy
+    from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from ros_helpers import spin_until, start_node
+
+    from bearing_loc_ros.ros_conversions import fix_from_msg
+    _, paths = bags
+    params, out = processed
+    with open(str(out) + '.csv', encoding='utf-8') as f:
+        offline = list(csv.DictReader(f))
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node('fix_listener', context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    live = []
+    qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+    node.create_subscription(PoseWithCovarianceStamped, '/fix',
+                             lambda m: live.append(fix_from_msg(m)), qos)
+    node.create_subscription(PoseStamped, '/truth', lambda m: None, qos)
+    try:
+        with start_node('bearing_loc_ros.fusion_node',
+                        ros_args=['--params-file', str(params)]) as fusion:
+            with bearing_loc('bag', 'play', str(paths['mcap']), '--rate', '2',
+                             '--wait-for-subscribers', '20') as player:
+                spin_until(ex, lambda: player.proc.poll() is not None, 40.0)
+                assert player.wait(5.0) == 0, player.output()
+            spin_until(ex, lambda: len(live) >= len(offline), 5.0)
+            assert fusion.proc.poll() is None, fusion.output()
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
+    assert len(live) == len(offline), (len(live), len(offline), fusion.output()[-2000:])
+    for (stamp, pos, cov), row in zip(sorted(live, key=lambda f: f[0]), offline):
+        assert stamp == int(row['stamp_ns'])
+        np.testing.assert_allclose(pos, [float(row['x']), float(row['y']), float(row['z'])],
+                                   rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(
+            [cov[0, 0], cov[0, 1], cov[0, 2], cov[1, 1], cov[1, 2], cov[2, 2]],
+            [float(row[k]) for k in ('cov_xx', 'cov_xy', 'cov_xz', 'cov_yy', 'cov_yz',
+                                     'cov_zz')], rtol=1e-9, atol=1e-9)

@@ -57,14 +57,22 @@ def add_arguments(parser):
     p = sub.add_parser('process', help='offline fusion over a bag -> fixes bag + CSV')
     p.add_argument('bag', help='input bag directory')
     p.add_argument('--estimator', default=None,
-                   help='estimator name (default: the fusion default, '
+                   help="estimator name (default: the fusion node's, "
                         'core.estimators.DEFAULT_ESTIMATOR)')
-    p.add_argument('--params', default=None,
-                   help="fusion node parameters YAML (the node's --params-file) to use "
-                        'the same settings offline')
-    p.add_argument('--out', required=True, help='output prefix: <out>/ bag and <out>.csv')
+    p.add_argument('--params-file', default=None,
+                   help="the fusion node's parameters YAML (as given to --ros-args "
+                        '--params-file), so the offline run uses the same settings')
+    p.add_argument('-p', '--param', action='append', default=[], metavar='NAME=VALUE',
+                   help='one fusion node parameter (YAML value), e.g. -p trigger=timer; '
+                        'overrides --params-file')
+    p.add_argument('--namespace', default='',
+                   help="target namespace of the bearing topics (<ns>/<station>/bearing, "
+                        "<ns>/truth); default: the root namespace")
+    p.add_argument('--out', required=True,
+                   help='output name: bag directory OUT/ (fix topic) and OUT.csv')
     p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
-    p.add_argument('--fix-topic', default='/fix', help='topic of the fixes (default /fix)')
+    p.add_argument('--fix-topic', default='fix',
+                   help='topic of the fixes, relative to the namespace (default fix)')
 
     p = sub.add_parser('info', help='print a summary of a bag')
     p.add_argument('bag', help='bag directory')
@@ -359,6 +367,249 @@ def run_play(args):
 
 # ----------------------------------------------------------------------------------- process
 
+#: Defaults of the fusion node's parameters that shape the fusion (fusion_node.py
+#: _declare_parameters; test_bag.py checks them against a live FusionNode). bag process
+#: starts from these, so a bag processed offline with the node's --params-file gives the
+#: node's fixes.
+FUSION_NODE_DEFAULTS = {
+    'frame_id': 'map', 'stations': [], 'trigger': 'event', 'rate': 10.0, 'max_latency': 0.2,
+    'sync_tolerance': 0.05, 'interpolation': False, 'max_interpolation_gap': 1.0,
+    'station_timeout': 5.0, 'buffer_size': 50, 'buffer_age': 10.0,
+    'time_jump_tolerance': 0.1, 'estimator': None, 'min_stations': 2, 'outlier_gate': 0.999,
+    'max_iterations': 50, 'tolerance': 1e-9, 'reference_range': None, 'step_decay': 1.0,
+}
+#: Node parameters that go into FusionConfig.estimator_options (fusion_node.ESTIMATOR_OPTIONS).
+FUSION_ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay')
+#: Node parameters with no effect on the fixes (accepted in a params file, ignored here).
+FUSION_DISPLAY_PARAMS = ('mode', 'discover', 'discovery_period', 'qos_depth', 'qos_reliability',
+                         'geodetic_origin', 'publish_markers', 'marker_ray_length',
+                         'ellipsoid_sigma', 'diagnostics_period', 'use_sim_time',
+                         'start_type_description_service')
+
+
+def read_params_file(path):
+    """ros__parameters of the first node entry of a ROS 2 parameters YAML file (a dict).
+
+    Accepts ``fusion:``, ``/fusion:``, ``/**:`` or ``/ns/fusion:`` keys (the forms
+    ``--ros-args --params-file`` accepts). Raises InputError naming the file.
+    """
+    import yaml
+    try:
+        with open(path, encoding='utf-8') as f:
+            data = yaml.safe_load(f)
+    except OSError as exc:
+        raise InputError(f'params_file: cannot read {path} ({exc.strerror})') from None
+    except yaml.YAMLError as exc:
+        raise InputError(f'params_file: {path}: invalid YAML ({" ".join(str(exc).split())})') \
+            from None
+    if isinstance(data, dict):
+        for node, body in data.items():
+            if isinstance(body, dict) and isinstance(body.get('ros__parameters'), dict):
+                return dict(body['ros__parameters'])
+    raise InputError(f'params_file: {path}: no "<node>: ros__parameters:" mapping')
+
+
+def fusion_params(params_file=None, overrides=(), estimator=None):
+    """Fusion node parameters: node defaults < params file < NAME=VALUE overrides < estimator."""
+    import yaml
+    from ..core import estimators
+    p = dict(FUSION_NODE_DEFAULTS)
+    p['estimator'] = estimators.DEFAULT_ESTIMATOR
+    p['reference_range'] = float(estimators.DEFAULT_REFERENCE_RANGE)
+    given = dict(read_params_file(params_file)) if params_file else {}
+    for item in overrides:
+        name, sep, value = item.partition('=')
+        if not sep or not name:
+            raise InputError(f'param: expected NAME=VALUE, got {item!r}')
+        given[name.strip()] = yaml.safe_load(value)
+    if estimator is not None:
+        given['estimator'] = estimator
+    for name, value in given.items():
+        if name not in p and name not in FUSION_DISPLAY_PARAMS:
+            raise InputError(f'{name}: not a fusion node parameter')
+        p[name] = value
+    return p
+
+
+def fusion_config(p):
+    """FusionConfig from fusion node parameters (the mapping fusion_node uses)."""
+    from ..core.fusion import FusionConfig
+    try:
+        return FusionConfig(
+            frame_id=p['frame_id'], trigger=p['trigger'], rate=float(p['rate']),
+            max_latency=float(p['max_latency']), sync_tolerance=float(p['sync_tolerance']),
+            interpolation=bool(p['interpolation']),
+            max_interpolation_gap=float(p['max_interpolation_gap']),
+            station_timeout=float(p['station_timeout']), buffer_size=int(p['buffer_size']),
+            buffer_age=float(p['buffer_age']), min_stations=int(p['min_stations']),
+            estimator=p['estimator'],
+            estimator_options={k: p[k] for k in FUSION_ESTIMATOR_OPTIONS},
+            outlier_gate=float(p['outlier_gate']),
+            time_jump_tolerance=float(p['time_jump_tolerance'])).validate()
+    except (TypeError, ValueError) as exc:
+        raise InputError(str(exc)) from None
+
+
+def _interp_truth(stamps, positions, t, max_gap_ns):
+    """Truth at fix times t: linear between samples, nearest within max_gap outside, else NaN."""
+    import numpy as np
+    out = np.full((len(t), 3), np.nan)
+    if not len(stamps):
+        return out
+    order = np.argsort(stamps, kind='stable')
+    s = np.asarray(stamps, dtype=np.int64)[order]
+    p = np.asarray(positions, dtype=float)[order]
+    t = np.asarray(t, dtype=np.int64)
+    inside = (t >= s[0] - max_gap_ns) & (t <= s[-1] + max_gap_ns)
+    for a in range(3):
+        out[:, a] = np.interp(t.astype(float), s.astype(float), p[:, a])
+    out[~inside] = np.nan
+    return out
+
+
+def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'):
+    """Run the fusion node's pipeline (core.fusion.FusionCore + replay) offline over a bag.
+
+    Exactly what fusion_node does, message by message in bag order: a ``/clock`` message
+    sets the node clock (and runs the node's timer ticks, via core.fusion.replay); a
+    bearing on ``<ns>/<station>/bearing`` is converted by ``ros_conversions.bearing_from_msg``
+    (a ConversionError is counted as a bad message) and given to the core at the current
+    node-clock time (the bearing's stamp before the first /clock; the bag time when the bag
+    has no /clock). Stations: the ``stations`` parameter, else every bearing topic of the
+    namespace in sorted order. Writes ``<out>/`` (a bag with the fixes on ``<ns>/fix``, bag
+    time = node-clock time the fix was computed) and ``<out>.csv``; returns a summary dict
+    (epochs, fixes, no_fix reasons, dropped, bad, and ``errors`` against ``<ns>/truth`` when
+    the bag has it).
+    """
+    import numpy as np
+    from .. import bagio
+    from ..core.evaluation import track_errors
+    from ..core.fusion import FusionCore, replay
+    from ..ros_conversions import bearing_from_msg, ConversionError
+    out = str(out).rstrip('/')
+    csv_path = out + '.csv'
+    if os.path.exists(out) or os.path.exists(csv_path):
+        raise InputError(f'out: {out} or {csv_path} exists already (never overwritten)')
+    ns = namespace.strip('/')
+    prefix = '/' + ns + '/' if ns else '/'
+    config = fusion_config(params)
+    with bagio.BagReader(path) as reader:
+        topics = reader.topics
+        station_topics = {}
+        for name, t in topics.items():
+            if t.msgtype != bagio.POSE_COV_STAMPED or not name.startswith(prefix):
+                continue
+            station = bagio.station_from_topic(name[len(prefix) - 1:])
+            if station is not None:
+                station_topics[name] = station
+        stations = list(params.get('stations') or sorted(set(station_topics.values())))
+        wanted = {prefix + s + '/bearing': s for s in stations}
+        if not any(t in topics for t in wanted):
+            raise InputError(f'bag: no bearing topics {prefix}<station>/bearing in {path}')
+        truth_topic = prefix + 'truth'
+        has_truth = truth_topic in topics
+        has_clock = bagio.CLOCK_TOPIC in topics
+        core = FusionCore(config, stations=stations)
+        truth_t, truth_p = [], []
+        clock = [None]
+
+        def items():
+            for m in reader.messages():
+                if m.topic == bagio.CLOCK_TOPIC:
+                    clock[0] = bagio.stamp_ns(bagio.deserialize(m.raw, m.msgtype))
+                    yield clock[0], None
+                elif m.topic in wanted:
+                    now = clock[0] if has_clock else m.log_time_ns
+                    station = wanted[m.topic]
+                    try:
+                        b = bearing_from_msg(bagio.deserialize(m.raw, m.msgtype), station,
+                                             expected_frame=config.frame_id)
+                    except ConversionError as exc:
+                        core.count_bad_message(station, exc.reason, now)
+                        continue
+                    yield (now if now is not None else b.stamp_ns), b
+                elif m.topic == truth_topic and has_truth:
+                    msg = bagio.deserialize(m.raw, m.msgtype)
+                    truth_t.append(bagio.stamp_ns(msg))
+                    truth_p.append(bagio.position_of(msg))
+
+        epochs = list(replay(core, items()))
+    fixes = [e for e in epochs if e.ok]
+    stamps = np.array([e.stamp_ns for e in fixes], dtype=np.int64)
+    pos = np.array([e.position for e in fixes]).reshape(-1, 3)
+    cov = np.array([e.covariance for e in fixes]).reshape(-1, 3, 3)
+    truth = None
+    if has_truth and fixes:
+        period = int(np.median(np.diff(np.unique(truth_t)))) if len(set(truth_t)) > 1 else 0
+        truth = _interp_truth(truth_t, truth_p, stamps, max(period, NS_PER_S))
+    _write_fix_csv(csv_path, fixes, truth)
+    fix_name = prefix + fix_topic.strip('/')
+    with bagio.BagWriter(out, storage=storage, custom_data={
+            'generator': 'bearing_loc bag process', 'source': str(path),
+            'estimator': config.estimator, 'trigger': config.trigger}) as bag:
+        bag.add_topic(fix_name, bagio.POSE_COV_STAMPED, bagio.qos_profile(10))
+        for e in fixes:
+            bag.write(fix_name, e.produced_ns,
+                      bagio.fix_message(e.position, e.covariance, e.stamp_ns, config.frame_id))
+    from collections import Counter
+    summary = {'stations': stations, 'epochs': len(epochs), 'fixes': len(fixes),
+               'no_fix': dict(Counter(e.reason for e in epochs if not e.ok)),
+               'dropped': dict(core.dropped), 'bad_messages': core.bad_messages,
+               'outliers': core.outliers, 'time_jumps': core.time_jumps,
+               'estimator': config.estimator, 'fix_topic': fix_name, 'bag': out,
+               'csv': csv_path, 'errors': None, 'epoch_list': epochs}
+    if truth is not None:
+        summary['errors'] = track_errors(truth, pos, cov)
+    return summary
+
+
+def _write_fix_csv(path, fixes, truth):
+    import csv
+    cols = ['stamp_ns', 'stamp_s', 'x', 'y', 'z', 'cov_xx', 'cov_xy', 'cov_xz', 'cov_yy',
+            'cov_yz', 'cov_zz', 'n_stations', 'stations', 'rejected', 'estimator', 'status',
+            'iterations', 'chi2', 'dof', 'produced_ns']
+    if truth is not None:
+        cols += ['truth_x', 'truth_y', 'truth_z', 'error_m']
+    with open(path, 'w', newline='', encoding='utf-8') as f:
+        w = csv.writer(f)
+        w.writerow(cols)
+        for k, e in enumerate(fixes):
+            c = e.covariance
+            row = [e.stamp_ns, f'{e.stamp_ns / NS_PER_S:.9f}', *map(repr, map(float, e.position)),
+                   *(repr(float(c[i, j])) for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2),
+                                                        (2, 2))),
+                   len(e.bearings), ' '.join(e.stations),
+                   ' '.join(b.station for b in e.rejected), e.estimator, e.status,
+                   e.iterations, repr(float(e.chi2)), e.dof, e.produced_ns]
+            if truth is not None:
+                t = truth[k]
+                err = math.dist(t, e.position) if all(map(math.isfinite, t)) else float('nan')
+                row += [*map(repr, map(float, t)), repr(err)]
+            w.writerow(row)
+
+
 def run_process(args):
     """``bag process``: see :func:`process_bag`."""
-    raise InputError('bag process: the fusion core is not available in this build')
+    if not os.path.isdir(args.bag):
+        raise InputError(f'bag: {args.bag} is not a directory')
+    params = fusion_params(args.params_file, args.param, args.estimator)
+    t0 = time.perf_counter()
+    s = process_bag(args.bag, args.out, params, args.storage, args.namespace, args.fix_topic)
+    dt = time.perf_counter() - t0
+    no_fix = ', '.join(f'{k} {v}' for k, v in sorted(s['no_fix'].items())) or 'none'
+    dropped = ', '.join(f'{k} {v}' for k, v in sorted(s['dropped'].items())) or 'none'
+    print(f'{args.bag}: stations {", ".join(s["stations"])}; estimator {s["estimator"]}; '
+          f'{s["epochs"]} epochs, {s["fixes"]} fixes (no fix: {no_fix}); dropped bearings: '
+          f'{dropped}; bad messages {s["bad_messages"]}; outliers rejected {s["outliers"]}; '
+          f'{dt:.2f} s')
+    print(f'wrote {s["bag"]}/ ({s["fix_topic"]}) and {s["csv"]}')
+    e = s['errors']
+    if e is not None and e['n']:
+        print(f'error against truth ({e["n"]} fixes): RMSE {e["rmse"]:.3f} m, mean '
+              f'{e["mean_error"]:.3f} m, median {e["median_error"]:.3f} m, 95% '
+              f'{e["p95_error"]:.3f} m, max {e["max_error"]:.3f} m, bias ('
+              + ', '.join(f'{v:.3f}' for v in e['bias']) + f') m, mean NEES '
+              f'{e["mean_nees"]:.2f} (3 = consistent)')
+    elif e is not None:
+        print('error against truth: no fix within the truth time span')
+    return 0

@@ -355,3 +355,34 @@ def findings(rows):
             ratios.append({'sigma_deg': x, 'estimator': 'CRLB', 'rmse_azimuth': r.crlb,
                            'rmse_elevation': e.crlb, 'ratio': r.crlb / e.crlb})
     return {'ranking': ranking, 'azimuth_vs_elevation': ratios}
+
+
+def track_errors(truth, estimate, covariance=None):
+    """Error statistics of a sequence of fixes against the truth at the same times.
+
+    ``truth``, ``estimate`` (K, 3) m; ``covariance`` (K, 3, 3) m² or None. Returns a dict:
+    n, rmse = sqrt(mean |e|²), mean_error, median_error, p95_error, max_error (|e|, m),
+    bias (the mean error vector, m) and mean_nees = mean eᵀP⁻¹e (3 for an honest
+    covariance; NaN without covariances). Non-finite rows are ignored; with no rows every
+    value is NaN (n = 0).
+    """
+    t = np.asarray(truth, dtype=float).reshape(-1, 3)
+    x = np.asarray(estimate, dtype=float).reshape(-1, 3)
+    ok = np.all(np.isfinite(t), axis=1) & np.all(np.isfinite(x), axis=1)
+    e = x[ok] - t[ok]
+    n = int(ok.sum())
+    nan = float('nan')
+    if n == 0:
+        return {'n': 0, 'rmse': nan, 'mean_error': nan, 'median_error': nan,
+                'p95_error': nan, 'max_error': nan, 'bias': [nan] * 3, 'mean_nees': nan}
+    d = np.linalg.norm(e, axis=1)
+    nees = nan
+    if covariance is not None:
+        P = safe_inverse(np.asarray(covariance, dtype=float).reshape(-1, 3, 3)[ok])
+        good = np.all(np.isfinite(P), axis=(-2, -1))
+        if np.any(good):
+            nees = float(np.einsum('mi,mij,mj->m', e[good], P[good], e[good]).mean())
+    return {'n': n, 'rmse': float(np.sqrt(np.mean(d ** 2))), 'mean_error': float(d.mean()),
+            'median_error': float(np.median(d)), 'p95_error': float(np.percentile(d, 95)),
+            'max_error': float(d.max()), 'bias': [float(v) for v in e.mean(axis=0)],
+            'mean_nees': nees}
