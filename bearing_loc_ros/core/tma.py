@@ -578,7 +578,8 @@ def _finish(method, data, p0, v, status, reason, iterations, converged, opts):
         C = constrained_crlb(J, constraint_gradient(v[g], data.v_o[g],
                                                     opts['speed_reference']))
         T = state_transform(tau_l[g])
-        Cx = T @ C @ np.swapaxes(T, -1, -2)
+        with np.errstate(invalid='ignore'):
+            Cx = T @ C @ np.swapaxes(T, -1, -2)
         fin = np.all(np.isfinite(Cx), axis=(-2, -1))
         u = d_last[g] / rng[g, None]
         var_r = np.einsum('mi,mij,mj->m', u, np.where(fin[:, None, None], Cx[:, :3, :3], 0),
