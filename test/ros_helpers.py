@@ -27,7 +27,9 @@ class NodeProcess:
                                      start_new_session=True)
 
     def output(self):
-        """Everything the child printed so far (stdout and stderr)."""
+        """Everything the child printed so far (stdout and stderr), also after exit."""
+        if self._log.closed:
+            return self._final_output
         self._log.flush()
         self._log.seek(0)
         return self._log.read()
@@ -59,6 +61,7 @@ class NodeProcess:
 
     def __exit__(self, *exc):
         self.stop()
+        self._final_output = self.output()
         self._log.close()
 
 
