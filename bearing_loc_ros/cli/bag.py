@@ -66,8 +66,8 @@ def add_arguments(parser):
                    help='one fusion node parameter (YAML value), e.g. -p trigger=timer; '
                         'overrides --params-file')
     p.add_argument('--namespace', default='',
-                   help="target namespace of the bearing topics (<ns>/<station>/bearing, "
-                        "<ns>/truth); default: the root namespace")
+                   help='target namespace of the bearing topics (<ns>/<station>/bearing, '
+                        '<ns>/truth); default: the root namespace')
     p.add_argument('--out', required=True,
                    help='output name: bag directory OUT/ (fix topic) and OUT.csv')
     p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
