@@ -2,7 +2,7 @@
 
 One station (the observer) measures azimuth and elevation of a target over time. The target
 moves at constant velocity; the prior speed v_c fixes the scale that bearings alone leave
-free. Equation numbers (T1)...(T17) refer to docs/readme/tma.md, which derives them from the
+free. Equation numbers (T1)...(T18) refer to docs/readme/tma.md, which derives them from the
 text of seed 001 (its formulas did not survive in our copy).
 
 Conventions (DESIGN.md). ENU world frame, metres, seconds, radians. Azimuth θ is ENU
@@ -207,7 +207,7 @@ def observer_track(tau, observer):
 # --------------------------------------------------------------------------------------------
 
 def bearing_terms(azimuth, elevation, sigma_az, sigma_el):
-    """Per-bearing 3x3 terms of the pseudo-linear normal matrices (T6), (T10)-(T11), (T16).
+    """Per-bearing 3x3 terms of the pseudo-linear normal matrices (T6), (T10)-(T11), (T18).
 
     With h_θ = (−sin θ, cos θ, 0), h_ψ = (−sin ψ cos θ, −sin ψ sin θ, cos ψ) (the unit vectors
     normal to the line of sight u(θ, ψ) along increasing θ and ψ) and their derivatives
@@ -216,7 +216,7 @@ def bearing_terms(azimuth, elevation, sigma_az, sigma_el):
 
         Ph = h_θ h_θᵀ/σ_θ² + h_ψ h_ψᵀ/σ_ψ²                       (row weights 1/σ², T7)
         Oh = h_θ' h_θ'ᵀ + (σ_θ²/σ_ψ²) h_ψθ' h_ψθ'ᵀ + h_ψψ' h_ψψ'ᵀ  (first-order E[ΔhᵀWΔh], T11)
-        Qh = h_θ h_θᵀ/(σ_θ cos ψ)² + h_ψ h_ψᵀ/σ_ψ²                (constant-LOS test, T16)
+        Qh = h_θ h_θᵀ/(σ_θ cos ψ)² + h_ψ h_ψᵀ/σ_ψ²                (constant-LOS test, T18)
 
     Angles in rad (ENU), σ in rad; arrays of any shape (...,) -> (..., 3, 3) each.
     """
@@ -422,7 +422,7 @@ def estimate_from_sums(sums, method, speed, speed_reference='relative', min_bear
     ple (T7): b = −(HᵀWH)⁻¹ HᵀW y = −A2⁻¹ A1 e0 (seed 001 sec. 3.1).
     ctls (T12): z = [b; ζ] the generalized eigenvector of (P, Ω) for the smallest generalized
     eigenvalue, b ← b/ζ (seed 001 sec. 3.2.1). Then r0 from the speed prior (T8),
-    p0 = r0 e0, v = r0 b. Gates (T16): n < ``min_bearings`` or a constant line of sight
+    p0 = r0 e0, v = r0 b. Gates (T18): n < ``min_bearings`` or a constant line of sight
     (λ_min(Q) below the chi-square (2n − 2) quantile 1 − ``alpha``) -> 'unobservable'.
 
     Returns (p0 (S, 3) m, v (S, 3) m/s, status (S,) str, reason (S,) str).
@@ -561,7 +561,7 @@ def tma_crlb(bearings, times, p0, v, speed_reference='relative'):
 # --------------------------------------------------------------------------------------------
 
 def _finish(method, data, p0, v, status, reason, iterations, converged, opts):
-    """Target state (T1), covariance (T15)-(T16), range gate; NaN for unusable problems."""
+    """Target state (T1), covariance (T15)-(T16), range gate (T18); NaN if unusable."""
     M = data.M
     tau_l = data.tau[:, -1]
     status = np.asarray(status, dtype=object).copy()
