@@ -445,6 +445,11 @@ def test_offline_process_equals_live_fusion(bags, processed):
     try:
         with start_node('bearing_loc_ros.fusion_node',
                         ros_args=['--params-file', str(params)]) as fusion:
+            # the player waits for its own subscribers; the listener must also be matched
+            # with the fusion node's /fix publisher before the first fix (volatile QoS)
+            assert spin_until(ex, lambda: node.count_publishers('/fix') > 0, 30.0), \
+                fusion.output()
+            spin_until(ex, lambda: False, 0.5)
             with bearing_loc('bag', 'play', str(paths['mcap']), '--rate', '2',
                              '--wait-for-subscribers', '20') as player:
                 spin_until(ex, lambda: player.proc.poll() is not None, 40.0)
