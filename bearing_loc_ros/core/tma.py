@@ -34,7 +34,7 @@ from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.stats import chi2 as _chi2
+from scipy.special import chdtri
 
 from .bearings import _check_bearing_fields, BearingSet
 from .conventions import azimuth_elevation, los_vector, wrap_angle
@@ -437,7 +437,7 @@ def estimate_from_sums(sums, method, speed, speed_reference='relative', min_bear
                    'at two or more times')
     lam_q = np.linalg.eigvalsh(sums.Q)[..., 0]
     dof = np.maximum(2 * n - 2, 1)
-    flat = ~few & (lam_q <= _chi2.isf(alpha, dof))
+    flat = ~few & (lam_q <= chdtri(dof, alpha))     # chi-square quantile 1 − alpha
     status[flat] = STATUS_UNOBSERVABLE
     for idx in zip(*np.nonzero(flat)):
         reason[idx] = ('no significant bearing change over the window '
