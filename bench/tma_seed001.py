@@ -23,6 +23,8 @@ started from the previous epoch (from the best closed form at the first one).
 A second table repeats ple/ctls in the setting the paper's derivation assumes (sec. 3.1:
 the first bearing is exact); the paper's figures look like that setting.
 
+Also prints the wall time of the fusion-node path (TmaAccumulator.add / estimate).
+
 Run: .venv/bin/python bench/tma_seed001.py [--runs 200] [--seed 1] [--mle-stride 1]
 """
 import argparse
@@ -170,6 +172,25 @@ def table(title, label, keys, results, cols, which, eta=None):
     return '\n'.join(lines)
 
 
+def accumulator_timing(t, obs, start, velocity, window=60.0, repeat=20):
+    """Wall time of TmaAccumulator.add (per bearing) and estimate (per call), milliseconds."""
+    from bearing_loc_ros.core.tma import TmaAccumulator
+    bs, _ = simulate_tma(t, start, velocity, obs, np.deg2rad(0.1),
+                         rng=np.random.default_rng(0))
+    acc = TmaAccumulator(SPEED, window=window)
+    t0 = time.perf_counter()
+    for k in range(len(t)):
+        acc.add(t[k], obs[k], bs.azimuth[0, k], bs.elevation[0, k], bs.sigma_az[0, k],
+                bs.sigma_el[0, k])
+    out = {'add': 1e3 * (time.perf_counter() - t0) / len(t)}
+    for m in ('ple', 'ctls', 'ctls6', 'mle'):
+        t0 = time.perf_counter()
+        for _ in range(repeat):
+            acc.estimate(m)
+        out[m] = 1e3 * (time.perf_counter() - t0) / repeat
+    return len(acc), out
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--runs', type=int, default=200, help='Monte Carlo runs per configuration')
@@ -203,6 +224,10 @@ def main(argv=None):
         print()
         print(table(f'{name}, first bearing exact, mean over 50-100 s', label, keys, res,
                     paper_cols, 'mean', eta=('ctls*', 'ple*')))
+    n, tm = accumulator_timing(t, obs, start0, vel)
+    print(f'\nTmaAccumulator, 60 s window ({n} bearings): add {tm["add"]:.3f} ms per bearing; '
+          'estimate (with covariance) ' + ', '.join(f'{m} {tm[m]:.2f} ms' for m in
+                                                    ('ple', 'ctls', 'ctls6', 'mle')))
     print(f'\n{elapsed:.1f} s for {len(res1) + len(res2)} configurations x {args.runs} runs')
 
 
