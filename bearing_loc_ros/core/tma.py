@@ -417,15 +417,17 @@ def _scale_from_speed(b, speed, v_o, speed_reference):
 
 def estimate_from_sums(sums, method, speed, speed_reference='relative', min_bearings=3,
                        alpha=1e-3):
-    """Closed-form ple/ctls relative state (p0, v) from :class:`TmaSums` of any shape S.
+    """Closed-form ple/ctls/ctls6 relative state (p0, v) from :class:`TmaSums` of shape S.
 
     ple (T7): b = −(HᵀWH)⁻¹ HᵀW y = −A2⁻¹ A1 e0 (seed 001 sec. 3.1).
     ctls (T12): z = [b; ζ] the generalized eigenvector of (P, Ω) for the smallest generalized
-    eigenvalue, b ← b/ζ (seed 001 sec. 3.2.1). Then r0 from the speed prior (T8),
-    p0 = r0 e0, v = r0 b. Gates (T18): n < ``min_bearings`` or a constant line of sight
-    (λ_min(Q) below the chi-square (2n − 2) quantile 1 − ``alpha``) -> 'unobservable'.
+    eigenvalue, b ← b/ζ (seed 001 sec. 3.2.1). ctls6 (T12b): z = (v, p0)/r0 from (P6, Ω6),
+    e0 ← the direction of z's p0 part. Then r0 from the speed prior (T8), p0 = r0 e0,
+    v = r0 b. Gates (T18): n < ``min_bearings`` or a constant line of sight (λ_min(Q) below
+    the chi-square (2n − 2) quantile 1 − ``alpha``) -> 'unobservable'. ``speed`` (m/s)
+    broadcasts against S. The CRLB range gate needs the bearings: see :func:`ple`.
 
-    Returns (p0 (S, 3) m, v (S, 3) m/s, status (S,) str, reason (S,) str).
+    Returns (p0 (S, 3) m, v (S, 3) m/s, status (S,) str, reason (S,) str); NaN unless ok.
     """
     S = sums.n.shape
     status = np.full(S, STATUS_OK, dtype=object)
@@ -618,7 +620,7 @@ def _options(options):
 def _closed_form(method, bearings, times, speed, options):
     opts = _options(options)
     data = _prepare(bearings, times, speed, opts['speed_reference'])
-    sums = batch_sums(bearings, data.tau + data.t0[:, None])
+    sums = batch_sums(bearings, times)
     p0, v, status, reason = estimate_from_sums(sums, method, data.speed,
                                                opts['speed_reference'], opts['min_bearings'],
                                                opts['alpha'])
@@ -739,7 +741,7 @@ def mle(bearings, times, speed, **options):
     dtol = float(opts.pop('dtol', 1e-3))
     data = _prepare(bearings, times, speed, opts['speed_reference'])
     if start is None:
-        sums = batch_sums(bearings, data.tau + data.t0[:, None])
+        sums = batch_sums(bearings, times)
         p0, v, status, reason = _mle_start(data, sums, opts)
     else:
         p0 = np.array(np.broadcast_to(np.asarray(start[0], float), (data.M, 3)))
