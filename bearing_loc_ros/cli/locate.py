@@ -21,16 +21,15 @@ so the output is always strict JSON. Exit 0 when every problem was processed (ch
 Problems with the same number of bearings are solved in one vectorised call.
 """
 
-import json
 import math
-import numbers
-import sys
 
 import numpy as np
 
 from ..core.bearings import BearingSet
 from ..core.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, locate, noise_model_crlb
 from . import InputError
+from .jsonio import (add_io_arguments, finite_or_none, number, read_json,
+                     write_results)
 
 BEARING_FIELDS = ('station', 'position', 'azimuth', 'elevation', 'sigma_azimuth',
                   'sigma_elevation')
@@ -41,24 +40,10 @@ def add_arguments(parser):
     """Command line of ``bearing_loc locate``."""
     parser.description = ('Localize emitters from bearings: JSON in (file or stdin), JSON out '
                           '(stdout). Format: docs/readme/estimation.md.')
-    parser.add_argument('input', nargs='?', default='-',
-                        help='input JSON file ("-" or absent: stdin)')
+    add_io_arguments(parser)
     parser.add_argument('--method', choices=sorted(ESTIMATORS), default=None,
                         help=f'estimator, overrides the input\'s "method" '
                              f'(default: input, else {DEFAULT_ESTIMATOR})')
-    parser.add_argument('--indent', type=int, default=None,
-                        help='pretty-print the output with this indent')
-
-
-def _number(value, field, positive=False):
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise InputError(f'{field}: must be a number, got {json.dumps(value)[:40]}')
-    value = float(value)
-    if not math.isfinite(value):
-        raise InputError(f'{field}: must be a finite number')
-    if positive and value <= 0:
-        raise InputError(f'{field}: must be > 0')
-    return value
 
 
 def parse_bearings(items, where='bearings'):
@@ -85,22 +70,22 @@ def parse_bearings(items, where='bearings'):
         p = b['position']
         if not isinstance(p, list) or len(p) != 3:
             raise InputError(f'{f}.position: must be a list [x, y, z] of 3 numbers (m)')
-        pos.append([_number(v, f'{f}.position[{k}]') for k, v in enumerate(p)])
-        az.append(_number(b['azimuth'], f'{f}.azimuth'))
-        saz.append(_number(b['sigma_azimuth'], f'{f}.sigma_azimuth', positive=True))
+        pos.append([number(v, f'{f}.position[{k}]') for k, v in enumerate(p)])
+        az.append(number(b['azimuth'], f'{f}.azimuth'))
+        saz.append(number(b['sigma_azimuth'], f'{f}.sigma_azimuth', positive=True))
         e = b.get('elevation')
         if e is None:
             el.append(math.nan)
             sel.append(math.nan)
         else:
-            e = _number(e, f'{f}.elevation')
+            e = number(e, f'{f}.elevation')
             if abs(e) >= math.pi / 2:
                 raise InputError(f'{f}.elevation: |elevation| must be < pi/2 rad')
             if b.get('sigma_elevation') is None:
                 raise InputError(f'{f}.sigma_elevation: missing (required when elevation is '
                                  'given)')
             el.append(e)
-            sel.append(_number(b['sigma_elevation'], f'{f}.sigma_elevation', positive=True))
+            sel.append(number(b['sigma_elevation'], f'{f}.sigma_elevation', positive=True))
         names.append(station)
     try:
         return BearingSet.from_arrays(np.array(pos), np.array(az), np.array(el), np.array(saz),
@@ -142,13 +127,6 @@ def parse_request(doc, method_override=None):
     return method, options, sets, True
 
 
-def _finite_or_none(x):
-    """Nested lists of floats with NaN/inf replaced by None (strict JSON null)."""
-    if isinstance(x, list):
-        return [_finite_or_none(v) for v in x]
-    return x if math.isfinite(x) else None
-
-
 def solve(method, options, sets):
     """Run ``method`` on every one-problem BearingSet; problems of equal N in one call.
 
@@ -173,9 +151,9 @@ def solve(method, options, sets):
         for j, k in enumerate(idx):
             out[k] = {
                 'method': method,
-                'position': _finite_or_none(res.position[j].tolist()),
-                'covariance': _finite_or_none(res.covariance[j].tolist()),
-                'crlb': _finite_or_none(bound[j].tolist()),
+                'position': finite_or_none(res.position[j].tolist()),
+                'covariance': finite_or_none(res.covariance[j].tolist()),
+                'crlb': finite_or_none(bound[j].tolist()),
                 'converged': bool(res.converged[j]),
                 'iterations': int(res.iterations[j]),
                 'status': str(res.status[j]),
@@ -183,25 +161,9 @@ def solve(method, options, sets):
     return out
 
 
-def _read(path):
-    try:
-        if path == '-':
-            return sys.stdin.read()
-        with open(path, encoding='utf-8') as f:
-            return f.read()
-    except OSError as exc:
-        raise InputError(f'input: cannot read {path!r}: {exc.strerror}') from None
-
-
 def run(args):
     """Entry point of the verb: read, validate, solve, print. Returns the exit code."""
-    text = _read(args.input)
-    try:
-        doc = json.loads(text)
-    except ValueError as exc:
-        raise InputError(f'input: invalid JSON ({exc})') from None
+    doc = read_json(args.input)
     method, options, sets, batch = parse_request(doc, args.method)
     results = solve(method, options, sets)
-    payload = {'results': results} if batch else results[0]
-    sys.stdout.write(json.dumps(payload, allow_nan=False, indent=args.indent) + '\n')
-    return 0
+    return write_results(results, batch, args.indent)

@@ -27,10 +27,7 @@ target at the last observation time: ``{"method", "t", "position", "velocity",
 ``status``), 2 with one line on stderr naming the bad field (nothing on stdout).
 """
 
-import json
 import math
-import numbers
-import sys
 
 import numpy as np
 
@@ -38,6 +35,8 @@ from ..core.bearings import BearingSet
 from ..core.conventions import compass_to_enu
 from ..core.tma import SPEED_REFERENCES, tma, TMA_ESTIMATORS
 from . import InputError
+from .jsonio import (add_io_arguments, finite_or_none, number, read_json,
+                     write_results)
 
 DEFAULT_METHOD = 'ctls'
 TOP_FIELDS = ('method', 'speed', 'speed_reference', 'options', 'sigma_azimuth',
@@ -50,8 +49,7 @@ def add_arguments(parser):
     parser.description = ('Target motion analysis from one moving station with a speed prior '
                           '(seed 001): JSON in (file or stdin), JSON out. Format: '
                           'docs/readme/tma.md.')
-    parser.add_argument('input', nargs='?', default='-',
-                        help='input JSON file ("-" or absent: stdin)')
+    add_io_arguments(parser)
     parser.add_argument('--method', choices=sorted(TMA_ESTIMATORS), default=None,
                         help=f'estimator, overrides the input\'s "method" (default: input, '
                              f'else {DEFAULT_METHOD})')
@@ -60,19 +58,6 @@ def add_arguments(parser):
     parser.add_argument('--compass', action='store_true',
                         help='azimuths are compass bearings (clockwise from North, seed 001); '
                              'converted to ENU as pi/2 - azimuth')
-    parser.add_argument('--indent', type=int, default=None,
-                        help='pretty-print the output with this indent')
-
-
-def _number(value, field, positive=False):
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise InputError(f'{field}: must be a number, got {json.dumps(value)[:40]}')
-    value = float(value)
-    if not math.isfinite(value):
-        raise InputError(f'{field}: must be a finite number')
-    if positive and value <= 0:
-        raise InputError(f'{field}: must be > 0')
-    return value
 
 
 def parse_observations(items, where, defaults, compass=False):
@@ -98,14 +83,14 @@ def parse_observations(items, where, defaults, compass=False):
         o = ob['observer']
         if not isinstance(o, list) or len(o) != 3:
             raise InputError(f'{f}.observer: must be a list [x, y, z] of 3 numbers (m)')
-        obs = [_number(v, f'{f}.observer[{k}]') for k, v in enumerate(o)]
-        az = _number(ob['azimuth'], f'{f}.azimuth')
-        el = _number(ob['elevation'], f'{f}.elevation')
+        obs = [number(v, f'{f}.observer[{k}]') for k, v in enumerate(o)]
+        az = number(ob['azimuth'], f'{f}.azimuth')
+        el = number(ob['elevation'], f'{f}.elevation')
         if abs(el) >= math.pi / 2:
             raise InputError(f'{f}.elevation: |elevation| must be < pi/2 rad')
-        rows.append((_number(ob['t'], f'{f}.t'), obs, compass_to_enu(az) if compass else az,
-                     el, _number(ob['sigma_azimuth'], f'{f}.sigma_azimuth', positive=True),
-                     _number(ob['sigma_elevation'], f'{f}.sigma_elevation', positive=True)))
+        rows.append((number(ob['t'], f'{f}.t'), obs, compass_to_enu(az) if compass else az,
+                     el, number(ob['sigma_azimuth'], f'{f}.sigma_azimuth', positive=True),
+                     number(ob['sigma_elevation'], f'{f}.sigma_elevation', positive=True)))
     rows.sort(key=lambda r: r[0])
     t, obs, az, el, saz, sel = (np.array(c, dtype=float) for c in zip(*rows))
     bs = BearingSet.from_arrays(obs, az, el, saz, sel, validate=False)
@@ -130,7 +115,7 @@ def parse_request(doc, method_override=None, speed_override=None, compass=False)
     for key, value in options.items():
         if key in ('alpha', 'max_range_ratio', 'dtol', 'xtol', 'min_bearings',
                    'max_iterations'):
-            options[key] = _number(value, f'options.{key}', positive=True)
+            options[key] = number(value, f'options.{key}', positive=True)
             if key in ('min_bearings', 'max_iterations'):
                 options[key] = int(options[key])
         elif key == 'covariance' and not isinstance(value, bool):
@@ -144,14 +129,14 @@ def parse_request(doc, method_override=None, speed_override=None, compass=False)
     defaults = {}
     for key in ('sigma_azimuth', 'sigma_elevation'):
         if doc.get(key) is not None:
-            defaults[key] = _number(doc[key], key, positive=True)
+            defaults[key] = number(doc[key], key, positive=True)
 
     def speed_of(d, where):
         if speed_override is not None:
-            return _number(speed_override, '--speed', positive=True)
+            return number(speed_override, '--speed', positive=True)
         if d.get('speed') is None:
             raise InputError(f'{where}speed: missing (prior speed v_c, m/s)')
-        return _number(d['speed'], f'{where}speed', positive=True)
+        return number(d['speed'], f'{where}speed', positive=True)
 
     if ('observations' in doc) == ('problems' in doc):
         raise InputError('input: give exactly one of "observations" (one problem) or '
@@ -179,13 +164,6 @@ def parse_request(doc, method_override=None, speed_override=None, compass=False)
     return method, options, out, True
 
 
-def _finite_or_none(x):
-    """Nested lists of floats with NaN/inf replaced by None (strict JSON null)."""
-    if isinstance(x, list):
-        return [_finite_or_none(v) for v in x]
-    return x if math.isfinite(x) else None
-
-
 def solve(method, options, problems):
     """Run ``method`` on every (BearingSet, times, speed); one output dict per problem."""
     out = []
@@ -198,40 +176,24 @@ def solve(method, options, problems):
         out.append({
             'method': method,
             't': d['t'],
-            'position': _finite_or_none(d['position']),
-            'velocity': _finite_or_none(d['velocity']),
-            'covariance': _finite_or_none(d['covariance']),
+            'position': finite_or_none(d['position']),
+            'velocity': finite_or_none(d['velocity']),
+            'covariance': finite_or_none(d['covariance']),
             'status': d['status'],
             'reason': d['reason'],
             't0': d['t0'],
-            'position0': _finite_or_none(d['position0']),
-            'range': _finite_or_none(d['range']),
+            'position0': finite_or_none(d['position0']),
+            'range': finite_or_none(d['range']),
             'iterations': d['iterations'],
             'converged': d['converged'],
         })
     return out
 
 
-def _read(path):
-    try:
-        if path == '-':
-            return sys.stdin.read()
-        with open(path, encoding='utf-8') as f:
-            return f.read()
-    except OSError as exc:
-        raise InputError(f'input: cannot read {path!r}: {exc.strerror}') from None
-
-
 def run(args):
     """Entry point of the verb: read, validate, solve, print. Returns the exit code."""
-    text = _read(args.input)
-    try:
-        doc = json.loads(text)
-    except ValueError as exc:
-        raise InputError(f'input: invalid JSON ({exc})') from None
+    doc = read_json(args.input)
     method, options, problems, batch = parse_request(doc, args.method, args.speed,
                                                      args.compass)
     results = solve(method, options, problems)
-    payload = {'results': results} if batch else results[0]
-    sys.stdout.write(json.dumps(payload, allow_nan=False, indent=args.indent) + '\n')
-    return 0
+    return write_results(results, batch, args.indent)

@@ -1,0 +1,63 @@
+"""JSON plumbing shared by the JSON-in/JSON-out verbs (``locate``, ``tma``).
+
+Strict JSON both ways: input numbers must be finite reals; output NaN/inf become ``null``
+so every consumer's parser accepts the result. Errors are :class:`InputError` naming the
+field (exit code 2 through the dispatcher).
+"""
+
+import json
+import math
+import numbers
+import sys
+
+from . import InputError
+
+
+def add_io_arguments(parser):
+    """The positional ``input`` (file or stdin) and ``--indent`` flags of a JSON verb."""
+    parser.add_argument('input', nargs='?', default='-',
+                        help='input JSON file ("-" or absent: stdin)')
+    parser.add_argument('--indent', type=int, default=None,
+                        help='pretty-print the output with this indent')
+
+
+def number(value, field, positive=False):
+    """A finite real from JSON (bools rejected); ``positive`` requires > 0."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise InputError(f'{field}: must be a number, got {json.dumps(value)[:40]}')
+    value = float(value)
+    if not math.isfinite(value):
+        raise InputError(f'{field}: must be a finite number')
+    if positive and value <= 0:
+        raise InputError(f'{field}: must be > 0')
+    return value
+
+
+def finite_or_none(x):
+    """Nested lists of floats with NaN/inf replaced by None (strict JSON null)."""
+    if isinstance(x, list):
+        return [finite_or_none(v) for v in x]
+    return x if math.isfinite(x) else None
+
+
+def read_json(path):
+    """Parse the JSON document in file ``path`` ('-' = stdin); InputError when unreadable."""
+    try:
+        if path == '-':
+            text = sys.stdin.read()
+        else:
+            with open(path, encoding='utf-8') as f:
+                text = f.read()
+    except OSError as exc:
+        raise InputError(f'input: cannot read {path!r}: {exc.strerror}') from None
+    try:
+        return json.loads(text)
+    except ValueError as exc:
+        raise InputError(f'input: invalid JSON ({exc})') from None
+
+
+def write_results(results, batch, indent=None):
+    """Print ``{"results": [...]}`` for a batch request, else the single result."""
+    payload = {'results': results} if batch else results[0]
+    sys.stdout.write(json.dumps(payload, allow_nan=False, indent=indent) + '\n')
+    return 0
