@@ -31,6 +31,7 @@ yet processed).
 
 from collections import Counter, deque
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 import math
 
 import numpy as np
@@ -90,6 +91,7 @@ def default_estimator():
     return 'mle' if 'mle' in _estimators.ESTIMATORS else 'ls'
 
 
+@lru_cache(maxsize=64)
 def gate_threshold(probability, dof):
     """χ² gate: the ``probability`` quantile of χ² with ``dof`` degrees of freedom.
 
@@ -385,11 +387,16 @@ class Solution:
         return self.reason == OK
 
 
-def _validation_reason(exc):
-    text = str(exc)
-    if text.startswith('elevation: no bearing'):
+def _count_reason(bearings):
+    """No-fix reason of BearingSet.validate's counting rules (at least two stations, one
+    elevation, three angles), or None; checked without building arrays."""
+    n = len(bearings)
+    n_el = sum(1 for b in bearings if not math.isnan(b.elevation))
+    if n < 2 or n + n_el < 3:
+        return TOO_FEW_STATIONS
+    if n_el == 0:
         return NO_ELEVATION
-    return TOO_FEW_STATIONS
+    return None
 
 
 def _covariance_ok(cov):
@@ -402,16 +409,17 @@ def _covariance_ok(cov):
 def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=0.999):
     """Fix from aligned bearings (one per station) with χ² outlier gating.
 
-    Loop: build a BearingSet (validated: at least ``min_stations`` stations, one elevation,
-    three angles), run ``locate(estimator, ...)``, accept only a converged ``ok`` result with
-    finite position and a finite positive semi-definite covariance; compute each station's
-    d² (:func:`normalized_residuals` with the σ the estimator assumes, :func:`noise_sigmas`,
-    and the station position covariance) and, if the worst
+    Loop: check the counts (at least ``min_stations`` stations, one elevation, three angles:
+    BearingSet.validate's rules), run ``locate(estimator, ...)``, accept only a converged
+    ``ok`` result with finite position and a finite positive semi-definite covariance;
+    compute each station's d² (:func:`normalized_residuals` with the σ the estimator
+    assumes, :func:`noise_sigmas`, and the station position covariance) and, if the worst
     ratio d_i² / gate_threshold(outlier_gate, k_i) exceeds 1, drop that station and repeat,
     as long as the remaining set is still solvable; if it is not, the epoch has no fix
     (``inconsistent_bearings``). Returns a :class:`Solution`. Never raises for bad geometry
     or estimator failures (they become reasons); the estimator's own exceptions become
-    ``estimator_error`` with the message in ``detail``.
+    ``estimator_error`` with the message in ``detail``. The bearings' fields are expected to
+    be valid (FusionCore checks them on arrival); invalid ones end as ``estimator_error``.
     """
     options = dict(options or {})
     used = list(bearings)
@@ -421,11 +429,12 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         if len(used) < int(min_stations):
             return Solution(TOO_FEW_STATIONS, used=used, rejected=rejected,
                             detail=f'{len(used)} < min_stations {min_stations}')
-        try:
-            bs = BearingSet.from_bearings(used)
-        except ValueError as exc:
-            return Solution(_validation_reason(exc), used=used, rejected=rejected,
-                            detail=str(exc))
+        reason = _count_reason(used)
+        if reason is not None:
+            return Solution(reason, used=used, rejected=rejected,
+                            detail=f'{len(used)} station(s)')
+        # Fields were validated on arrival (locate validates the set once more).
+        bs = BearingSet.from_bearings(used, validate=False)
         try:
             res = _estimators.locate(estimator, bs, **kwargs)
         except Exception as exc:  # noqa: B902 - any estimator failure is a counted no-fix
@@ -455,7 +464,7 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         worst = int(np.argmax(excess))
         if excess[worst] > 1.0:
             remaining = used[:worst] + used[worst + 1:]
-            if len(remaining) >= int(min_stations) and _solvable(remaining):
+            if len(remaining) >= int(min_stations) and _count_reason(remaining) is None:
                 rejected = rejected + [used[worst]]
                 used = remaining
                 continue
@@ -468,12 +477,25 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
                         dof=int(np.sum(dof)) - 3, **common)
 
 
-def _solvable(bearings):
+def _valid_bearing(b):
+    """Fast pure-Python version of Bearing.validate (the node path calls it per message)."""
     try:
-        BearingSet.from_bearings(bearings)
-    except ValueError:
+        p = b.position
+        if len(p) != 3 or not all(math.isfinite(float(v)) for v in p):
+            return False
+        if not math.isfinite(b.azimuth):
+            return False
+        sa = b.sigma_azimuth
+        if not (math.isfinite(sa) and sa > 0.0):
+            return False
+        el = b.elevation
+        if math.isnan(el):
+            return True
+        se = b.sigma_elevation
+        return (math.isfinite(el) and abs(el) < math.pi / 2.0 and math.isfinite(se)
+                and se > 0.0)
+    except (TypeError, ValueError):
         return False
-    return True
 
 
 @dataclass
@@ -567,8 +589,7 @@ class FusionCore:
     mode = 'multistation'
 
     def __init__(self, config=None, stations=()):
-        self.config = (config if config is not None else FusionConfig()).validate()
-        self._align = self.config.alignment()
+        self._apply_config((config if config is not None else FusionConfig()).validate())
         self._buffers = {}
         self._stats = {}
         self._used_until = {}
@@ -588,6 +609,9 @@ class FusionCore:
         self.last_fix_stamp_ns = None
         self.last_epoch = None
         self.geometry_version = 0
+        self._next_check_ns = None    # earliest now at which a station state may change
+        self._scan_now_ns = None      # now of the last full state scan
+        self._expected = None         # cached event-trigger station list (None: recompute)
         for s in stations:
             self.add_station(s)
 
@@ -605,12 +629,21 @@ class FusionCore:
         """Apply validated ``changes`` (buffer bounds take effect at once; buffers are kept)."""
         new = self.check_config(**changes)
         old_align = self._align
-        self.config = new
-        self._align = new.alignment()
+        self._apply_config(new)
         if self._align != old_align:
             for buf in self._buffers.values():
                 buf.size, buf.age_ns = self._align.buffer_size, self._align.buffer_age_ns
+        self._next_check_ns = None
         return new
+
+    def _apply_config(self, config):
+        self.config = config
+        self._align = config.alignment()
+        self._timeout_ns = seconds_to_ns(config.station_timeout)
+        self._jump_tolerance_ns = seconds_to_ns(config.time_jump_tolerance)
+        self._max_latency_ns = seconds_to_ns(config.max_latency)
+        self._next_check_ns = None
+        self._expected = None
 
     # ----------------------------------------------------------------- stations
     @property
@@ -625,6 +658,8 @@ class FusionCore:
             self._buffers[station] = StationBuffer(station, self._align.buffer_size,
                                                    self._align.buffer_age_ns)
             self._events.append(('info', f'station {station} added'))
+            self._expected = None
+            self._next_check_ns = None     # its waiting period must be scheduled
         return self._stats[station]
 
     def remove_station(self, station):
@@ -632,6 +667,7 @@ class FusionCore:
         if self._stats.pop(station, None) is not None:
             self._buffers.pop(station, None)
             self._used_until.pop(station, None)
+            self._expected = None
             self.geometry_version += 1
             self._events.append(('info', f'station {station} removed'))
 
@@ -680,15 +716,18 @@ class FusionCore:
         bad messages (``invalid_bearing`` / ``wrong_frame``), never raised.
         """
         now = int(now_ns)
-        self._advance(now)
         st = self.add_station(bearing.station)
+        self._advance(now, bearing.station)
         st.received += 1
-        try:
-            bearing.validate()
-        except ValueError as exc:
+        if not _valid_bearing(bearing):
+            try:
+                bearing.validate()
+                detail = 'position covariance'
+            except ValueError as exc:
+                detail = str(exc)
             st.bad[INVALID_BEARING] += 1
             self.bad_messages += 1
-            self._events.append(('warn', f'{bearing.station}: invalid bearing ({exc})'))
+            self._events.append(('warn', f'{bearing.station}: invalid bearing ({detail})'))
             return []
         if bearing.frame_id != self.config.frame_id:
             st.bad[WRONG_FRAME] += 1
@@ -711,7 +750,11 @@ class FusionCore:
                 or np.linalg.norm(pos - st.position) > GEOMETRY_MOVE_TOLERANCE_M):
             st.position = pos.copy()
             self.geometry_version += 1
-        self._update_states(now)
+        self._set_state(st, self._state_at(st, now))
+        if st.state == ALIVE:
+            due = stamp + self._timeout_ns
+            if self._next_check_ns is not None and due < self._next_check_ns:
+                self._next_check_ns = due
         if self.config.trigger == TRIGGER_EVENT:
             return self._event_epochs(now)
         return []
@@ -723,7 +766,7 @@ class FusionCore:
         if self.config.trigger == TRIGGER_EVENT:
             return self._event_epochs(now)
         period = self.config.period_ns
-        target = now - seconds_to_ns(self.config.max_latency)
+        target = now - self._max_latency_ns
         if target < 0:
             return []
         k_last = target // period
@@ -747,21 +790,36 @@ class FusionCore:
         return (self._last_epoch_ns is not None
                 and stamp < self._last_epoch_ns - self._align.sync_tolerance_ns)
 
-    def _advance(self, now):
-        """Time-jump detection, pruning and station states at ``now``."""
+    def _advance(self, now, station=None):
+        """Time-jump detection, pruning and station states at ``now``.
+
+        Cost O(1) amortised per call: only ``station``'s buffer is pruned here (every buffer
+        is pruned before an epoch, :meth:`_prune_all`, and on ticks), and the station states
+        are rescanned only when one may have timed out (``_next_check_ns``). Buffers are
+        always pruned at the newest now seen, so the result is the same as pruning every
+        buffer on every call.
+        """
         if self._first_now_ns is None:
             self._first_now_ns = now
             for st in self._stats.values():
                 st.since_ns = now if st.since_ns is None else st.since_ns
         last = self._last_now_ns
-        if last is not None and now < last - seconds_to_ns(self.config.time_jump_tolerance):
+        if last is not None and now < last - self._jump_tolerance_ns:
             self._reset_time(now, last)
         elif last is None or now > last:
             # A small backward step (within the tolerance) keeps the newest now.
             self._last_now_ns = now
+        if station is None:
+            self._prune_all()
+        else:
+            self._buffers[station].prune(self._last_now_ns)
+        if (self._next_check_ns is None or now > self._next_check_ns
+                or now < self._scan_now_ns):
+            self._update_states(now)
+
+    def _prune_all(self):
         for buf in self._buffers.values():
-            buf.prune(now)
-        self._update_states(now)
+            buf.prune(self._last_now_ns)
 
     def _reset_time(self, now, last):
         self.time_jumps += 1
@@ -776,6 +834,8 @@ class FusionCore:
         self._fix_times.clear()
         self._first_now_ns = now
         self._last_now_ns = now
+        self._next_check_ns = None
+        self._expected = None
         self.geometry_version += 1
         self._events.append(('warn', f'time jumped back from {last / NS_PER_S:.3f} s to '
                                      f'{now / NS_PER_S:.3f} s: buffers cleared'))
@@ -783,30 +843,49 @@ class FusionCore:
     def _state_at(self, st, now):
         if st.last_stamp_ns is None:
             return WAITING
-        if now - st.last_stamp_ns > seconds_to_ns(self.config.station_timeout):
+        if now - st.last_stamp_ns > self._timeout_ns:
             return STALE
         return ALIVE
 
+    def _set_state(self, st, new):
+        if new != st.state:
+            if new == STALE:
+                self._events.append(('warn', f'station {st.station} stale: no bearing for '
+                                             f'more than {self.config.station_timeout} s'))
+            elif new == ALIVE:
+                self._events.append(('info', f'station {st.station} alive'
+                                     + (' again' if st.state == STALE else '')))
+            st.state = new
+            self._expected = None
+            self.geometry_version += 1
+
     def _update_states(self, now):
-        for s, st in self._stats.items():
-            new = self._state_at(st, now)
-            if new != st.state:
-                if new == STALE:
-                    self._events.append(('warn', f'station {s} stale: no bearing for more '
-                                                 f'than {self.config.station_timeout} s'))
-                elif new == ALIVE:
-                    self._events.append(('info', f'station {s} alive'
-                                         + (' again' if st.state == STALE else '')))
-                st.state = new
-                self.geometry_version += 1
+        """Full scan: every station's state at ``now``, and the next time one may change
+        (an alive station timing out, or a waiting one no longer waited for)."""
+        nxt = None
+        for st in self._stats.values():
+            self._set_state(st, self._state_at(st, now))
+            if st.state == ALIVE:
+                due = st.last_stamp_ns + self._timeout_ns
+            elif st.state == WAITING and st.since_ns is not None and st.since_ns >= now - \
+                    self._timeout_ns:
+                due = st.since_ns + self._timeout_ns
+            else:
+                continue
+            nxt = due if nxt is None or due < nxt else nxt
+        self._next_check_ns = nxt if nxt is not None else now + 1000 * NS_PER_S
+        self._scan_now_ns = now
+        self._expected = None
 
     def _expected_stations(self, now):
         """Event trigger: live stations, plus stations that have not reported yet but were
         added (or the clock reset) less than station_timeout ago."""
-        timeout = seconds_to_ns(self.config.station_timeout)
-        return [s for s, st in self._stats.items()
+        if self._expected is None:
+            self._expected = [
+                s for s, st in self._stats.items()
                 if st.state == ALIVE or (st.state == WAITING and st.since_ns is not None
-                                         and now - st.since_ns <= timeout)]
+                                         and now - st.since_ns <= self._timeout_ns)]
+        return self._expected
 
     def _event_epochs(self, now):
         expected = self._expected_stations(now)
@@ -823,6 +902,7 @@ class FusionCore:
     def _epoch(self, t, now):
         cfg = self.config
         self._last_epoch_ns = t
+        self._prune_all()
         nearest_only = not self._align.interpolation
         aligned, how, missing = [], {}, []
         live = self.live_stations()
