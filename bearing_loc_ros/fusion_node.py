@@ -25,6 +25,7 @@ import numpy as np
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType, JumpThreshold
 from rclpy.duration import Duration
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import NavSatFix
@@ -100,6 +101,7 @@ class FusionNode(Node):
                                       reliability=reliability,
                                       durability=DurabilityPolicy.VOLATILE)
         self._subs = {}            # station -> Subscription
+        self.incompatible_qos = {}  # station -> incompatible publishers seen (QoS events)
         self._discovered = set()   # stations found by discovery (not in the parameter)
         for s in self.stations_param:
             self._subscribe(s)
@@ -283,9 +285,11 @@ class FusionNode(Node):
         if station in self._subs:
             return
         self.core.add_station(station)
+        events = SubscriptionEventCallbacks(
+            incompatible_qos=partial(self._on_incompatible_qos, station))
         self._subs[station] = self.create_subscription(
             PoseWithCovarianceStamped, f'{station}/bearing', partial(self._on_bearing, station),
-            self.bearing_qos)
+            self.bearing_qos, event_callbacks=events)
 
     def _unsubscribe(self, station):
         sub = self._subs.pop(station, None)
@@ -320,6 +324,14 @@ class FusionNode(Node):
             if gone and self.core.station_state(station) != 'alive':
                 self._unsubscribe(station)
                 self.get_logger().info(f'station {station} left (no publisher on {topic})')
+
+    def _on_incompatible_qos(self, station, info):
+        """A publisher on <station>/bearing cannot match (typically best-effort vs reliable)."""
+        self.incompatible_qos[station] = int(info.total_count)
+        self.get_logger().warning(
+            f'{station}/bearing: {info.total_count} publisher(s) with incompatible QoS (policy '
+            f'{info.last_policy_kind}); a best-effort publisher needs qos_reliability:='
+            'best_effort here, or a reliable publisher', throttle_duration_sec=10.0)
 
     # ------------------------------------------------------------------ data path
     def now_ns(self):
@@ -452,6 +464,8 @@ class FusionNode(Node):
             values = dict(d.values)
             if d.name == 'fusion':
                 values['fixes_published'] = self.fixes_published
+            elif d.hardware_id in self.incompatible_qos:
+                values['incompatible_qos_publishers'] = self.incompatible_qos[d.hardware_id]
             arr.status.append(diagnostic_status(f'{name}: {d.name}', LEVELS[d.level],
                                                 d.message, values, d.hardware_id))
         self.diag_pub.publish(arr)

@@ -334,3 +334,38 @@ def test_live_fixes_equal_the_offline_replay(harness):
     for (_, p, c), ep in zip(live, offline):
         assert np.array_equal(p, ep.position) and np.array_equal(c, ep.covariance)
     assert time_to_ns(h.fixes[0].header.stamp) == sc.epoch_ns and not math.isnan(p[0])
+
+
+def test_best_effort_publisher_needs_best_effort_qos(harness):
+    best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    h = harness()
+    pub = h.node.create_publisher(PoseWithCovarianceStamped, 's1/bearing', best_effort)
+    # Reliable subscription, best-effort publisher: no match, reported as incompatible QoS.
+    assert h.spin(lambda: h.fusion.incompatible_qos.get('s1', 0) >= 1)
+    assert pub.get_subscription_count() == 0
+    d = h.diag(lambda d: 'station s1' in d)
+    values = {kv.key: kv.value for kv in d['station s1'].values}
+    assert int(values['incompatible_qos_publishers']) >= 1
+    h.node.destroy_publisher(pub)
+    # qos_reliability:=best_effort matches best-effort (and reliable) publishers.
+    h2 = harness(qos_reliability='best_effort')
+    h2.pubs['s1'] = h2.node.create_publisher(PoseWithCovarianceStamped, 's1/bearing',
+                                             best_effort)
+    h2.set_clock(100 * S)
+    h2.send_round(100 * S)
+    assert h2.fusion.core.last_epoch.stations == ['s1', 's2', 's3']
+
+
+def test_stations_parameter_changes_at_run_time(harness):
+    h = harness(stations=('s1', 's2'))
+    res = h.set_parameter('stations', ['s1', 's2', 's3'])
+    assert res.successful, res.reason
+    assert 's3' in h.fusion._subs
+    h.set_clock(100 * S)
+    h.send_round(100 * S)
+    assert h.fusion.core.last_epoch.stations == ['s1', 's2', 's3']
+    res = h.set_parameter('stations', ['s1', '3bad'])
+    assert not res.successful and 'station id' in res.reason
+    res = h.set_parameter('stations', ['s1', 's2'])
+    assert res.successful and 's3' not in h.fusion._subs
+    assert 's3' not in h.fusion.core.stations
