@@ -2,9 +2,10 @@
 
 Runs ``simulator_node`` (seed 000 section 4: three stations, a target at ~60 km moving at
 (−150, −1000, 0) m/s, σ = 3 mrad, a bearing every 2 s) and ``fusion_node`` (use_sim_time) as
-separate processes, faster than real time; an in-demo subscriber records ``fix``, ``truth``
-and the bearings. It prints one line per fix (time, error to truth, predicted 1σ), a summary
-comparing the RMS error with the Cramér-Rao bound evaluated along the true track
+separate processes, faster than real time; an in-demo subscriber records ``fix`` and
+``truth`` (the bearings for the plot come from the same seeded core simulation). It prints
+one line per fix (time, error to truth, predicted 1σ), a summary comparing the RMS error
+with the Cramér-Rao bound evaluated along the true track
 (core/crlb.py) and writes a PNG (stations, bearing rays, true track, fixes with 1σ error
 ellipses) to ``demo_out/``. Children are stopped with SIGINT, then SIGTERM, then SIGKILL, and
 always reaped, also on errors and Ctrl-C. Exit code 0 on success, 1 on failure, 130 on Ctrl-C.
@@ -197,7 +198,7 @@ def write_png(path, sc, fixes, truth_track, bearings, stats, x_true, t_fix):
 
 def run(args):
     """Run the demo; return the exit code."""
-    from .core.simulation import load_scenario
+    from .core.simulation import load_scenario, simulate
     from .simulator_node import resolve_scenario_path
 
     os.makedirs(args.out, exist_ok=True)
@@ -219,7 +220,7 @@ def run(args):
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rclpy.signals import SignalHandlerOptions
 
-    from .ros_conversions import bearing_from_msg, ConversionError, fix_from_msg, time_to_ns
+    from .ros_conversions import fix_from_msg, time_to_ns
 
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
     children = []
@@ -230,8 +231,13 @@ def run(args):
     node = rclpy.create_node('demo_listener', context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
-    fixes, truth, bearings = [], {}, []
+    fixes, truth = [], {}
     printed = [0]
+    # The bearings the simulator publishes are the core simulation's for this seed; the demo
+    # takes them (for the rays of the PNG) from the core rather than subscribing, so the
+    # fusion node is the only bearing subscriber and the simulator, which starts once every
+    # bearing topic is matched, never starts before the fusion node is listening.
+    bearings = [e.bearing for e in simulate(sc, duration=args.duration, seed=args.seed).bearings]
 
     def on_fix(msg):
         fixes.append(fix_from_msg(msg))
@@ -240,17 +246,8 @@ def run(args):
         p = msg.pose.position
         truth[time_to_ns(msg.header.stamp)] = np.array([p.x, p.y, p.z])
 
-    def on_bearing(station, msg):
-        try:
-            bearings.append(bearing_from_msg(msg, station))
-        except ConversionError:
-            pass
-
     node.create_subscription(PoseWithCovarianceStamped, '/fix', on_fix, qos)
     node.create_subscription(PoseStamped, '/truth', on_truth, qos)
-    for s in sc.stations:
-        node.create_subscription(PoseWithCovarianceStamped, f'/{s.id}/bearing',
-                                 lambda m, s=s.id: on_bearing(s, m), qos)
 
     def true_position(t_ns):
         """Truth sample at t (the /truth topic), else the scenario trajectory."""
@@ -294,10 +291,10 @@ def run(args):
                                   '-p', f'scenario:={path}', '-p', f'seed:={args.seed}',
                                   '-p', f'time_scale:={args.time_scale}',
                                   '-p', f'duration:={args.duration}',
-                                  '-p', 'start_delay:=4.0'],
+                                  '-p', 'start_delay:=15.0'],
                     os.path.join(args.out, 'simulator.log'), env)
         children.append(sim)
-        budget = 4.0 + args.duration / args.time_scale + 30.0
+        budget = 15.0 + args.duration / args.time_scale + 30.0
         if not spin(budget, lambda: not sim.running()):
             raise RuntimeError(f'simulator did not finish within {budget:.0f} s')
         if sim.proc.returncode != 0:

@@ -60,7 +60,7 @@ def test_simulator_to_fusion_fixes_meet_the_crlb(scenario_file):
     fusion_args = ['-p', f'stations:={stations}', '-p', 'use_sim_time:=true',
                    '-p', 'estimator:=mle', '-p', 'diagnostics_period:=0.2']
     sim_args = ['-p', f'scenario:={scenario_file}', '-p', 'seed:=4', '-p', 'time_scale:=10.0',
-                '-p', 'start_delay:=3.0']
+                '-p', 'start_delay:=15.0']
     try:
         with start_node('bearing_loc_ros.fusion_node', fusion_args) as fusion:
             assert spin_until(ex, lambda: node.count_publishers('/fix') > 0, 20.0), \
@@ -75,8 +75,9 @@ def test_simulator_to_fusion_fixes_meet_the_crlb(scenario_file):
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
 
-    # 100 epochs (0, 0.5, ..., 49.5 s). Bearings published before DDS has matched the
-    # simulator's publishers to the fusion node (start_delay) may be lost; nothing else may.
+    # 100 epochs (0, 0.5, ..., 49.5 s). The simulator starts once every bearing topic has a
+    # matched subscriber (the fusion node is the only one) or after start_delay; bearings
+    # published before a match could be lost at the start, nothing after it.
     epochs = [sc.epoch_ns + k * S // 2 for k in range(100)]
     got = [fix_from_msg(f)[0] for f in fixes]
     assert got == sorted(got) and len(fixes) >= 80, f'{len(fixes)} fixes'
