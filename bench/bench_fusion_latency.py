@@ -14,10 +14,16 @@ Reported per N:
 * the core alone: time of FusionCore.add_bearing for the epoch-completing bearing (alignment,
   estimator and outlier gate; no ROS), median and p99.
 
-Run: ``.venv/bin/python bench/bench_fusion_latency.py [--seconds 10] [--estimator mle]``.
+``--baseline`` runs the same harness against a trivial rclpy node that subscribes to the N
+topics and republishes the epoch-completing bearing on /fix: the rclpy + DDS floor that any
+Python node pays, for comparison.
+
+Run: ``.venv/bin/python bench/bench_fusion_latency.py [--seconds 10] [--estimator mle]
+[--baseline]``.
 """
 
 import argparse
+import math
 import os
 import subprocess
 import sys
@@ -52,6 +58,25 @@ def make_bearings(n, stamp_ns, rng):
             for i in range(n)]
 
 
+ECHO_NODE = """
+import sys, rclpy
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+rclpy.init(args=sys.argv)
+node = rclpy.create_node('fusion')
+n = len(node.declare_parameter('stations', ['s0']).value)
+pub = node.create_publisher(PoseWithCovarianceStamped, 'fix', 10)
+qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+for i in range(n):
+    node.create_subscription(PoseWithCovarianceStamped, f's{i}/bearing',
+                             pub.publish if i == n - 1 else (lambda m: None), qos)
+try:
+    rclpy.spin(node)
+except KeyboardInterrupt:
+    pass
+"""
+
+
 def cpu_seconds(pid):
     """utime + stime of a process, seconds (/proc/<pid>/stat fields 14 and 15)."""
     with open(f'/proc/{pid}/stat') as f:
@@ -77,7 +102,7 @@ def core_only(n, estimator, epochs=200):
     return float(np.median(ms)), float(np.percentile(ms, 99))
 
 
-def over_dds(n, seconds, estimator):
+def over_dds(n, seconds, estimator, baseline=False):
     import rclpy
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from rclpy.executors import SingleThreadedExecutor
@@ -88,10 +113,13 @@ def over_dds(n, seconds, estimator):
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
     stations = '[' + ','.join(f'"s{i}"' for i in range(n)) + ']'
     env = dict(os.environ, PYTHONUNBUFFERED='1')
-    proc = subprocess.Popen([sys.executable, '-m', 'bearing_loc_ros.fusion_node', '--ros-args',
-                             '-p', f'stations:={stations}', '-p', f'estimator:={estimator}',
-                             '-p', 'publish_markers:=false', '--log-level', 'warn'],
-                            env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+    if baseline:
+        cmd = [sys.executable, '-c', ECHO_NODE, '--ros-args', '-p', f'stations:={stations}']
+    else:
+        cmd = [sys.executable, '-m', 'bearing_loc_ros.fusion_node', '--ros-args',
+               '-p', f'stations:={stations}', '-p', f'estimator:={estimator}',
+               '-p', 'publish_markers:=false', '--log-level', 'warn']
+    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
                             start_new_session=True)
     ctx = rclpy.Context()
     rclpy.init(context=ctx, args=[])
@@ -157,18 +185,22 @@ def main():
     ap.add_argument('--seconds', type=float, default=10.0, help='measurement window per N')
     ap.add_argument('--estimator', default='mle')
     ap.add_argument('--stations', default='3,10,50')
+    ap.add_argument('--baseline', action='store_true',
+                    help='measure a trivial echo node instead of fusion_node (the floor)')
     args = ap.parse_args()
     os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
-    print(f'fusion latency, {RATE:g} Hz epochs, estimator {args.estimator}, event trigger, '
-          f'{os.cpu_count()} CPUs, ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]}')
+    what = ('BASELINE: trivial echo node (rclpy + DDS floor)' if args.baseline else
+            f'fusion_node, estimator {args.estimator}, event trigger')
+    print(f'latency at {RATE:g} Hz epochs: {what}; {os.cpu_count()} CPUs, '
+          f'ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]}')
     print('| stations | fixes/epochs | e2e median (ms) | e2e p99 (ms) | node CPU (% core) '
           '| core median (ms) | core p99 (ms) |')
     print('|---:|---:|---:|---:|---:|---:|---:|')
     for n in (int(s) for s in args.stations.split(',')):
-        c_med, c_p99 = core_only(n, args.estimator)
-        lat, sent, cpu = over_dds(n, args.seconds, args.estimator)
+        c_med, c_p99 = (math.nan, math.nan) if args.baseline else core_only(n, args.estimator)
+        lat, sent, cpu = over_dds(n, args.seconds, args.estimator, args.baseline)
         med = np.median(lat) if len(lat) else float('nan')
         p99 = np.percentile(lat, 99) if len(lat) else float('nan')
         print(f'| {n} | {len(lat)}/{sent} | {med:.2f} | {p99:.2f} | {100 * cpu:.1f} '
