@@ -37,7 +37,8 @@ from .core.fusion import (FusionConfig, LEVEL_ERROR, LEVEL_OK, LEVEL_WARN, MODES
                           error_ellipsoid, ray_endpoints)
 from .ros_common import (declare, declare_array, diagnostic_status, ERROR, main_for, OK,
                          ParameterError, WARN)
-from .ros_conversions import bearing_from_msg, ConversionError, fix_to_msg, ns_to_time
+from .ros_conversions import (bearing_from_msg, ConversionError, fix_to_msg, fix_to_navsat,
+                              ns_to_time)
 
 BEARING_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 #: A station id: one or more ROS name tokens separated by '/' (the topic namespace).
@@ -390,7 +391,6 @@ class FusionNode(Node):
                                             self.frame_id))
             self.fixes_published += 1
             if self.navsat_pub is not None:
-                from .ros_conversions import fix_to_navsat
                 try:
                     self.navsat_pub.publish(fix_to_navsat(ep.position, ep.covariance,
                                                           ep.stamp_ns, self.geodetic_origin,

@@ -1,6 +1,7 @@
 """FusionCore without ROS: per-epoch solve, outlier gate, no-fix reasons, marker maths,
 diagnostics, run-time estimator changes, determinism, and accuracy against the CRLB."""
 import math
+import os
 
 import numpy as np
 import pytest
@@ -330,7 +331,8 @@ def test_geometry_hook_version_changes_only_with_the_geometry():
 
 
 # ---------------------------------------------------------------- determinism and accuracy
-SCENARIO = load_scenario('config/scenarios/seed000.yaml')
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+SCENARIO = load_scenario(os.path.join(REPO, 'config', 'scenarios', 'seed000.yaml'))
 
 
 def _run(seed, estimator='mle', **cfg):

@@ -3,6 +3,7 @@ with spin_once; simulated time comes from a /clock publisher of the test node (u
 so station time-outs take no wall time. Each test uses its own namespace."""
 import itertools
 import math
+import os
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
@@ -25,7 +26,7 @@ from bearing_loc_ros.core.simulation import load_scenario, simulate
 from bearing_loc_ros.fusion_node import FusionNode
 from bearing_loc_ros.ros_conversions import (bearing_from_msg, bearing_to_msg, fix_from_msg,
                                              ns_to_time, time_to_ns)
-from ros_helpers import spin_until
+from ros_helpers import REPO, spin_until
 
 pytestmark = pytest.mark.ros
 
@@ -313,7 +314,7 @@ def test_time_going_backwards_clears_the_buffers(harness):
 
 def test_live_fixes_equal_the_offline_replay(harness):
     # The bag-process contract: the node's fixes are FusionCore's for the same arrivals.
-    sc = load_scenario('config/scenarios/seed000.yaml')
+    sc = load_scenario(os.path.join(REPO, 'config', 'scenarios', 'seed000.yaml'))
     sim = simulate(sc, duration=20.0, seed=1)
     h = harness(stations=[s.id for s in sc.stations])
     for e in sim.bearings:
