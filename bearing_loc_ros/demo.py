@@ -18,53 +18,15 @@ import argparse
 import math
 import os
 import signal
-import subprocess
 import sys
 import time
 
 import numpy as np
 
+from .processes import ChildProcess
+
 NS_PER_S = 1_000_000_000
 HERE = os.path.dirname(os.path.abspath(__file__))
-
-
-class Child:
-    """A node process in its own session; :meth:`stop` escalates SIGINT -> SIGTERM -> SIGKILL."""
-
-    def __init__(self, name, args, log_path, env):
-        self.name = name
-        self.log_path = log_path
-        self._log = open(log_path, 'w')
-        self.proc = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT,
-                                     stdin=subprocess.DEVNULL, env=env, start_new_session=True)
-
-    def running(self):
-        return self.proc.poll() is None
-
-    def stop(self, timeout=5.0):
-        """Stop and reap the child; return its exit code."""
-        for sig, wait in ((signal.SIGINT, timeout), (signal.SIGTERM, timeout),
-                          (signal.SIGKILL, timeout)):
-            if self.proc.poll() is not None:
-                break
-            try:
-                os.killpg(self.proc.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                self.proc.wait(timeout=wait)
-            except subprocess.TimeoutExpired:
-                continue
-        code = self.proc.wait()
-        self._log.close()
-        return code
-
-    def tail(self, n=15):
-        try:
-            with open(self.log_path, encoding='utf-8', errors='replace') as f:
-                return ''.join(f.readlines()[-n:])
-        except OSError:
-            return ''
 
 
 def scenario_path():
@@ -278,21 +240,23 @@ def run(args):
     stations = '[' + ','.join(f'"{s.id}"' for s in sc.stations) + ']'
     code = 1
     try:
-        fusion = Child('fusion', [py, '-m', 'bearing_loc_ros.fusion_node', '--ros-args',
-                                  '-p', f'stations:={stations}', '-p', 'use_sim_time:=true',
-                                  '-p', f'estimator:={args.estimator}'],
-                       os.path.join(args.out, 'fusion.log'), env)
+        fusion = ChildProcess([py, '-m', 'bearing_loc_ros.fusion_node', '--ros-args',
+                               '-p', f'stations:={stations}', '-p', 'use_sim_time:=true',
+                               '-p', f'estimator:={args.estimator}'],
+                              env=env, log_path=os.path.join(args.out, 'fusion.log'),
+                              name='fusion')
         children.append(fusion)
         if not spin(30.0, lambda: node.count_publishers('/fix') > 0 or not fusion.running()):
             raise RuntimeError('fusion_node did not come up')
         if not fusion.running():
             raise RuntimeError('fusion_node exited at start-up')
-        sim = Child('simulator', [py, '-m', 'bearing_loc_ros.simulator_node', '--ros-args',
-                                  '-p', f'scenario:={path}', '-p', f'seed:={args.seed}',
-                                  '-p', f'time_scale:={args.time_scale}',
-                                  '-p', f'duration:={args.duration}',
-                                  '-p', 'start_delay:=15.0'],
-                    os.path.join(args.out, 'simulator.log'), env)
+        sim = ChildProcess([py, '-m', 'bearing_loc_ros.simulator_node', '--ros-args',
+                            '-p', f'scenario:={path}', '-p', f'seed:={args.seed}',
+                            '-p', f'time_scale:={args.time_scale}',
+                            '-p', f'duration:={args.duration}',
+                            '-p', 'start_delay:=15.0'],
+                           env=env, log_path=os.path.join(args.out, 'simulator.log'),
+                           name='simulator')
         children.append(sim)
         budget = 15.0 + args.duration / args.time_scale + 30.0
         if not spin(budget, lambda: not sim.running()):

@@ -7,62 +7,19 @@
 * :func:`spin_until` spins an executor until a predicate holds or a timeout passes.
 """
 import os
-import signal
-import subprocess
 import sys
-import tempfile
 import time
+
+from bearing_loc_ros.processes import ChildProcess
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-class NodeProcess:
-    """A child process running a node; stop() reaps it and returns its exit code."""
+class NodeProcess(ChildProcess):
+    """A child process running a node, started in the repository root."""
 
     def __init__(self, args, env=None):
-        self.args = list(args)
-        self._log = tempfile.TemporaryFile(mode='w+')
-        self.proc = subprocess.Popen(self.args, stdout=self._log, stderr=subprocess.STDOUT,
-                                     stdin=subprocess.DEVNULL, env=env, cwd=REPO,
-                                     start_new_session=True)
-
-    def output(self):
-        """Everything the child printed so far (stdout and stderr), also after exit."""
-        if self._log.closed:
-            return self._final_output
-        self._log.flush()
-        self._log.seek(0)
-        return self._log.read()
-
-    def wait(self, timeout):
-        """Wait for the child to exit by itself; return its exit code (or None on timeout)."""
-        try:
-            return self.proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            return None
-
-    def stop(self, timeout=5.0):
-        """SIGINT, then SIGTERM, then SIGKILL; always reaps. Returns the exit code."""
-        for sig in (signal.SIGINT, signal.SIGINT, signal.SIGTERM, signal.SIGKILL):
-            if self.proc.poll() is not None:
-                break
-            try:
-                os.killpg(self.proc.pid, sig)
-            except ProcessLookupError:
-                break
-            try:
-                self.proc.wait(timeout=timeout / 2 if sig == signal.SIGINT else timeout)
-            except subprocess.TimeoutExpired:
-                continue
-        return self.proc.wait()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        self.stop()
-        self._final_output = self.output()
-        self._log.close()
+        super().__init__(args, env=env, cwd=REPO)
 
 
 def node_env(**extra):
