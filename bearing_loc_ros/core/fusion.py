@@ -42,6 +42,7 @@ from .alignment import (AlignmentConfig, DROP_REASONS, INTERPOLATED, NEAREST, St
 from .bearings import BearingSet
 from .conventions import azimuth_elevation, los_vector, wrap_angle
 from .crlb import angle_jacobians
+from .tma import SPEED_REFERENCES, STATUS_UNOBSERVABLE, TmaAccumulator
 
 NS_PER_S = 1_000_000_000
 
@@ -58,13 +59,29 @@ NOT_CONVERGED = 'not_converged'
 BAD_COVARIANCE = 'bad_covariance'
 INCONSISTENT_BEARINGS = 'inconsistent_bearings'
 ESTIMATOR_ERROR = 'estimator_error'
+UNOBSERVABLE = 'unobservable'
 NO_FIX_REASONS = (TOO_FEW_STATIONS, NO_ELEVATION, DEGENERATE_GEOMETRY, NOT_CONVERGED,
-                  BAD_COVARIANCE, INCONSISTENT_BEARINGS, ESTIMATOR_ERROR)
+                  BAD_COVARIANCE, INCONSISTENT_BEARINGS, ESTIMATOR_ERROR, UNOBSERVABLE)
 OK = 'ok'
 
 #: Rejection reasons of bearings given to the core that break the contract.
 INVALID_BEARING = 'invalid_bearing'
 WRONG_FRAME = 'wrong_frame'
+#: TMA mode: a bearing of a station other than the tracked one.
+NOT_TRACKED = 'not_tracked'
+
+#: Fusion modes (the node's ``mode`` parameter; ``auto`` follows the estimator).
+MODE_MULTISTATION = 'multistation'
+MODE_TMA = 'tma'
+#: Single-station TMA estimators of the fusion node -> core.tma method (seed 001).
+TMA_ESTIMATORS = {'tma_ple': 'ple', 'tma_ctls': 'ctls', 'tma_ctls6': 'ctls6',
+                  'tma_mle': 'mle'}
+
+
+def mode_for_estimator(name):
+    """The fusion mode an estimator belongs to: ``tma`` for TMA_ESTIMATORS, else
+    ``multistation``."""
+    return MODE_TMA if name in TMA_ESTIMATORS else MODE_MULTISTATION
 
 #: Station states.
 WAITING = 'waiting'
@@ -238,6 +255,11 @@ class FusionConfig:
         estimator_options: keyword options for it (only those its signature accepts are passed).
         outlier_gate: χ² gate probability in [0.5, 1]; 1 disables gating.
         time_jump_tolerance: "now" going back by more than this (s) clears the buffers.
+        target_speed: TMA speed prior v_c, m/s (seed 001; required > 0 for tma_* estimators,
+            0 = unset).
+        window: TMA window, s: bearings older than the newest minus this leave the sums.
+        speed_reference: TMA prior on 'relative' (|v_t − v_o|, seed 001) or 'ground' (|v_t|)
+            speed.
     """
 
     frame_id: str = 'map'
@@ -255,6 +277,9 @@ class FusionConfig:
     estimator_options: dict = field(default_factory=dict)
     outlier_gate: float = 0.999
     time_jump_tolerance: float = 0.1
+    target_speed: float = 0.0
+    window: float = 120.0
+    speed_reference: str = 'relative'
 
     def validate(self):
         """Raise ``ValueError`` naming the first invalid field; return self."""
@@ -279,7 +304,22 @@ class FusionConfig:
             raise ValueError(f'min_stations: must be >= 2, got {self.min_stations}')
         if not isinstance(self.estimator_options, dict):
             raise ValueError('estimator_options: must be a dict')
-        check_estimator(self.estimator, self.estimator_options)
+        _seconds('window', self.window, positive=True)
+        if self.speed_reference not in SPEED_REFERENCES:
+            raise ValueError(f'speed_reference: {self.speed_reference!r} is not one of '
+                             f'{list(SPEED_REFERENCES)}')
+        v = float(self.target_speed)
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f'target_speed: must be finite and >= 0 m/s, got {v}')
+        if self.estimator in TMA_ESTIMATORS:
+            if v <= 0.0:
+                raise ValueError(f'target_speed: must be > 0 m/s for the TMA estimator '
+                                 f'{self.estimator} (the speed prior of seed 001)')
+            it = self.estimator_options.get('max_iterations', 1)
+            if int(it) != it or it < 1:
+                raise ValueError(f'max_iterations: must be an integer >= 1, got {it}')
+        else:
+            check_estimator(self.estimator, self.estimator_options)
         g = float(self.outlier_gate)
         if not 0.5 <= g <= 1.0:
             raise ValueError(f'outlier_gate: probability must be in [0.5, 1], got {g}')
@@ -337,7 +377,7 @@ def check_estimator(name, options):
     """
     if name not in _estimators.ESTIMATORS:
         raise ValueError(f'estimator: unknown estimator {name!r}; choose one of '
-                         f'{sorted(_estimators.ESTIMATORS)}')
+                         f'{sorted(_estimators.ESTIMATORS) + sorted(TMA_ESTIMATORS)}')
     pos = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0], [0.0, 1000.0, 0.0]])
     az, el = azimuth_elevation(np.array([400.0, 500.0, 300.0]) - pos)
     bs = BearingSet.from_arrays(pos, az, el, 0.01, 0.01)
@@ -514,6 +554,8 @@ class Epoch:
         stale: stations left out because they are stale.
         residuals: station -> d² at the fix; chi2, dof: their sum and degrees of freedom.
         detail: human-readable detail of a no-fix reason.
+        velocity (3,), state_covariance (6, 6): TMA mode only (else None): target velocity,
+            m/s, and the covariance of (position, velocity), m², m²/s, m²/s².
     """
 
     stamp_ns: int
@@ -533,6 +575,8 @@ class Epoch:
     chi2: float = float('nan')
     dof: int = 0
     detail: str = ''
+    velocity: np.ndarray = None
+    state_covariance: np.ndarray = None
 
     @property
     def ok(self):
@@ -586,10 +630,11 @@ class FusionCore:
     pair for several epochs when epochs are denser than the bearings.
     """
 
-    mode = 'multistation'
+    mode = MODE_MULTISTATION
 
     def __init__(self, config=None, stations=()):
-        self._apply_config((config if config is not None else FusionConfig()).validate())
+        self._apply_config(self._check_mode(
+            (config if config is not None else FusionConfig()).validate()))
         self._buffers = {}
         self._stats = {}
         self._used_until = {}
@@ -623,7 +668,17 @@ class FusionCore:
 
     def check_config(self, **changes):
         """Validate ``changes`` to the configuration without applying them (ValueError)."""
-        return self.config.replace(**changes).validate()
+        return self._check_mode(self.config.replace(**changes).validate())
+
+    def _check_mode(self, config):
+        """The estimator must belong to this mode (mode_for_estimator); switching between a
+        TMA and a multi-station estimator needs a restart with the other mode."""
+        mode = mode_for_estimator(config.estimator)
+        if mode != self.mode:
+            raise ValueError(f'estimator: {config.estimator} is a {mode} estimator but the '
+                             f'fusion runs in mode {self.mode}; switching between tma_* and '
+                             'multi-station estimators needs a restart')
+        return config
 
     def reconfigure(self, **changes):
         """Apply validated ``changes`` (buffer bounds take effect at once; buffers are kept)."""
@@ -1030,9 +1085,228 @@ class DiagnosticEntry:
     hardware_id: str = ''
 
 
-#: Fusion modes of the node: name -> class with FusionCore's interface. A later mode (for
-#: example single-station TMA) registers itself here and the node's ``mode`` parameter picks it.
-MODES = {FusionCore.mode: FusionCore}
+# ---------------------------------------------------------------------------------------------
+# Single-station TMA mode (issue 5): one moving station, constant-velocity target, speed prior.
+
+class TmaFusionCore(FusionCore):
+    """Single moving station TMA (seed 001) with FusionCore's interface (mode ``tma``).
+
+    The bearings of one station (the first one that delivers an accepted bearing, the
+    "tracked" station; bearings of any other station are counted as ``bad.not_tracked``) go
+    through the same arrival checks as in the multi-station pipeline (invalid, wrong frame,
+    duplicate, out of order, too late: counted, never raised) and then, in O(1), into a
+    :class:`~bearing_loc_ros.core.tma.TmaAccumulator` (recursive P, Ω of seed 001 Table 1,
+    docs/readme/tma.md (T13)) bounded to the last ``window`` seconds. Each epoch solves the
+    configured TMA estimator (``tma_ple`` (T6)-(T8), ``tma_ctls`` (T9)-(T12), ``tma_ctls6``
+    (T12b), ``tma_mle``) with the speed prior |v| = ``target_speed`` (T5, ``speed_reference``
+    'relative' or 'ground') and returns an :class:`Epoch` whose position (3,) m and velocity
+    (3,) m/s are the target state at the newest bearing's stamp, ``covariance`` the (3, 3)
+    position block and ``state_covariance`` the (6, 6) (position, velocity) constrained CRLB
+    at the estimate (T15)-(T16), m², m²/s, m²/s².
+
+    Triggers: ``event``: one epoch per accepted bearing; ``timer``: at most one epoch per
+    tick, when bearings arrived since the last one (bounds the CPU of ``tma_mle``). No fix
+    (a counted reason, :data:`NO_FIX_REASONS`): ``unobservable`` (too few bearings, no
+    significant bearing change or a range the CRLB cannot resolve, (T18)),
+    ``no_elevation`` (3-D TMA needs the elevation of every bearing), ``degenerate_geometry``,
+    ``not_converged`` (tma_mle), ``bad_covariance``, ``estimator_error``. Time going back by
+    more than ``time_jump_tolerance`` clears the buffers and the accumulator.
+    """
+
+    mode = MODE_TMA
+
+    def __init__(self, config=None, stations=()):
+        self._acc = None
+        self._tracked = None
+        self._pending = None      # newest accepted bearing not yet estimated
+        self._newest = None       # newest bearing in the accumulator
+        super().__init__(config, stations)
+
+    def _apply_config(self, config):
+        super()._apply_config(config)
+        old = self._acc
+        if (old is None or old.window != float(config.window)
+                or old.speed_reference != config.speed_reference):
+            self._acc = TmaAccumulator(float(config.target_speed) or 1.0,
+                                       window=float(config.window),
+                                       speed_reference=config.speed_reference)
+            if old is not None:
+                for e in old._entries:       # keep the window across a reconfiguration
+                    self._acc.add(*e[:6])
+
+    @property
+    def tracked_station(self):
+        """The station whose bearings feed the TMA (None until the first bearing)."""
+        return self._tracked
+
+    @property
+    def window_bearings(self):
+        """Number of bearings in the TMA window."""
+        return len(self._acc)
+
+    def remove_station(self, station):
+        """Forget ``station``; removing the tracked station clears the TMA window."""
+        super().remove_station(station)
+        if station == self._tracked:
+            self._tracked = None
+            self._clear_tma()
+
+    def _clear_tma(self):
+        self._acc.reset()
+        self._pending = None
+        self._newest = None
+
+    def _reset_time(self, now, last):
+        super()._reset_time(now, last)
+        self._clear_tma()
+
+    def _event_epochs(self, now):
+        return []           # TMA epochs come from add_bearing / tick
+
+    def add_bearing(self, bearing, now_ns):
+        """Ingest one bearing (see the class docstring); return new Epochs."""
+        now = int(now_ns)
+        station = bearing.station
+        if self._tracked is not None and station != self._tracked:
+            st = self.add_station(station)
+            st.received += 1
+            if not st.bad[NOT_TRACKED]:
+                self._events.append(('warn', f'tma mode tracks station {self._tracked}: '
+                                             f'bearings of {station} are ignored'))
+            st.bad[NOT_TRACKED] += 1
+            self.bad_messages += 1
+            self._advance(now, station)
+            return []
+        before = self._stats[station].accepted if station in self._stats else 0
+        super().add_bearing(bearing, now)
+        st = self._stats[station]
+        if st.accepted == before:
+            return []
+        if self._tracked is None:
+            self._tracked = station
+            self._events.append(('info', f'tma: tracking station {station}'))
+        if math.isnan(bearing.elevation):
+            return [self._record(Epoch(stamp_ns=int(bearing.stamp_ns), produced_ns=now,
+                                       reason=NO_ELEVATION, estimator=self.config.estimator,
+                                       bearings=[bearing],
+                                       detail='3-D TMA needs azimuth and elevation'), now)]
+        try:
+            self._acc.add(bearing.stamp_ns / NS_PER_S, bearing.position, bearing.azimuth,
+                          bearing.elevation, bearing.sigma_azimuth, bearing.sigma_elevation)
+        except ValueError as exc:      # the arrival checks make this unreachable
+            return [self._record(Epoch(stamp_ns=int(bearing.stamp_ns), produced_ns=now,
+                                       reason=ESTIMATOR_ERROR, estimator=self.config.estimator,
+                                       bearings=[bearing], detail=str(exc)), now)]
+        self._newest = bearing
+        self._pending = bearing
+        if self.config.trigger == TRIGGER_EVENT:
+            return [self._tma_epoch(now)]
+        return []
+
+    def tick(self, now_ns):
+        """Clock tick: prune, update states; timer trigger: estimate if bearings arrived."""
+        now = int(now_ns)
+        self._advance(now)
+        if self.config.trigger == TRIGGER_TIMER and self._pending is not None:
+            return [self._tma_epoch(now)]
+        return []
+
+    def _tma_epoch(self, now):
+        cfg = self.config
+        b = self._newest
+        self._pending = None
+        method = TMA_ESTIMATORS[cfg.estimator]
+        opts = {}
+        if method == 'mle' and 'max_iterations' in cfg.estimator_options:
+            opts['max_iterations'] = int(cfg.estimator_options['max_iterations'])
+        ep = Epoch(stamp_ns=int(b.stamp_ns), produced_ns=int(now), reason=ESTIMATOR_ERROR,
+                   estimator=cfg.estimator, bearings=[b], how={b.station: NEAREST})
+        try:
+            res = self._acc.estimate(method, speed=float(cfg.target_speed), **opts)
+        except Exception as exc:  # noqa: B902 - any estimator failure is a counted no-fix
+            ep.detail = f'{type(exc).__name__}: {exc}'
+            return self._record(ep, now)
+        status = str(res.status[0])
+        ep.status, ep.iterations = status, int(res.iterations[0])
+        ep.detail = str(res.reason[0])
+        pos = np.asarray(res.position[0], dtype=float)
+        vel = np.asarray(res.velocity[0], dtype=float)
+        C = np.asarray(res.covariance[0], dtype=float)
+        if status == STATUS_UNOBSERVABLE:
+            ep.reason = UNOBSERVABLE
+        elif status == _estimators.STATUS_DEGENERATE:
+            ep.reason = DEGENERATE_GEOMETRY
+        elif status != _estimators.STATUS_OK or not bool(res.converged[0]):
+            ep.reason = NOT_CONVERGED
+        elif not (np.all(np.isfinite(pos)) and np.all(np.isfinite(vel))):
+            ep.reason, ep.detail = DEGENERATE_GEOMETRY, 'non-finite state'
+        elif not (np.all(np.isfinite(C)) and _covariance_ok(C)):
+            ep.reason = BAD_COVARIANCE
+        else:
+            C = 0.5 * (C + C.T)
+            ep.reason = OK
+            ep.position, ep.covariance = pos, C[:3, :3].copy()
+            ep.velocity, ep.state_covariance = vel, C
+        return self._record(ep, now)
+
+    def _record(self, ep, now):
+        """Counters of an epoch (the same bookkeeping as FusionCore's epochs)."""
+        self._last_epoch_ns = ep.stamp_ns
+        self.epochs += 1
+        if ep.ok:
+            self.fixes += 1
+            self.iterations += ep.iterations
+            self.last_fix_stamp_ns = ep.stamp_ns
+            self._fix_times.append(int(now))
+            while self._fix_times and self._fix_times[0] <= now - RATE_WINDOW_NS:
+                self._fix_times.popleft()
+            self._stats[ep.bearings[0].station].used += 1
+        else:
+            self.no_fix[ep.reason] += 1
+        self.last_epoch = ep
+        return ep
+
+    def geometry(self):
+        """Planning hook: empty in TMA mode (one station has no static coverage map)."""
+        return {}
+
+    def diagnostics(self, now_ns):
+        """FusionCore's diagnostics plus ``tracked_station``, ``window_bearings``,
+        ``target_speed``, ``speed_reference``; the level follows the tracked station."""
+        out = super().diagnostics(now_ns)
+        d = out[0]
+        d.values.update(tracked_station=self._tracked or 'none',
+                        window_bearings=len(self._acc),
+                        target_speed=f'{float(self.config.target_speed):.3f}',
+                        speed_reference=self.config.speed_reference)
+        if not d.values['live_stations']:
+            d.level, d.message = LEVEL_ERROR, 'no live station'
+        elif self.last_epoch is not None and not self.last_epoch.ok:
+            d.level, d.message = LEVEL_WARN, f'no fix: {self.last_epoch.reason}'
+        else:
+            d.level = LEVEL_OK
+            d.message = 'tracking' if self.fixes else 'waiting for an epoch'
+        return out
+
+
+#: Fusion modes of the node: name -> class with FusionCore's interface; the node's ``mode``
+#: parameter picks one (``auto``: :func:`mode_for_estimator`).
+MODES = {FusionCore.mode: FusionCore, TmaFusionCore.mode: TmaFusionCore}
+
+
+def make_core(config, stations=(), mode='auto'):
+    """The fusion core of ``mode`` (``auto``: the estimator's mode) for ``config``.
+
+    The one place that maps configuration to a core class, for the node, ``bag process`` and
+    the benchmarks. ValueError naming the field for an unknown mode or an estimator of
+    another mode.
+    """
+    config = config if config is not None else FusionConfig()
+    if mode == 'auto':
+        mode = mode_for_estimator(config.estimator)
+    if mode not in MODES:
+        raise ValueError(f'mode: {mode!r} is not one of {["auto"] + sorted(MODES)}')
+    return MODES[mode](config, stations=stations)
 
 
 def replay(core, items):
