@@ -1,11 +1,15 @@
 """Conventions of DESIGN.md: wrapping, compass, line of sight, quaternions, validation."""
+import math
+
 import numpy as np
 import pytest
 
 from bearing_loc_ros.core.bearings import Bearing, BearingSet, simulate_bearings
-from bearing_loc_ros.core.conventions import (azel_from_quaternion, azimuth_elevation,
+from bearing_loc_ros.core.conventions import (azel_from_quaternion,
+                                              azel_from_quaternion_scalar, azimuth_elevation,
                                               compass_to_enu, enu_to_compass, los_vector,
-                                              quaternion_from_azel, wrap_angle)
+                                              quaternion_from_azel, quaternion_from_azel_scalar,
+                                              wrap_angle, wrap_angle_scalar)
 from bearing_loc_ros.core.crlb import crlb, fisher_information, gdop
 
 
@@ -43,6 +47,79 @@ def test_quaternion_round_trip_and_rotates_x_onto_los():
     assert np.allclose(wrap_angle(az2 - az), 0, atol=1e-12)
     assert np.allclose(el2, el, atol=1e-12)
     assert np.allclose(roll, 0, atol=1e-12)
+
+
+HALF_PI = math.pi / 2.0
+EDGE_ANGLES = [0.0, -0.0, math.pi, -math.pi, math.nextafter(-math.pi, 0.0),
+               math.nextafter(math.pi, 4.0), 2 * math.pi, -3 * math.pi, 1e17, -1e300,
+               math.nextafter(HALF_PI, 0.0), -math.nextafter(HALF_PI, 0.0), 5e-324]
+
+
+def _bits(values):
+    return np.asarray(values, dtype=float).view(np.int64)
+
+
+def _ulps(a, b):
+    """|a − b| in units in the last place of the larger magnitude (0 when equal, NaN = NaN)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    both_nan = np.isnan(a) & np.isnan(b)
+    scale = np.spacing(np.maximum(np.abs(a), np.abs(b)))
+    return np.where(both_nan, 0.0, np.abs(a - b) / scale)
+
+
+def test_wrap_angle_scalar_is_bit_identical():
+    """Same formula and folds: identical bits, including the sign of zero and ±π edges."""
+    rng = np.random.default_rng(10)
+    a = np.concatenate([rng.uniform(-50.0, 50.0, 20000), EDGE_ANGLES])
+    scalar = [wrap_angle_scalar(v) for v in a.tolist()]
+    assert np.array_equal(_bits(scalar), _bits(wrap_angle(a)))
+    assert all(-math.pi < v <= math.pi for v in scalar)
+    assert wrap_angle_scalar(-0.0) == 0.0 and math.copysign(1.0, wrap_angle_scalar(-0.0)) > 0
+    for bad in (math.nan, math.inf, -math.inf):
+        with np.errstate(invalid='ignore'):
+            assert math.isnan(wrap_angle_scalar(bad)) and math.isnan(wrap_angle(bad))
+
+
+def test_quaternion_from_azel_scalar_is_bit_identical():
+    """Same expressions in the same order, and math.sin/cos == np.sin/cos on this input."""
+    rng = np.random.default_rng(11)
+    az = np.concatenate([rng.uniform(-4.0, 4.0, 20000), EDGE_ANGLES])
+    el = np.concatenate([rng.uniform(-HALF_PI, HALF_PI, 20000), EDGE_ANGLES])
+    scalar = [quaternion_from_azel_scalar(a, e) for a, e in zip(az.tolist(), el.tolist())]
+    assert np.array_equal(_bits(scalar), _bits(quaternion_from_azel(az, el)))
+    # NaN elevation counts as 0 and ±inf as ±max float (np.nan_to_num), inf azimuth -> NaN.
+    for a, e in [(0.3, math.nan), (0.3, math.inf), (0.3, -math.inf), (math.inf, 0.1),
+                 (math.nan, 0.1)]:
+        with np.errstate(invalid='ignore'):
+            vec = quaternion_from_azel(a, e)
+        assert np.array_equal(quaternion_from_azel_scalar(a, e), vec, equal_nan=True)
+    assert quaternion_from_azel_scalar(0.3) == quaternion_from_azel_scalar(0.3, math.nan)
+
+
+def test_azel_from_quaternion_scalar_agrees_to_one_ulp():
+    """Same maths; numpy evaluates arctan2/arcsin/hypot with its own SIMD routines where the
+    CPU has them, which round differently from the C library on some inputs (both are
+    accurate to within 1 ulp of the true value), so the bound is 1 ulp and exactly equal
+    elsewhere. Inputs: bearings (roll 0) up to within rounding of the vertical, and random
+    (rolled, non-unit) quaternions."""
+    rng = np.random.default_rng(12)
+    n = 20000
+    el = rng.uniform(-HALF_PI, HALF_PI, n)
+    el[::5] = np.sign(el[::5]) * (HALF_PI - 10.0 ** rng.uniform(-16, -3, el[::5].size))
+    q_bearings = quaternion_from_azel(rng.uniform(-math.pi, math.pi, n), el)
+    q_random = rng.normal(size=(n, 4)) * rng.uniform(0.5, 2.0, (n, 1))
+    for q in (q_bearings, q_random):
+        vec = np.stack(azel_from_quaternion(q), axis=-1)
+        scalar = np.array([azel_from_quaternion_scalar(*row) for row in q.tolist()])
+        assert np.all(_ulps(scalar, vec) <= 1.0)
+        # Azimuths stay in [−π, π], elevations in [−π/2, π/2], as atan2 guarantees.
+        assert np.all(np.abs(scalar[:, 0]) <= math.pi)
+        assert np.all(np.abs(scalar[:, 1]) <= HALF_PI)
+    # Degenerate inputs behave like the vectorised version: NaN, not an exception.
+    for q in ([0.0, 0.0, 0.0, 0.0], [math.nan, 0.0, 0.0, 1.0], [math.inf, 0.0, 0.0, 1.0]):
+        with np.errstate(invalid='ignore', divide='ignore'):
+            vec = np.array(azel_from_quaternion(np.array(q)))
+        assert np.array_equal(np.isnan(azel_from_quaternion_scalar(*q)), np.isnan(vec))
 
 
 def test_bearing_set_validation_names_the_field():
