@@ -11,13 +11,17 @@ Topics (relative, so namespaces and remapping work):
   ``stations`` parameter, plus topics found by discovery), reliable, keep-last ``qos_depth``;
 * out: ``fix`` (PoseWithCovarianceStamped), ``fix/navsat`` (sensor_msgs/NavSatFix, only with a
   ``geodetic_origin``), ``markers`` (visualization_msgs/MarkerArray), ``/diagnostics``
-  (diagnostic_msgs/DiagnosticArray).
+  (diagnostic_msgs/DiagnosticArray); TMA mode: ``track`` (nav_msgs/Odometry, position and
+  velocity of the target, :func:`track_to_msg`); multi-station mode: ``accuracy_map``
+  (nav_msgs/OccupancyGrid, transient local, the expected error of the live station set from
+  core.planning.occupancy_error_map, recomputed only when that set changes).
 
 Parameters, QoS, diagnostics keys and examples: docs/readme/fusion.md.
 """
 
 from functools import partial
 import re
+import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import Point, PoseWithCovarianceStamped
@@ -27,14 +31,17 @@ from rclpy.clock import Clock, ClockType, JumpThreshold
 from rclpy.duration import Duration
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
+from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import NavSatFix
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from .core import estimators
-from .core.fusion import (FusionConfig, LEVEL_ERROR, LEVEL_OK, LEVEL_WARN, MODES,
-                          error_ellipsoid, ray_endpoints)
+from .core.fusion import (error_ellipsoid, FusionConfig, LEVEL_ERROR, LEVEL_OK, LEVEL_WARN,
+                          make_core, MODE_MULTISTATION, MODE_TMA, MODES,
+                          ray_endpoints, TMA_ESTIMATORS)
+from .core.planning import GridSpec, MODELS, occupancy_error_map, SCALES, Stations
 from .ros_common import (declare, declare_array, diagnostic_status, ERROR, main_for, OK,
                          ParameterError, WARN)
 from .ros_conversions import (bearing_from_msg, ConversionError, fix_to_msg, fix_to_navsat,
@@ -45,10 +52,48 @@ BEARING_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 STATION_RE = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$')
 #: Parameters that may change at run time (everything else is read-only), and the core
 #: configuration field each one maps to. Estimator options go to FusionConfig.estimator_options.
-RUNTIME_CONFIG = ('estimator', 'min_stations', 'outlier_gate')
+RUNTIME_CONFIG = ('estimator', 'min_stations', 'outlier_gate', 'target_speed')
 ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay')
 RUNTIME_DISPLAY = ('marker_ray_length', 'ellipsoid_sigma')
 LEVELS = {LEVEL_OK: OK, LEVEL_WARN: WARN, LEVEL_ERROR: ERROR}
+#: Rotational (co)variance of the unknown orientation and angular velocity in ``track``, rad².
+UNKNOWN_ROTATION_VARIANCE = 1e6
+#: Accuracy map: automatic size = this × the largest horizontal station distance from the
+#: centre, at least AUTO_MIN_SIZE m; automatic resolution = size / AUTO_CELLS.
+AUTO_SIZE_FACTOR = 3.0
+AUTO_MIN_SIZE = 100.0
+AUTO_CELLS = 100
+MAX_MAP_CELLS = 2000
+
+
+def track_to_msg(position, velocity, state_covariance, stamp_ns, frame_id):
+    """TMA target state -> nav_msgs/Odometry (the ``track`` topic).
+
+    header.frame_id = child_frame_id = ``frame_id`` (the world frame): the velocity is
+    expressed in the world frame, and nav_msgs/Odometry defines the twist in
+    child_frame_id, so both name the world frame. pose.pose.position = position (3,) m,
+    orientation identity; pose.covariance[0..2, 0..2] = state_covariance[:3, :3] (m²);
+    twist.twist.linear = velocity (3,) m/s, twist.covariance[0..2, 0..2] =
+    state_covariance[3:, 3:] (m²/s²); the rotational blocks (orientation, angular velocity:
+    not estimated) get variance UNKNOWN_ROTATION_VARIANCE. The position-velocity
+    cross-covariance (state_covariance[:3, 3:], m²/s) has no field in Odometry and is
+    dropped. Belongs in ros_conversions (kept here while that module is being edited).
+    """
+    C = np.asarray(state_covariance, dtype=float)
+    msg = Odometry()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.child_frame_id = frame_id
+    p, v = msg.pose.pose.position, msg.twist.twist.linear
+    p.x, p.y, p.z = (float(x) for x in position)
+    v.x, v.y, v.z = (float(x) for x in velocity)
+    msg.pose.pose.orientation.w = 1.0
+    for block, target in ((C[:3, :3], msg.pose), (C[3:, 3:], msg.twist)):
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = block
+        cov[3, 3] = cov[4, 4] = cov[5, 5] = UNKNOWN_ROTATION_VARIANCE
+        target.covariance = cov.ravel().tolist()
+    return msg
 
 
 def _parameter_error(exc):
@@ -76,8 +121,9 @@ class FusionNode(Node):
                 raise ParameterError('geodetic_origin', str(exc).partition(': ')[2]) from None
         for s in self.stations_param:
             self._check_station_name(s)
-        if p['mode'] not in MODES:
-            raise ParameterError('mode', f'{p["mode"]!r} is not one of {sorted(MODES)}')
+        if p['mode'] != 'auto' and p['mode'] not in MODES:
+            raise ParameterError('mode', f'{p["mode"]!r} is not one of '
+                                 f'{["auto"] + sorted(MODES)}')
         self.config = FusionConfig(
             frame_id=self.frame_id, trigger=p['trigger'], rate=p['rate'],
             max_latency=p['max_latency'], sync_tolerance=p['sync_tolerance'],
@@ -86,11 +132,14 @@ class FusionNode(Node):
             buffer_age=p['buffer_age'], min_stations=p['min_stations'],
             estimator=p['estimator'],
             estimator_options={k: p[k] for k in ESTIMATOR_OPTIONS},
-            outlier_gate=p['outlier_gate'], time_jump_tolerance=p['time_jump_tolerance'])
+            outlier_gate=p['outlier_gate'], time_jump_tolerance=p['time_jump_tolerance'],
+            target_speed=p['target_speed'], window=p['window'],
+            speed_reference=p['speed_reference'])
         try:
-            self.core = MODES[p['mode']](self.config, stations=self.stations_param)
+            self.core = make_core(self.config, self.stations_param, p['mode'])
         except ValueError as exc:
             raise _parameter_error(exc) from None
+        self.mode = self.core.mode
         self.ray_length = p['marker_ray_length']
         self.ellipsoid_sigma = p['ellipsoid_sigma']
         self.publish_markers = p['publish_markers']
@@ -113,12 +162,26 @@ class FusionNode(Node):
         self.marker_pub = (self.create_publisher(MarkerArray, 'markers', 10)
                            if self.publish_markers else None)
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self.track_pub = (self.create_publisher(Odometry, 'track', 10)
+                          if self.mode == MODE_TMA else None)
 
         #: Planning hook: callables f(node, geometry, now_ns) run when the live station
         #: geometry changes (core.geometry(): station -> (position, σ_θ, σ_ψ)); a later task
         #: registers an accuracy-map publisher (core.planning) here.
         self.geometry_hooks = []
         self._geometry_seen = None
+        self.map_config = p['accuracy_map']
+        self.map_pub = None
+        self.accuracy_maps = 0          # maps published
+        self.accuracy_map_ms = None     # wall time of the last map computation
+        self.accuracy_map_last = None   # (grid, OccupancyErrorMap or None) last published
+        self._map_key = None            # (station names, positions) of the last map
+        if self.map_config['enabled'] and self.mode == MODE_MULTISTATION:
+            latched = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1,
+                                 reliability=ReliabilityPolicy.RELIABLE,
+                                 durability=DurabilityPolicy.TRANSIENT_LOCAL)
+            self.map_pub = self.create_publisher(OccupancyGrid, 'accuracy_map', latched)
+            self.geometry_hooks.append(FusionNode.publish_accuracy_map)
 
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._tick_timer = self.create_timer(self.core.tick_period_ns / 1e9, self._on_tick)
@@ -136,7 +199,7 @@ class FusionNode(Node):
         self.fixes_published = 0
         self._log_events()
         self.get_logger().info(
-            f'fusion ({p["mode"]}): estimator {self.config.estimator}, trigger '
+            f'fusion ({self.mode}): estimator {self.config.estimator}, trigger '
             f'{self.config.trigger}, {"interpolated" if self.config.interpolation else "nearest"}'
             f' alignment, stations {self.stations_param or "none"}'
             f'{" + discovery" if self.discover else ""}, frame {self.frame_id}')
@@ -145,8 +208,9 @@ class FusionNode(Node):
     def _declare_parameters(self):
         ro = dict(read_only=True)
         p = {}
-        p['mode'] = declare(self, 'mode', 'multistation', 'Fusion mode: ' + ', '.join(
-            sorted(MODES)), **ro)
+        p['mode'] = declare(self, 'mode', 'auto', 'Fusion mode: auto (tma for tma_* '
+                            'estimators, else multistation), ' + ', '.join(sorted(MODES)),
+                            **ro)
         p['frame_id'] = declare(self, 'frame_id', 'map', 'World frame; bearings in another '
                                 'frame are rejected (counted as bad.wrong_frame)', **ro)
         p['stations'] = declare_array(self, 'stations', [], 'Station ids; subscribes to '
@@ -193,7 +257,17 @@ class FusionNode(Node):
                                            'going back more than this clears the buffers, s',
                                            min_value=0.0, max_value=3600.0, **ro)
         p['estimator'] = declare(self, 'estimator', estimators.DEFAULT_ESTIMATOR,
-                                 'Estimator: ' + ', '.join(sorted(estimators.ESTIMATORS)))
+                                 'Estimator: ' + ', '.join(sorted(estimators.ESTIMATORS))
+                                 + '; single moving station (TMA): '
+                                 + ', '.join(sorted(TMA_ESTIMATORS)))
+        p['target_speed'] = declare(self, 'target_speed', 0.0, 'TMA speed prior v_c, m/s '
+                                    '(required > 0 for tma_* estimators; seed 001)',
+                                    min_value=0.0, max_value=1e6)
+        p['window'] = declare(self, 'window', 120.0, 'TMA: bearings of the last window '
+                              'seconds are used', min_value=1e-3, max_value=1e6, **ro)
+        p['speed_reference'] = declare(self, 'speed_reference', 'relative', 'TMA: the speed '
+                                       'prior is on the relative (target - station, seed '
+                                       '001) or ground (target) velocity', **ro)
         p['min_stations'] = declare(self, 'min_stations', 2, 'Fewest stations in a fix',
                                     min_value=2, max_value=10000)
         p['outlier_gate'] = declare(self, 'outlier_gate', 0.999, 'chi-square gate '
@@ -222,7 +296,55 @@ class FusionNode(Node):
         p['diagnostics_period'] = declare(self, 'diagnostics_period', 1.0, 'Wall seconds '
                                           'between /diagnostics messages', min_value=0.01,
                                           max_value=3600.0, **ro)
+        p['accuracy_map'] = self._declare_map_parameters()
         return p
+
+    def _declare_map_parameters(self):
+        ro = dict(read_only=True)
+        m = {}
+        m['enabled'] = declare(self, 'accuracy_map.enabled', True, 'Publish the expected-'
+                               'accuracy OccupancyGrid on accuracy_map (multistation mode)',
+                               **ro)
+        m['size'] = declare(self, 'accuracy_map.size', 0.0, 'Side of the square map, m; 0 = '
+                            f'{AUTO_SIZE_FACTOR:g} x the largest horizontal station distance '
+                            f'from the centre (at least {AUTO_MIN_SIZE:g} m)', min_value=0.0,
+                            max_value=1e8, **ro)
+        m['resolution'] = declare(self, 'accuracy_map.resolution', 0.0, 'Cell size, m; 0 = '
+                                  f'size / {AUTO_CELLS}', min_value=0.0, max_value=1e7, **ro)
+        m['altitude'] = declare(self, 'accuracy_map.altitude', 0.0, 'Target altitude of the '
+                                'map (world z), m', min_value=-1e6, max_value=1e6, **ro)
+        m['center'] = declare_array(self, 'accuracy_map.center', [], '[x, y] centre of the '
+                                    'map, m; [] = centroid of the live stations', kind=float,
+                                    read_only=True)
+        m['model'] = declare(self, 'accuracy_map.model', 'crlb', 'Error model: '
+                             + ', '.join(MODELS), **ro)
+        m['scale'] = declare(self, 'accuracy_map.scale', 'linear', 'Cell value scale: '
+                             + ', '.join(SCALES), **ro)
+        m['min_error'] = declare(self, 'accuracy_map.min_error', 0.0, 'Error mapped to cell '
+                                 'value 0, m', min_value=0.0, max_value=1e9, **ro)
+        m['max_error'] = declare(self, 'accuracy_map.max_error', 100.0, 'Error mapped to cell '
+                                 'value 100 (and above), m', min_value=1e-9, max_value=1e9,
+                                 **ro)
+        m['move_threshold'] = declare(self, 'accuracy_map.move_threshold', 0.0, 'Recompute '
+                                      'when a station moved more than this, m; 0 = one cell',
+                                      min_value=0.0, max_value=1e9, **ro)
+        if m['model'] not in MODELS:
+            raise ParameterError('accuracy_map.model', f'{m["model"]!r} is not one of '
+                                 f'{list(MODELS)}')
+        if m['scale'] not in SCALES:
+            raise ParameterError('accuracy_map.scale', f'{m["scale"]!r} is not one of '
+                                 f'{list(SCALES)}')
+        if not m['max_error'] > m['min_error']:
+            raise ParameterError('accuracy_map.max_error', 'must exceed accuracy_map.min_error')
+        if m['scale'] == 'log' and m['min_error'] <= 0.0:
+            raise ParameterError('accuracy_map.min_error', 'must be > 0 m for the log scale')
+        if m['center'] and len(m['center']) != 2:
+            raise ParameterError('accuracy_map.center', 'expected [] or [x, y]')
+        if m['size'] > 0.0 and m['resolution'] > 0.0 and \
+                m['size'] / m['resolution'] > MAX_MAP_CELLS:
+            raise ParameterError('accuracy_map.resolution', f'size / resolution exceeds '
+                                 f'{MAX_MAP_CELLS} cells per side')
+        return m
 
     @staticmethod
     def _check_station_name(name):
@@ -390,6 +512,10 @@ class FusionNode(Node):
             self.fix_pub.publish(fix_to_msg(ep.position, ep.covariance, ep.stamp_ns,
                                             self.frame_id))
             self.fixes_published += 1
+            if self.track_pub is not None and ep.velocity is not None:
+                self.track_pub.publish(track_to_msg(ep.position, ep.velocity,
+                                                    ep.state_covariance, ep.stamp_ns,
+                                                    self.frame_id))
             if self.navsat_pub is not None:
                 try:
                     self.navsat_pub.publish(fix_to_navsat(ep.position, ep.covariance,
@@ -452,6 +578,95 @@ class FusionNode(Node):
         pos = np.array([b.position for b in ep.bearings] + [ep.position])
         return float(max(1.0, np.max(np.ptp(pos, axis=0))))
 
+    # ------------------------------------------------------------------ accuracy map
+    def map_grid(self, positions):
+        """GridSpec of the accuracy map for live station positions (N, 3), m.
+
+        Centre: ``accuracy_map.center`` or the stations' horizontal centroid; side
+        ``accuracy_map.size`` or AUTO_SIZE_FACTOR x the largest horizontal distance of a
+        station from the centre (>= AUTO_MIN_SIZE); cells of ``accuracy_map.resolution``
+        (or side / AUTO_CELLS), at ``accuracy_map.altitude``.
+        """
+        m = self.map_config
+        pos = np.asarray(positions, dtype=float).reshape(-1, 3)
+        c = np.asarray(m['center'], dtype=float) if m['center'] else pos[:, :2].mean(axis=0)
+        size = m['size']
+        if size <= 0.0:
+            reach = float(np.max(np.hypot(*(pos[:, :2] - c).T))) if len(pos) else 0.0
+            size = max(AUTO_MIN_SIZE, AUTO_SIZE_FACTOR * reach)
+        res = m['resolution'] if m['resolution'] > 0.0 else size / AUTO_CELLS
+        n = max(1, min(MAX_MAP_CELLS, int(round(size / res))))
+        half = 0.5 * n * res
+        return GridSpec(float(c[0] - half), float(c[1] - half), float(res), n, n,
+                        float(m['altitude']))
+
+    def _map_changed(self, names, positions):
+        if self._map_key is None:
+            return True
+        old_names, old_pos = self._map_key
+        if names != old_names:
+            return True
+        if not names:
+            return False
+        thr = self.map_config['move_threshold']
+        if thr <= 0.0 and self.accuracy_map_last is not None:
+            thr = self.accuracy_map_last[0].resolution
+        return bool(np.max(np.linalg.norm(positions - old_pos, axis=1)) > thr)
+
+    def publish_accuracy_map(self, geometry, now_ns):
+        """Geometry hook: publish the expected-accuracy OccupancyGrid of the live stations.
+
+        Runs from the housekeeping tick only when core.geometry_version changed, and
+        recomputes only when the set of live stations changed or one of them moved more
+        than ``accuracy_map.move_threshold``: never per bearing. ε = sqrt(trace P) per cell
+        (core.planning.occupancy_error_map, model ``accuracy_map.model``, σ from each
+        station's newest bearing), cell value = error_to_occupancy(ε, min_error, max_error,
+        scale) (docs/readme/fusion.md). No live station: every cell −1 (unknown) on the last
+        grid.
+        """
+        names = sorted(geometry)
+        positions = np.array([geometry[s][0] for s in names]).reshape(-1, 3)
+        if not self._map_changed(names, positions):
+            return
+        m = self.map_config
+        t0 = time.perf_counter()
+        if names:
+            sel = np.array([geometry[s][2] for s in names], dtype=float)
+            try:
+                stations = Stations.from_arrays(
+                    positions, [geometry[s][1] for s in names], sel,
+                    has_elevation=np.isfinite(sel), names=names)
+                grid = self.map_grid(positions)
+                om = occupancy_error_map(stations, grid, m['model'], m['scale'],
+                                         m['min_error'], m['max_error'])
+            except ValueError as exc:
+                self.get_logger().warning(f'accuracy_map: {exc}', throttle_duration_sec=10.0)
+                return
+            data = om.data
+        elif self.accuracy_map_last is not None:
+            grid, om = self.accuracy_map_last[0], None
+            data = np.full(grid.width * grid.height, -1, dtype=np.int8)
+        else:
+            return
+        self._map_key = (names, positions)
+        msg = OccupancyGrid()
+        msg.header.stamp = ns_to_time(now_ns)
+        msg.header.frame_id = self.frame_id
+        msg.info.map_load_time = msg.header.stamp
+        msg.info.resolution = float(grid.resolution)
+        msg.info.width, msg.info.height = grid.width, grid.height
+        o = msg.info.origin
+        o.position.x, o.position.y, o.position.z = grid.origin_x, grid.origin_y, grid.altitude
+        o.orientation.w = 1.0
+        msg.data = data.tolist()
+        self.map_pub.publish(msg)
+        self.accuracy_maps += 1
+        self.accuracy_map_last = (grid, om)
+        self.accuracy_map_ms = 1e3 * (time.perf_counter() - t0)
+        self.get_logger().info(
+            f'accuracy_map: {len(names)} live station(s), {grid.width}x{grid.height} cells of '
+            f'{grid.resolution:g} m, {self.accuracy_map_ms:.1f} ms')
+
     # ------------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self):
         now = self.now_ns()
@@ -464,6 +679,12 @@ class FusionNode(Node):
             values = dict(d.values)
             if d.name == 'fusion':
                 values['fixes_published'] = self.fixes_published
+                values['mode'] = self.mode
+                if self.map_pub is not None:
+                    values['accuracy_maps'] = self.accuracy_maps
+                    values['accuracy_map_ms'] = (f'{self.accuracy_map_ms:.1f}'
+                                                 if self.accuracy_map_ms is not None
+                                                 else 'n/a')
             elif d.hardware_id in self.incompatible_qos:
                 values['incompatible_qos_publishers'] = self.incompatible_qos[d.hardware_id]
             arr.status.append(diagnostic_status(f'{name}: {d.name}', LEVELS[d.level],

@@ -59,7 +59,9 @@ def chernoff_chi2_mean(R, p):
     with value 0 at 0, hence superadditive; likewise log(1 + 2sw) subadditive for the lower
     tail), so it bounds the mean |e|²/tr C over R independent runs."""
     from scipy.optimize import brentq
-    f = lambda x: (R / 2.0) * (math.log(x) + 1.0 - x) - math.log(p)  # noqa: E731
+
+    def f(x):
+        return (R / 2.0) * (math.log(x) + 1.0 - x) - math.log(p)
     return brentq(f, 1e-9, 1.0 - 1e-12), brentq(f, 1.0 + 1e-12, 100.0)
 
 

@@ -377,6 +377,7 @@ FUSION_NODE_DEFAULTS = {
     'station_timeout': 5.0, 'buffer_size': 50, 'buffer_age': 10.0,
     'time_jump_tolerance': 0.1, 'estimator': None, 'min_stations': 2, 'outlier_gate': 0.999,
     'max_iterations': 50, 'tolerance': 1e-9, 'reference_range': None, 'step_decay': 1.0,
+    'target_speed': 0.0, 'window': 120.0, 'speed_reference': 'relative',
 }
 #: Node parameters that go into FusionConfig.estimator_options (fusion_node.ESTIMATOR_OPTIONS).
 FUSION_ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay')
@@ -384,7 +385,11 @@ FUSION_ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 's
 FUSION_DISPLAY_PARAMS = ('mode', 'discover', 'discovery_period', 'qos_depth', 'qos_reliability',
                          'geodetic_origin', 'publish_markers', 'marker_ray_length',
                          'ellipsoid_sigma', 'diagnostics_period', 'use_sim_time',
-                         'start_type_description_service')
+                         'start_type_description_service', 'accuracy_map.enabled',
+                         'accuracy_map.size', 'accuracy_map.resolution',
+                         'accuracy_map.altitude', 'accuracy_map.center', 'accuracy_map.model',
+                         'accuracy_map.scale', 'accuracy_map.min_error',
+                         'accuracy_map.max_error', 'accuracy_map.move_threshold')
 
 
 def read_params_file(path):
@@ -445,7 +450,9 @@ def fusion_config(p):
             estimator=p['estimator'],
             estimator_options={k: p[k] for k in FUSION_ESTIMATOR_OPTIONS},
             outlier_gate=float(p['outlier_gate']),
-            time_jump_tolerance=float(p['time_jump_tolerance'])).validate()
+            time_jump_tolerance=float(p['time_jump_tolerance']),
+            target_speed=float(p['target_speed']), window=float(p['window']),
+            speed_reference=p['speed_reference']).validate()
     except (TypeError, ValueError) as exc:
         raise InputError(str(exc)) from None
 
@@ -484,7 +491,7 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
     import numpy as np
     from .. import bagio
     from ..core.evaluation import track_errors
-    from ..core.fusion import FusionCore, replay
+    from ..core.fusion import make_core, replay
     from ..ros_conversions import bearing_from_msg, ConversionError
     out = str(out).rstrip('/')
     csv_path = out + '.csv'
@@ -509,7 +516,7 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
         truth_topic = prefix + 'truth'
         has_truth = truth_topic in topics
         has_clock = bagio.CLOCK_TOPIC in topics
-        core = FusionCore(config, stations=stations)
+        core = make_core(config, stations=stations)
         truth_t, truth_p = [], []
         clock = [None]
 

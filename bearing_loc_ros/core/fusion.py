@@ -83,6 +83,7 @@ def mode_for_estimator(name):
     ``multistation``."""
     return MODE_TMA if name in TMA_ESTIMATORS else MODE_MULTISTATION
 
+
 #: Station states.
 WAITING = 'waiting'
 ALIVE = 'alive'
