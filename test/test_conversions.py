@@ -24,7 +24,8 @@ from sensor_msgs.msg import NavSatFix, NavSatStatus
 
 from bearing_loc_ros import ros_conversions as rc
 from bearing_loc_ros.core.bearings import Bearing
-from bearing_loc_ros.core.conventions import wrap_angle
+from bearing_loc_ros.core.conventions import (azel_from_quaternion, quaternion_from_azel,
+                                              wrap_angle)
 from bearing_loc_ros.core.geodesy import geodetic_to_enu
 
 ANGLE_TOL = 4e-15
@@ -98,6 +99,110 @@ def test_bearing_round_trip_edges(az, el):
     assert -math.pi < out.azimuth <= math.pi
     assert abs(wrap_angle(out.azimuth - az)) <= ANGLE_TOL
     assert abs(out.elevation - el) <= ANGLE_TOL and abs(out.elevation) < HALF_PI
+
+
+def _vectorised_angles(msg):
+    """Reference: the angles as the vectorised conventions functions compute them."""
+    o = msg.pose.pose.orientation
+    az, el, _ = azel_from_quaternion(np.array([o.x, o.y, o.z, o.w]))
+    return wrap_angle(az), float(np.clip(el, -rc.MAX_ELEVATION, rc.MAX_ELEVATION))
+
+
+def _ulps(a, b):
+    return abs(a - b) / math.ulp(max(abs(a), abs(b)))
+
+
+@PROP
+@given(bearings(), st.floats(0.9995, 1.0005))
+def test_bearing_from_msg_matches_vectorised_maths(b, scale):
+    """The scalar per-message path gives the vectorised conventions' angles within 1 ulp
+    (numpy's SIMD arctan2/arcsin round differently from libm on some inputs; both are within
+    1 ulp of the true value), also for accepted non-unit quaternions (|q| within 1e-3 of 1),
+    and plain Python floats / fresh float64 arrays that do not alias the message."""
+    msg = rc.bearing_to_msg(b)
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = o.x * scale, o.y * scale, o.z * scale, o.w * scale
+    out = rc.bearing_from_msg(msg, 's1')
+    az, el = _vectorised_angles(msg)
+    assert type(out.azimuth) is float and _ulps(out.azimuth, az) <= 1.0
+    if b.has_elevation:
+        assert type(out.elevation) is float and _ulps(out.elevation, el) <= 1.0
+        assert out.sigma_elevation == math.sqrt(msg.pose.covariance[rc.IDX_EL_VAR])
+    assert out.sigma_azimuth == math.sqrt(msg.pose.covariance[rc.IDX_AZ_VAR])
+    for arr, shape in ((out.position, (3,)), (out.position_covariance, (3, 3))):
+        assert arr.dtype == np.float64 and arr.shape == shape and arr.flags.c_contiguous
+    msg.pose.covariance[0] += 1.0
+    msg.pose.pose.position.x += 1.0
+    assert np.array_equal(out.position_covariance, b.position_covariance)
+    assert np.array_equal(out.position, b.position)
+
+
+@PROP
+@given(bearings())
+def test_bearing_to_msg_matches_vectorised_maths(b):
+    """Orientation bit-identical to quaternion_from_azel; covariance laid out as before."""
+    msg = rc.bearing_to_msg(b)
+    o = msg.pose.pose.orientation
+    q = quaternion_from_azel(b.azimuth, b.elevation if b.has_elevation else 0.0)
+    assert np.array_equal([o.x, o.y, o.z, o.w], q)
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = b.position_covariance
+    cov[4, 4] = b.sigma_elevation ** 2 if b.has_elevation else rc.NO_ELEVATION
+    cov[5, 5] = b.sigma_azimuth ** 2
+    assert msg.pose.covariance.dtype == np.float64
+    assert np.array_equal(msg.pose.covariance, cov.ravel())
+    p = msg.pose.pose.position
+    assert all(type(v) is float for v in (p.x, p.y, p.z, o.x, o.y, o.z, o.w))
+
+
+def test_in_process_covariance_list_or_matrix():
+    """A message built in-process may hold the covariance as a list or a (6, 6) array."""
+    b = Bearing('s1', 7, np.array([1.0, 2.0, 3.0]), 0.4, 0.2, 0.01, 0.02,
+                position_covariance=np.diag([1.0, 4.0, 9.0]))
+    ref = rc.bearing_from_msg(rc.bearing_to_msg(b), 's1')
+    for value in (rc.bearing_to_msg(b).pose.covariance.tolist(),
+                  rc.bearing_to_msg(b).pose.covariance.reshape(6, 6)):
+        msg = rc.bearing_to_msg(b)
+        msg.pose.covariance = value
+        out = rc.bearing_from_msg(msg, 's1')
+        assert out.azimuth == ref.azimuth and out.elevation == ref.elevation
+        assert np.array_equal(out.position_covariance, ref.position_covariance)
+
+
+def test_rejection_order_and_messages():
+    """The first broken rule is reported, in the documented order, with the same text."""
+    b = Bearing('s1', 7, np.zeros(3), 0.4, 0.2, 0.01, 0.02)
+    msg = rc.bearing_to_msg(b)
+    cov = msg.pose.covariance.copy()
+    cov[rc.IDX_AZ_VAR], cov[rc.IDX_EL_VAR], cov[0] = 0.0, -2.0, math.nan
+    msg.pose.covariance = cov
+    with pytest.raises(rc.ConversionError, match=r'^bad_azimuth_variance: azimuth variance '
+                                                 r'0\.0$'):
+        rc.bearing_from_msg(msg, 's1')
+    cov[rc.IDX_AZ_VAR] = 1e-4
+    msg.pose.covariance = cov
+    with pytest.raises(rc.ConversionError, match=r'elevation variance -2\.0 \(use -1'):
+        rc.bearing_from_msg(msg, 's1')
+    cov[rc.IDX_EL_VAR] = rc.NO_ELEVATION
+    msg.pose.covariance = cov
+    assert _reason(msg) == 'bad_position_covariance'
+    q = Rotation.from_euler('ZYX', [0.4, -0.2, 0.1]).as_quat()
+    o = msg.pose.pose.orientation
+    o.x, o.y, o.z, o.w = map(float, q)
+    with pytest.raises(rc.ConversionError, match=r'^nonzero_roll: roll about 0\.1 rad'):
+        rc.bearing_from_msg(msg, 's1')
+    o.w *= 2.0
+    with pytest.raises(rc.ConversionError, match=r'^bad_quaternion: quaternion norm 1\.'):
+        rc.bearing_from_msg(msg, 's1')
+    msg.pose.pose.position.z = math.inf
+    assert _reason(msg, expected_frame='map') == 'bad_position'
+    assert _reason(msg, expected_frame='odom') == 'wrong_frame'
+
+
+def test_bearing_to_msg_refuses_a_position_that_is_not_three_coordinates():
+    b = Bearing('s1', 7, np.zeros((1, 3)), 0.4)
+    with pytest.raises(ValueError, match='position'):
+        rc.bearing_to_msg(b)
 
 
 def _reason(msg, expected_frame=None):
