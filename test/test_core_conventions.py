@@ -4,6 +4,7 @@ import math
 import numpy as np
 import pytest
 
+from bearing_loc_ros.core import bearings as bearings_module
 from bearing_loc_ros.core.bearings import Bearing, BearingSet, simulate_bearings
 from bearing_loc_ros.core.conventions import (azel_from_quaternion,
                                               azel_from_quaternion_scalar, azimuth_elevation,
@@ -139,6 +140,47 @@ def test_bearing_set_validation_names_the_field():
         BearingSet.from_arrays(pos[:1], [0.1], [0.1], 0.01, 0.01)
     with pytest.raises(ValueError, match='position'):
         Bearing('s', 0, np.array([np.nan, 0, 0]), 0.1).validate()
+
+
+def _full_check(b):
+    """The vectorised field check alone (what validate did before its scalar fast path)."""
+    try:
+        bearings_module._check_bearing_fields(
+            np.asarray(b.position, dtype=float)[None, None, :],
+            np.array([[b.azimuth]], dtype=float), np.array([[b.elevation]], dtype=float),
+            np.array([[b.sigma_azimuth]], dtype=float),
+            np.array([[b.sigma_elevation]], dtype=float))
+    except ValueError as exc:
+        return str(exc)
+    return None
+
+
+def test_bearing_validate_fast_path_agrees_with_full_check():
+    """validate() accepts exactly what the vectorised check accepts and raises its message.
+
+    Every field takes good, boundary and bad values (NaN, ±inf, 0, negatives, |ψ| = π/2 and
+    the float just below it), in Python floats, numpy float64/float32, ints and lists, over
+    4000 seeded random combinations."""
+    rng = np.random.default_rng(13)
+    below = math.nextafter(HALF_PI, 0.0)
+    pos_choices = [np.array([1.0, 2.0, 3.0]), [1.0, 2.0, 3.0], (0, 0, 5),
+                   np.array([1.0, np.nan, 3.0]), [np.inf, 0.0, 0.0], np.zeros((1, 3)),
+                   np.zeros(2), np.array([1, 2, 3], dtype=np.float32), np.zeros(3, dtype=int)]
+    angle_choices = [0.3, -3.0, math.nan, math.inf, -math.inf, np.float64(0.2), 1,
+                     np.float32(0.1), HALF_PI, -HALF_PI, below, -below]
+    sigma_choices = [0.01, 0.0, -0.01, math.nan, math.inf, np.float64(1e-300), 2, 5e-324]
+    for _ in range(4000):
+        pick = [pos_choices[rng.integers(len(pos_choices))]] + [
+            angle_choices[rng.integers(len(angle_choices))] for _ in range(2)] + [
+            sigma_choices[rng.integers(len(sigma_choices))] for _ in range(2)]
+        b = Bearing('s', 0, *pick)
+        expected = _full_check(b)
+        if expected is None:
+            assert b.validate() is b
+        else:
+            with pytest.raises(ValueError) as info:
+                b.validate()
+            assert str(info.value) == expected
 
 
 def test_crlb_equals_inverse_fisher_and_matches_monte_carlo_linearisation():

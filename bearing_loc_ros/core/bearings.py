@@ -10,6 +10,7 @@ with n_i ~ N(0, σ_θi²), m_i ~ N(0, σ_ψi²) independent, ρ_i the horizontal
 """
 
 from dataclasses import dataclass, field
+import math
 
 import numpy as np
 
@@ -49,6 +50,8 @@ class Bearing:
 
     def validate(self):
         """Raise ``ValueError`` naming the first bad field; return self when valid."""
+        if _scalar_fields_valid(self):
+            return self
         _check_bearing_fields(
             np.asarray(self.position, dtype=float)[None, None, :],
             np.array([[self.azimuth]], dtype=float),
@@ -179,6 +182,37 @@ class BearingSet:
         if np.any(self.N + n_el < 3):
             raise ValueError('bearings: fewer than three independent angle measurements')
         return self
+
+
+def _scalar_fields_valid(b):
+    """Fast path of :meth:`Bearing.validate` (~1 µs instead of ~40 µs, per-message use).
+
+    True only when the bearing certainly passes :func:`_check_bearing_fields` (same rules on
+    Python floats: finite position of 3 coordinates and azimuth, σ_θ finite > 0, elevation NaN
+    or finite with |ψ| < π/2 and then σ_ψ finite > 0); anything else (a bad field, another
+    shape, another number type) returns False and goes through the full check, which names
+    the field.
+    """
+    p = b.position
+    if type(p) is np.ndarray:
+        if p.shape != (3,):
+            return False
+        p = p.tolist()
+    elif not isinstance(p, (list, tuple)) or len(p) != 3:
+        return False
+    values = (*p, b.azimuth, b.elevation, b.sigma_azimuth, b.sigma_elevation)
+    if not all(isinstance(v, (float, int)) and not isinstance(v, bool) for v in values):
+        return False
+    try:
+        x, y, z, az, el, saz, sel = (float(v) for v in values)
+    except OverflowError:
+        return False
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z) and math.isfinite(az)
+            and math.isfinite(saz) and saz > 0.0):
+        return False
+    if math.isnan(el):
+        return True
+    return math.isfinite(el) and abs(el) < HALF_PI and math.isfinite(sel) and sel > 0.0
 
 
 def _check_bearing_fields(pos, az, el, saz, sel):
