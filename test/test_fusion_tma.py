@@ -191,3 +191,78 @@ def test_bad_inputs_are_counted_not_raised(scenario):
     assert core.add_bearing(b, now) == []                 # duplicate: dropped, counted
     assert core.station_stats('station_1').dropped['duplicate'] == 1
     assert core.epochs == n + 1 and eps[-1].ok
+
+
+# ------------------------------------------------------------------------------- the node
+@pytest.fixture(scope='module')
+def ros():
+    import rclpy
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    yield ctx
+    rclpy.try_shutdown(context=ctx)
+
+
+@pytest.mark.ros
+def test_node_publishes_track_and_fix_on_seed001(ros, scenario):
+    """In-process FusionNode in tma mode fed the simulator's seed-001 bearings (40 s) over
+    DDS with a simulated /clock: one track (nav_msgs/Odometry) per fix, the same state, a
+    sane covariance, errors consistent with it; estimator switches across modes refused."""
+    from nav_msgs.msg import Odometry
+    from rclpy.qos import QoSProfile
+
+    from bearing_loc_ros.ros_common import ParameterError
+    from bearing_loc_ros.ros_conversions import bearing_to_msg, fix_from_msg, time_to_ns
+    from test_fusion_node import Harness
+
+    with pytest.raises(ParameterError, match='target_speed'):
+        Harness(ros, stations=('station_1',), estimator='tma_ctls')
+    h = Harness(ros, stations=('station_1',), estimator='tma_ctls6', target_speed=SPEED)
+    try:
+        assert h.fusion.mode == 'tma' and h.fusion.map_pub is None
+        tracks = []
+        h.node.create_subscription(Odometry, 'track', tracks.append, QoSProfile(depth=1000))
+        sim = simulate(scenario, duration=40.0, seed=7)
+        stats = h.fusion.core.station_stats
+        pub = h.publisher('station_1')
+        for k, ev in enumerate(sim.bearings):
+            h.set_clock(ev.publish_ns)
+            pub.publish(bearing_to_msg(ev.bearing))
+            assert h.spin(lambda: stats('station_1').received == k + 1)
+        core = h.fusion.core
+        assert h.spin(lambda: len(tracks) == len(h.fixes) == core.fixes)
+        assert core.fixes > 20 and core.fixes + core.no_fix['unobservable'] == len(sim.bearings)
+        tr, fx = tracks[-1], h.fixes[-1]
+        stamp, pos, cov = fix_from_msg(fx)
+        assert time_to_ns(tr.header.stamp) == stamp == sim.bearings[-1].bearing.stamp_ns
+        assert tr.header.frame_id == tr.child_frame_id == 'map'
+        p = tr.pose.pose.position
+        v = np.array([tr.twist.twist.linear.x, tr.twist.twist.linear.y,
+                      tr.twist.twist.linear.z])
+        np.testing.assert_allclose([p.x, p.y, p.z], pos)
+        P = np.array(tr.pose.covariance).reshape(6, 6)
+        Q = np.array(tr.twist.covariance).reshape(6, 6)
+        np.testing.assert_allclose(P[:3, :3], cov)
+        for block in (P[:3, :3], Q[:3, :3]):
+            assert np.all(np.isfinite(block)) and np.allclose(block, block.T)
+            lam = np.linalg.eigvalsh(block)
+            # PSD; the velocity block is singular along the direction fixed by the speed
+            # prior (constrained CRLB, (T15)), the position block is positive definite.
+            assert lam[-1] > 0.0 and lam[0] >= -1e-9 * lam[-1]
+        assert np.linalg.eigvalsh(P[:3, :3])[0] > 0.0
+        np.testing.assert_allclose(core.last_epoch.state_covariance[3:, 3:], Q[:3, :3])
+        # One run: |e|²/tr C <= the 99.9 % Chernoff bound for one χ²-like term (see
+        # chernoff_chi2_mean) times the 25 % inefficiency margin of the Monte Carlo test.
+        hi = chernoff_chi2_mean(1, 1e-3)[1] * 1.25
+        e, ev_ = pos - sim.bearings[-1].truth, v - V_TARGET
+        assert e @ e / np.trace(cov) < hi and ev_ @ ev_ / np.trace(Q[:3, :3]) < hi
+        d = h.diag(lambda d: 'fusion' in d)
+        values = {kv.key: kv.value for kv in d['fusion'].values}
+        assert values['mode'] == 'tma' and values['tracked_station'] == 'station_1'
+        # run-time switches: across modes refused with the reason, within tma applied
+        res = h.set_parameter('estimator', 'mle')
+        assert not res.successful and 'restart' in res.reason
+        assert h.set_parameter('estimator', 'tma_mle').successful
+        assert h.spin(lambda: h.fusion.core.config.estimator == 'tma_mle')
+    finally:
+        h.close()
