@@ -389,7 +389,8 @@ FUSION_DISPLAY_PARAMS = ('mode', 'discover', 'discovery_period', 'qos_depth', 'q
                          'accuracy_map.size', 'accuracy_map.resolution',
                          'accuracy_map.altitude', 'accuracy_map.center', 'accuracy_map.model',
                          'accuracy_map.scale', 'accuracy_map.min_error',
-                         'accuracy_map.max_error', 'accuracy_map.move_threshold')
+                         'accuracy_map.max_error', 'accuracy_map.move_threshold',
+                         'accuracy_map')
 
 
 def read_params_file(path):
