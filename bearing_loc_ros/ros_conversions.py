@@ -7,7 +7,7 @@ Bearing message (station -> fusion): ``geometry_msgs/PoseWithCovarianceStamped``
 | header.stamp | observation time (integer ns on the node clock) |
 | header.frame_id | world frame of the ray (must equal the fusion node's frame) |
 | pose.pose.position | station phase-centre position, m |
-| pose.pose.orientation | rotation taking +x onto the line of sight: yaw = θ, pitch = −ψ, roll = 0 |
+| pose.pose.orientation | rotation taking +x onto the line of sight: yaw θ, pitch −ψ, roll 0 |
 | pose.covariance[0..2, 0..2] | station position covariance, m² |
 | pose.covariance[4*6+4] | σ_ψ², rad²; −1 means "elevation not measured" (1D station) |
 | pose.covariance[5*6+5] | σ_θ², rad² |

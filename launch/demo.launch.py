@@ -1,4 +1,6 @@
-"""Simulator -> fusion chain for a native ROS 2 install: ``ros2 launch bearing_loc_ros demo.launch.py``.
+"""Simulator -> fusion chain for a native ROS 2 install.
+
+Run: ``ros2 launch bearing_loc_ros demo.launch.py``.
 
 Arguments: ``scenario`` (a file in share/bearing_loc_ros/config/scenarios or a path; default
 seed000.yaml), ``estimator`` (default mle), ``time_scale`` (default 1.0), ``stations``

@@ -423,8 +423,8 @@ def test_raw_reading_from_vector3_stamped():
     assert r.azimuth == pytest.approx(HALF_PI) and math.isnan(r.elevation)
     msg.vector.y = 0.1
     assert rc.raw_reading_from_msg(msg, 'rad').elevation == 0.1
-    for field, value, reason in (('x', math.nan, 'bad_azimuth'), ('y', math.inf,
-                                                                   'bad_elevation')):
+    for field, value, reason in (('x', math.nan, 'bad_azimuth'),
+                                 ('y', math.inf, 'bad_elevation')):
         bad = _wire(msg)
         setattr(bad.vector, field, value)
         with pytest.raises(rc.ConversionError) as info:

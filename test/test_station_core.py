@@ -84,8 +84,8 @@ def test_raw_reading_units_and_rejections():
     r = raw_reading(5, 180.0, 30.0, 'deg')
     assert (r.azimuth, r.elevation) == pytest.approx((math.pi, math.pi / 6))
     assert raw_reading(5, 1.0, units='rad').azimuth == 1.0
-    for kwargs, reason in (({'stamp_ns': 0}, 'bad_stamp'), ({'azimuth': math.inf},
-                                                             'bad_azimuth'),
+    for kwargs, reason in (({'stamp_ns': 0}, 'bad_stamp'),
+                           ({'azimuth': math.inf}, 'bad_azimuth'),
                            ({'elevation': -math.inf}, 'bad_elevation'),
                            ({'sigma_azimuth': 0.0}, 'bad_sigma')):
         args = {'stamp_ns': 5, 'azimuth': 1.0, **kwargs}
@@ -199,8 +199,8 @@ def test_geodetic_station_uses_its_own_north_and_horizontal(geodetic):
     az_deg, el_deg, _ = pymap3d.geodetic2aer(*target_lla, *station_lla)
     b = to_world_bearing(raw_reading(1, float(az_deg), float(el_deg), 'deg'), c)
     theta, psi = azimuth_elevation(geodesy.geodetic_to_enu(*target_lla, origin) - st_enu)
-    assert abs(wrap_angle(b.azimuth - theta)) < 1e-9 and b.elevation == pytest.approx(psi,
-                                                                                       abs=1e-9)
+    assert abs(wrap_angle(b.azimuth - theta)) < 1e-9
+    assert b.elevation == pytest.approx(psi, abs=1e-9)
     np.testing.assert_allclose(b.position, st_enu, atol=1e-9)
     # Without the correction the azimuth would be 3.3 mrad off here (meridian convergence
     # 3.8 mrad, partly offset by the tilt of the horizon; elevation 2.2 mrad off).

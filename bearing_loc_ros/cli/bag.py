@@ -20,6 +20,7 @@ import time
 from . import InputError
 
 NS_PER_S = 1_000_000_000
+UPPER_TRIANGLE = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
 def add_arguments(parser):
@@ -584,8 +585,7 @@ def _write_fix_csv(path, fixes, truth):
         for k, e in enumerate(fixes):
             c = e.covariance
             row = [e.stamp_ns, f'{e.stamp_ns / NS_PER_S:.9f}', *map(repr, map(float, e.position)),
-                   *(repr(float(c[i, j])) for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2),
-                                                        (2, 2))),
+                   *(repr(float(c[i, j])) for i, j in UPPER_TRIANGLE),
                    len(e.bearings), ' '.join(e.stations),
                    ' '.join(b.station for b in e.rejected), e.estimator, e.status,
                    e.iterations, repr(float(e.chi2)), e.dof, e.produced_ns]

@@ -340,9 +340,11 @@ def findings(rows):
     ranking = {}
     for r in rows:
         ranking.setdefault(f'{r.sweep}@{key(r):g}', []).append((r.rmse, r.estimator))
-    ranking = {k: [n for _, n in sorted(v, key=lambda t: (np.nan_to_num(t[0], nan=np.inf),
-                                                           t[1]))]
-               for k, v in ranking.items()}
+
+    def order(t):
+        return (np.nan_to_num(t[0], nan=np.inf), t[1])
+
+    ranking = {k: [n for _, n in sorted(v, key=order)] for k, v in ranking.items()}
     by = {(r.sweep, key(r), r.estimator): r for r in rows}
     ratios = []
     for (sw, x, est), r in sorted(by.items(), key=lambda kv: (kv[0][1], kv[0][2])):
