@@ -518,25 +518,20 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
                         dof=int(np.sum(dof)) - 3, **common)
 
 
-def _valid_bearing(b):
-    """Fast pure-Python version of Bearing.validate (the node path calls it per message)."""
+def _bearing_problem(b):
+    """None when Bearing ``b`` is valid, else the problem text (counted as invalid_bearing).
+
+    The field rules are :meth:`Bearing.validate`'s (one place; ~2 µs on its scalar fast
+    path). It checks values, not the position's shape, so a position that is not exactly 3
+    coordinates is refused here too (it would break the (N, 3) arrays of an epoch).
+    """
     try:
-        p = b.position
-        if len(p) != 3 or not all(math.isfinite(float(v)) for v in p):
-            return False
-        if not math.isfinite(b.azimuth):
-            return False
-        sa = b.sigma_azimuth
-        if not (math.isfinite(sa) and sa > 0.0):
-            return False
-        el = b.elevation
-        if math.isnan(el):
-            return True
-        se = b.sigma_elevation
-        return (math.isfinite(el) and abs(el) < math.pi / 2.0 and math.isfinite(se)
-                and se > 0.0)
-    except (TypeError, ValueError):
-        return False
+        b.validate()
+    except (TypeError, ValueError) as exc:
+        return str(exc)
+    if np.shape(b.position) != (3,):
+        return f'position: expected 3 coordinates, got shape {np.shape(b.position)}'
+    return None
 
 
 @dataclass
@@ -775,12 +770,8 @@ class FusionCore:
         st = self.add_station(bearing.station)
         self._advance(now, bearing.station)
         st.received += 1
-        if not _valid_bearing(bearing):
-            try:
-                bearing.validate()
-                detail = 'position covariance'
-            except ValueError as exc:
-                detail = str(exc)
+        detail = _bearing_problem(bearing)
+        if detail is not None:
             st.bad[INVALID_BEARING] += 1
             self.bad_messages += 1
             self._events.append(('warn', f'{bearing.station}: invalid bearing ({detail})'))
