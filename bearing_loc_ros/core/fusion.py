@@ -447,7 +447,8 @@ def _covariance_ok(cov):
     return bool(lam[-1] > 0.0 and lam[0] >= -1e-9 * lam[-1])
 
 
-def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=0.999):
+def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=0.999,
+                validated=False):
     """Fix from aligned bearings (one per station) with χ² outlier gating.
 
     Loop: check the counts (at least ``min_stations`` stations, one elevation, three angles:
@@ -460,12 +461,21 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     (``inconsistent_bearings``). Returns a :class:`Solution`. Never raises for bad geometry
     or estimator failures (they become reasons); the estimator's own exceptions become
     ``estimator_error`` with the message in ``detail``. The bearings' fields are expected to
-    be valid (FusionCore checks them on arrival); invalid ones end as ``estimator_error``.
+    be valid; invalid ones end as ``estimator_error``, since ``locate`` validates the set.
+    ``validated=True`` (FusionCore, whose bearings passed Bearing.validate on arrival) skips
+    that second check of the same fields and calls the estimator directly: same result, one
+    BearingSet.validate (~45 µs at N = 10) less per estimation.
     """
     options = dict(options or {})
     used = list(bearings)
     rejected = []
     kwargs = estimator_kwargs(estimator, options)
+    if validated:
+        def run(bs):
+            return _estimators.ESTIMATORS[estimator](bs, **kwargs)
+    else:
+        def run(bs):
+            return _estimators.locate(estimator, bs, **kwargs)
     while True:
         if len(used) < int(min_stations):
             return Solution(TOO_FEW_STATIONS, used=used, rejected=rejected,
@@ -474,10 +484,9 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         if reason is not None:
             return Solution(reason, used=used, rejected=rejected,
                             detail=f'{len(used)} station(s)')
-        # Fields were validated on arrival (locate validates the set once more).
         bs = BearingSet.from_bearings(used, validate=False)
         try:
-            res = _estimators.locate(estimator, bs, **kwargs)
+            res = run(bs)
         except Exception as exc:  # noqa: B902 - any estimator failure is a counted no-fix
             return Solution(ESTIMATOR_ERROR, used=used, rejected=rejected,
                             detail=f'{type(exc).__name__}: {exc}')
@@ -497,7 +506,9 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         pcov = np.array([np.asarray(b.position_covariance, dtype=float) for b in used])
         saz, sel = noise_sigmas(estimator, bs, pos[None], kwargs)
         gated = BearingSet(bs.positions, bs.azimuth, bs.elevation, saz, sel, bs.stations)
-        d2, dof = normalized_residuals(gated, pos, pcov[None])
+        # Zero station covariances (fixed stations, the usual case) inflate nothing: skip the
+        # Jacobians (same d², ~40 µs less at N = 10).
+        d2, dof = normalized_residuals(gated, pos, pcov[None] if pcov.any() else None)
         d2, dof = d2[0], dof[0]
         thr = np.array([gate_threshold(outlier_gate, int(k)) for k in dof])
         with np.errstate(invalid='ignore'):
@@ -965,7 +976,7 @@ class FusionCore:
             if kind == NEAREST and nearest_only:
                 self._used_until[s] = int(b.stamp_ns)
         sol = solve_epoch(aligned, cfg.estimator, cfg.estimator_options, cfg.min_stations,
-                          cfg.outlier_gate)
+                          cfg.outlier_gate, validated=True)
         self.epochs += 1
         for b in sol.rejected:
             self._stats[b.station].outliers += 1
