@@ -836,6 +836,11 @@ class FusionCore:
             k_first = max(k_first, k_last - backfill + 1)
         return [self._epoch(k * period, now) for k in range(k_first, k_last + 1)]
 
+    @property
+    def has_events(self):
+        """True when log events are pending (a cheap test before :meth:`drain_events`)."""
+        return bool(self._events)
+
     def drain_events(self):
         """Return and forget the pending log events: list of (level 'info'|'warn', text)."""
         ev, self._events = self._events, []
