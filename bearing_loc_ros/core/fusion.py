@@ -447,6 +447,18 @@ def _covariance_ok(cov):
     return bool(lam[-1] > 0.0 and lam[0] >= -1e-9 * lam[-1])
 
 
+def _trusted_set(bearings):
+    """One-problem BearingSet (M = 1) of validated Bearings with exactly 3-coordinate
+    positions: the same arrays as ``BearingSet.from_bearings(..., validate=False)`` without
+    its reshaping and copies (~9 µs instead of ~23 µs at N = 10)."""
+    el = np.array([[b.elevation for b in bearings]], dtype=float)
+    sel = np.array([[b.sigma_elevation for b in bearings]], dtype=float)
+    return BearingSet(np.array([[b.position for b in bearings]], dtype=float),
+                      np.array([[b.azimuth for b in bearings]], dtype=float), el,
+                      np.array([[b.sigma_azimuth for b in bearings]], dtype=float),
+                      np.where(np.isfinite(el), sel, np.nan), [b.station for b in bearings])
+
+
 def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=0.999,
                 validated=False):
     """Fix from aligned bearings (one per station) with χ² outlier gating.
@@ -463,17 +475,22 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     ``estimator_error`` with the message in ``detail``. The bearings' fields are expected to
     be valid; invalid ones end as ``estimator_error``, since ``locate`` validates the set.
     ``validated=True`` (FusionCore, whose bearings passed Bearing.validate on arrival) skips
-    that second check of the same fields and calls the estimator directly: same result, one
-    BearingSet.validate (~45 µs at N = 10) less per estimation.
+    that second check of the same fields, builds the BearingSet directly (:func:`_trusted_set`)
+    and calls the estimator directly: same result, ~60 µs less per estimation at N = 10.
     """
     options = dict(options or {})
     used = list(bearings)
     rejected = []
     kwargs = estimator_kwargs(estimator, options)
     if validated:
+        make_set = _trusted_set
+
         def run(bs):
             return _estimators.ESTIMATORS[estimator](bs, **kwargs)
     else:
+        def make_set(b):
+            return BearingSet.from_bearings(b, validate=False)
+
         def run(bs):
             return _estimators.locate(estimator, bs, **kwargs)
     while True:
@@ -484,7 +501,7 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         if reason is not None:
             return Solution(reason, used=used, rejected=rejected,
                             detail=f'{len(used)} station(s)')
-        bs = BearingSet.from_bearings(used, validate=False)
+        bs = make_set(used)
         try:
             res = run(bs)
         except Exception as exc:  # noqa: B902 - any estimator failure is a counted no-fix
@@ -610,7 +627,7 @@ class StationStats:
     bad: Counter = field(default_factory=Counter)
     dropped: Counter = field(default_factory=Counter)
     last_stamp_ns: int = None
-    position: np.ndarray = None
+    position: tuple = None       # (x, y, z) m at the last geometry change
     since_ns: int = None
 
 
@@ -803,10 +820,11 @@ class FusionCore:
         st.evicted += buf.push(bearing)
         st.accepted += 1
         st.last_stamp_ns = stamp
-        pos = np.asarray(bearing.position, dtype=float)
-        if (st.position is None
-                or np.linalg.norm(pos - st.position) > GEOMETRY_MOVE_TOLERANCE_M):
-            st.position = pos.copy()
+        # Python floats: ~1 µs instead of ~5 µs of numpy on 3-vectors, per bearing.
+        pos = bearing.position
+        pos = tuple(pos.tolist() if type(pos) is np.ndarray else (float(v) for v in pos))
+        if st.position is None or math.dist(pos, st.position) > GEOMETRY_MOVE_TOLERANCE_M:
+            st.position = pos
             self.geometry_version += 1
         self._set_state(st, self._state_at(st, now))
         if st.state == ALIVE:
