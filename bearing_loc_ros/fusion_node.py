@@ -16,7 +16,7 @@ Topics (relative, so namespaces and remapping work):
   (nav_msgs/OccupancyGrid, transient local, the expected error of the live station set from
   core.planning.occupancy_error_map, recomputed only when that set changes).
 
-Parameters, QoS, diagnostics keys and examples: docs/readme/fusion.md.
+Parameters, QoS, diagnostics keys and examples: README "Fusion node".
 """
 
 from functools import partial
@@ -637,7 +637,7 @@ class FusionNode(Node):
         than ``accuracy_map.move_threshold``: never per bearing. ε = sqrt(trace P) per cell
         (core.planning.occupancy_error_map, model ``accuracy_map.model``, σ from each
         station's newest bearing), cell value = error_to_occupancy(ε, min_error, max_error,
-        scale) (docs/readme/fusion.md). No live station: every cell −1 (unknown) on the last
+        scale) (README "Fusion node"). No live station: every cell −1 (unknown) on the last
         grid.
         """
         names = sorted(geometry)

@@ -12,7 +12,7 @@ simulator publishes under its namespace):
 * ``<target ns>/truth`` geometry_msgs/PoseStamped, stamped with the true time;
 * ``/clock`` rosgraph_msgs/Clock when ``publish_clock`` is true.
 
-Parameters and the scenario format: docs/readme/simulator.md.
+Parameters and the scenario format: README "Simulator".
 """
 
 import os

@@ -1,4 +1,4 @@
-"""rosbag2 datasets: bag simulate / info / play / process (docs/readme/bags.md).
+"""rosbag2 datasets: bag simulate / info / play / process (README "Recorded data").
 
 Metadata fields are checked against what rosbag2 in ROS 2 Jazzy (0.26.x) reads and writes:
 rosbag2_storage yaml.hpp decodes ``version``, ``storage_identifier``, ``duration``,

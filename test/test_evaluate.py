@@ -1,4 +1,4 @@
-"""Monte Carlo evaluation (core.evaluation, ``bearing_loc evaluate``; docs/readme/evaluation.md).
+"""Monte Carlo evaluation (core.evaluation, ``bearing_loc evaluate``; README "Evaluation").
 
 Statistical assertions use fixed seeds and tolerances built from the standard errors the
 evaluation itself reports (SE(RMSE) by the delta method on mean |e|², SE(mean NEES) =
@@ -202,7 +202,7 @@ def test_seed003_estimator_ordering(seed003_csv):
 
     Reproduced wherever the Monte Carlo resolves it: the joint sweep up to σ = 1° and the
     elevation sweep at σ = 1° and 3°. (At σ_ref = 3° with σ growing to 18° at long range the
-    ML estimates have a heavy tail and the ordering reverses; docs/readme/evaluation.md.)
+    ML estimates have a heavy tail and the ordering reverses; README "Evaluation".)
     """
     _, _, t = seed003_csv
     for key in (('joint', 1.0), ('elevation', 1.0), ('elevation', 3.0)):

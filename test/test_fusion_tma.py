@@ -43,7 +43,7 @@ def run(scenario, seed, config):
 
 
 def crlb_at_truth(core, sim):
-    """Constrained TMA CRLB (docs/readme/tma.md (T15)) of the target state at the last
+    """Constrained TMA CRLB (README "Target motion analysis" (T15)) of the target state at the last
     bearing, evaluated at the true relative state, for the core's window."""
     bs, times = core._acc.bearings()
     p0 = sim.bearings[0].truth - bs.positions[0, 0]
@@ -69,12 +69,11 @@ def chernoff_chi2_mean(R, p):
 def test_seed001_final_error_matches_the_tma_crlb(scenario, estimator):
     """Final-time position error over R seeds against the CRLB at the truth.
 
-    If the estimator were efficient and Gaussian, mean_r |e_r|²/tr(C_r) would lie within the
-    99.9 % Chernoff bounds of chernoff_chi2_mean. docs/readme/tma.md measures ctls6 and mle
-    at t = 100 s within 5 % of the CRLB in MSE (200 runs); we allow a 25 % inefficiency
-    margin on top of the bounds (lower bound divided by it as well). The same statistic with
-    the published covariance checks that it is honest, and the velocity error is bounded the
-    same way.
+    If the estimator were efficient and Gaussian, mean_r |e_r|²/tr(C_r) would lie within the 99.9 %
+    Chernoff bounds of chernoff_chi2_mean. README "Target motion analysis" measures ctls6 and mle
+    at t = 100 s within 5 % of the CRLB in MSE (200 runs); we allow a 25 % inefficiency margin on
+    top of the bounds (lower bound divided by it as well). The same statistic with the published
+    covariance checks that it is honest, and the velocity error is bounded the same way.
     """
     R = 30
     lo, hi = chernoff_chi2_mean(R, 1e-3)

@@ -90,8 +90,9 @@ def test_seed003_scenario_line_array_random_sources_and_sigma_growth():
 
 
 def test_readme_example_scenario_parses():
-    with open(os.path.join(REPO, 'docs', 'readme', 'simulator.md'), encoding='utf-8') as f:
-        block = f.read().split('```yaml\n')[1].split('```')[0]
+    with open(os.path.join(REPO, 'README.md'), encoding='utf-8') as f:
+        section = f.read().split('## Simulator: bearings without hardware')[1]
+        block = section.split('```yaml\n')[1].split('```')[0]
     sc = parse_scenario(yaml.safe_load(block), 'simulator.md')
     assert [s.trajectory.kind for s in sc.stations] == ['constant_velocity', 'static']
     assert [t.namespace for t in sc.targets] == ['', 'drone']

@@ -1,4 +1,4 @@
-"""``bearing_loc bag``: rosbag2 datasets without the ROS 2 CLI (docs/readme/bags.md).
+"""``bearing_loc bag``: rosbag2 datasets without the ROS 2 CLI (README "Recorded data").
 
 Sub-commands:
 
@@ -29,7 +29,7 @@ def add_arguments(parser):
     sub.required = True
 
     p = sub.add_parser('simulate', help='write a simulated rosbag2 bag from a scenario')
-    p.add_argument('--scenario', required=True, help='scenario YAML (docs/readme/simulator.md)')
+    p.add_argument('--scenario', required=True, help='scenario YAML (README "Simulator")')
     p.add_argument('--duration', type=float, default=0.0,
                    help="simulated seconds (default 0: the scenario's duration)")
     p.add_argument('--seed', type=int, default=0, help='simulator seed (default 0)')

@@ -39,7 +39,7 @@ TOP_FIELDS = ('method', 'options', 'bearings', 'problems')
 def add_arguments(parser):
     """Command line of ``bearing_loc locate``."""
     parser.description = ('Localize emitters from bearings: JSON in (file or stdin), JSON out '
-                          '(stdout). Format: docs/readme/estimation.md.')
+                          '(stdout). Format: README "Estimation".')
     add_io_arguments(parser)
     parser.add_argument('--method', choices=sorted(ESTIMATORS), default=None,
                         help=f'estimator, overrides the input\'s "method" '

@@ -1,4 +1,4 @@
-"""``bearing_loc plan``: where to put stations (docs/readme/planning.md).
+"""``bearing_loc plan``: where to put stations (README "Planning").
 
 Sub-commands:
 
@@ -53,7 +53,7 @@ def add_arguments(parser):
                             ('place', 'best position for one more station')):
         p = sub.add_parser(name, help=help_text)
         src = p.add_mutually_exclusive_group(required=True)
-        src.add_argument('--scenario', help='scenario YAML (docs/readme/simulator.md); '
+        src.add_argument('--scenario', help='scenario YAML (README "Simulator"); '
                                             'station positions at t = 0')
         src.add_argument('--stations',
                          help="'x,y,z[,1d];x,y,z;...' station positions (2D unless ',1d'); "

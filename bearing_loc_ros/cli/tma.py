@@ -48,7 +48,7 @@ def add_arguments(parser):
     """Command line of ``bearing_loc tma``."""
     parser.description = ('Target motion analysis from one moving station with a speed prior '
                           '(seed 001): JSON in (file or stdin), JSON out. Format: '
-                          'docs/readme/tma.md.')
+                          'README "Target motion analysis".')
     add_io_arguments(parser)
     parser.add_argument('--method', choices=sorted(TMA_ESTIMATORS), default=None,
                         help=f'estimator, overrides the input\'s "method" (default: input, '

@@ -47,7 +47,7 @@ STATUS_DEGENERATE = 'degenerate_geometry'
 STATUSES = (STATUS_OK, STATUS_MAX_ITERATIONS, STATUS_DIVERGED, STATUS_DEGENERATE)
 
 #: Estimator used when none is named (CLI, fusion node): best measured RMSE/CRLB among the
-#: estimators that converge reliably (docs/readme/estimation.md).
+#: estimators that converge reliably (README "Estimation").
 DEFAULT_ESTIMATOR = 'mle'
 
 #: Default reference range d_ref (m) of ``wmle`` (seed 003 eqs. (9)-(10)).

@@ -1117,18 +1117,18 @@ class DiagnosticEntry:
 class TmaFusionCore(FusionCore):
     """Single moving station TMA (seed 001) with FusionCore's interface (mode ``tma``).
 
-    The bearings of one station (the first one that delivers an accepted bearing, the
-    "tracked" station; bearings of any other station are counted as ``bad.not_tracked``) go
-    through the same arrival checks as in the multi-station pipeline (invalid, wrong frame,
-    duplicate, out of order, too late: counted, never raised) and then, in O(1), into a
-    :class:`~bearing_loc_ros.core.tma.TmaAccumulator` (recursive P, Ω of seed 001 Table 1,
-    docs/readme/tma.md (T13)) bounded to the last ``window`` seconds. Each epoch solves the
-    configured TMA estimator (``tma_ple`` (T6)-(T8), ``tma_ctls`` (T9)-(T12), ``tma_ctls6``
-    (T12b), ``tma_mle``) with the speed prior |v| = ``target_speed`` (T5, ``speed_reference``
-    'relative' or 'ground') and returns an :class:`Epoch` whose position (3,) m and velocity
-    (3,) m/s are the target state at the newest bearing's stamp, ``covariance`` the (3, 3)
-    position block and ``state_covariance`` the (6, 6) (position, velocity) constrained CRLB
-    at the estimate (T15)-(T16), m², m²/s, m²/s².
+    The bearings of one station (the first one that delivers an accepted bearing, the "tracked"
+    station; bearings of any other station are counted as ``bad.not_tracked``) go through the same
+    arrival checks as in the multi-station pipeline (invalid, wrong frame, duplicate, out of order,
+    too late: counted, never raised) and then, in O(1), into a
+    :class:`~bearing_loc_ros.core.tma.TmaAccumulator` (recursive P, Ω of seed 001 Table 1, README
+    "Target motion analysis" (T13)) bounded to the last ``window`` seconds. Each epoch solves the
+    configured TMA estimator (``tma_ple`` (T6)-(T8), ``tma_ctls`` (T9)-(T12), ``tma_ctls6`` (T12b),
+    ``tma_mle``) with the speed prior |v| = ``target_speed`` (T5, ``speed_reference`` 'relative' or
+    'ground') and returns an :class:`Epoch` whose position (3,) m and velocity (3,) m/s are the
+    target state at the newest bearing's stamp, ``covariance`` the (3, 3) position block and
+    ``state_covariance`` the (6, 6) (position, velocity) constrained CRLB at the estimate
+    (T15)-(T16), m², m²/s, m²/s².
 
     Triggers: ``event``: one epoch per accepted bearing; ``timer``: at most one epoch per
     tick, when bearings arrived since the last one (bounds the CPU of ``tma_mle``). No fix

@@ -151,7 +151,7 @@ class SigmaGrowth:
 
 @dataclass(frozen=True)
 class Station:
-    """A simulated DF station (see docs/readme/simulator.md for every key and default).
+    """A simulated DF station (see README "Simulator" for every key and default).
 
     Angles in rad, times in s, rates in Hz, distances in m. ``sigma_el`` is NaN for a 1D
     (azimuth-only) station. ``clock_drift`` is a fraction (ppm · 1e-6).
@@ -815,7 +815,7 @@ def parse_scenario(data, source='<dict>'):
 
 
 def load_scenario(path):
-    """Read and validate a scenario YAML file (format: docs/readme/simulator.md).
+    """Read and validate a scenario YAML file (format: README "Simulator").
 
     Raises ValueError naming the file and the offending key (or the YAML syntax error).
     """

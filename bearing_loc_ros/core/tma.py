@@ -2,8 +2,8 @@
 
 One station (the observer) measures azimuth and elevation of a target over time. The target
 moves at constant velocity; the prior speed v_c fixes the scale that bearings alone leave
-free. Equation numbers (T1)...(T18) refer to docs/readme/tma.md, which derives them from the
-text of seed 001 (its formulas did not survive in our copy).
+free. Equation numbers (T1)...(T18) refer to README "Target motion analysis", which derives
+them from the text of seed 001 (its formulas did not survive in our copy).
 
 Conventions (DESIGN.md). ENU world frame, metres, seconds, radians. Azimuth θ is ENU
 (counter-clockwise from East), elevation ψ above the horizontal plane. Seed 001 measures its
@@ -670,7 +670,7 @@ def ctls6(bearings, times, speed, **options):
     eigenvector of (P6, Ω6) for the smallest eigenvalue, signed so that p0·e0 > 0 and scaled
     by the speed prior (T8). The paper's CTLS fixes p0 ∥ e0 from one noisy bearing, an error
     that no later bearing averages out; here every bearing counts alike (see the benchmark in
-    docs/readme/tma.md). Same recursive sums, arguments and options as :func:`ctls`.
+    README "Target motion analysis"). Same recursive sums, arguments and options as :func:`ctls`.
     """
     return _closed_form('ctls6', bearings, times, speed, options)[-1]
 
