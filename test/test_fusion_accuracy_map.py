@@ -10,7 +10,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from bearing_loc_ros.core.planning import error_to_occupancy, GridSpec, occupancy_error_map, \
     Stations
-from test_fusion_node import Harness, POSITIONS, ros, S  # noqa: F401 (ros is a fixture)
+from test_fusion_node import POSITIONS, S
 
 pytestmark = pytest.mark.ros
 
@@ -19,20 +19,6 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
 SIGMA = 1e-3                                   # test_fusion_node.truth_bearing's σ
 MAP = {'accuracy_map.size': 12000.0, 'accuracy_map.resolution': 300.0,
        'accuracy_map.center': [3000.0, 3000.0], 'accuracy_map.altitude': 800.0}
-
-
-@pytest.fixture
-def harness(ros):  # noqa: F811
-    made = []
-
-    def make(**kw):
-        h = Harness(ros, **kw)
-        made.append(h)
-        return h
-
-    yield make
-    for h in made:
-        h.close()
 
 
 def late_map(h, count=1):

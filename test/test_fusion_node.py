@@ -39,14 +39,6 @@ ORIGIN = (48.0, 11.0, 500.0)
 _ns = itertools.count(1)
 
 
-@pytest.fixture(scope='module')
-def ros():
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
 class Harness:
     """A FusionNode plus a test node publishing bearings and /clock and recording outputs."""
 
@@ -139,20 +131,6 @@ def truth_bearing(station, t_ns, target=TARGET, sigma=1e-3, frame='map'):
     return Bearing(station=station, stamp_ns=int(t_ns), position=p, azimuth=float(az),
                    elevation=float(el), sigma_azimuth=sigma, sigma_elevation=sigma,
                    frame_id=frame)
-
-
-@pytest.fixture
-def harness(ros):
-    made = []
-
-    def make(**kw):
-        h = Harness(ros, **kw)
-        made.append(h)
-        return h
-
-    yield make
-    for h in made:
-        h.close()
 
 
 def test_fix_navsat_markers_and_diagnostics(harness):

@@ -193,15 +193,6 @@ def test_bad_inputs_are_counted_not_raised(scenario):
 
 
 # ------------------------------------------------------------------------------- the node
-@pytest.fixture(scope='module')
-def ros():
-    import rclpy
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    yield ctx
-    rclpy.try_shutdown(context=ctx)
-
-
 @pytest.mark.ros
 def test_node_publishes_track_and_fix_on_seed001(ros, scenario):
     """In-process FusionNode in tma mode fed the simulator's seed-001 bearings (40 s) over
