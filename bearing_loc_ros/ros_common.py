@@ -33,7 +33,12 @@ def run_node(node_factory, args=None):
     configuration fails loudly and early, like joy_teleop). Ctrl-C and external shutdown end
     the spin cleanly with exit code 0.
     """
-    rclpy.init(args=args)
+    try:
+        rclpy.init(args=args)
+    except Exception as exc:  # rcl rejects unparsable --ros-args with RCLError
+        print(f'error: invalid command line: {str(exc).splitlines()[0]}', file=sys.stderr,
+              flush=True)
+        return 1
     node = None
     code = 0
     try:

@@ -361,3 +361,13 @@ def test_separate_process_over_dds():
         ex.shutdown()
         probe.destroy_node()
         rclpy.shutdown(context=ctx)
+
+
+def test_unparsable_ros_args_exit_1_with_one_line():
+    """rcl rejects a malformed -p override; the node says so in one line, exit code 1."""
+    proc = subprocess.run([sys.executable, '-m', 'bearing_loc_ros.station_node', '--ros-args',
+                           '-p', 'udp_address:=::'], capture_output=True, text=True,
+                          timeout=60, stdin=subprocess.DEVNULL)
+    assert proc.returncode == 1
+    assert 'error: invalid command line:' in proc.stderr, proc.stderr
+    assert 'Traceback' not in proc.stderr
