@@ -14,7 +14,9 @@ Sub-commands:
 
 import math
 import os
+import signal
 import sys
+import threading
 import time
 
 from . import InputError
@@ -269,7 +271,15 @@ def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0, wait_for_sub
     has_clock = bagio.CLOCK_TOPIC in info
     generate = clock_rate > 0 or not has_clock
     gen_hz = clock_rate if clock_rate > 0 else 100.0
-    rclpy.init(args=['--ros-args'])
+    from rclpy.signals import SignalHandlerOptions
+    # No rclpy signal handler: with it, Ctrl-C shuts the context down and the next
+    # publish raises RCLError (a traceback, exit 1). Python's own handler raises
+    # KeyboardInterrupt, caught below; installed explicitly because a shell starts
+    # background jobs with SIGINT ignored.
+    old_sigint = None
+    if threading.current_thread() is threading.main_thread():
+        old_sigint = signal.signal(signal.SIGINT, signal.default_int_handler)
+    rclpy.init(args=['--ros-args'], signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('bag_player')
     try:
         pubs = {}
@@ -305,6 +315,8 @@ def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0, wait_for_sub
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
+        if old_sigint is not None:
+            signal.signal(signal.SIGINT, old_sigint)
     return 0
 
 
