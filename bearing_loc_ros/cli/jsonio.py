@@ -25,7 +25,10 @@ def number(value, field, positive=False):
     """A finite real from JSON (bools rejected); ``positive`` requires > 0."""
     if isinstance(value, bool) or not isinstance(value, numbers.Real):
         raise InputError(f'{field}: must be a number, got {json.dumps(value)[:40]}')
-    value = float(value)
+    try:
+        value = float(value)
+    except OverflowError:       # a JSON integer beyond the float range (1e400)
+        value = math.inf
     if not math.isfinite(value):
         raise InputError(f'{field}: must be a finite number')
     if positive and value <= 0:

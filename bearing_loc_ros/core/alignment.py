@@ -38,7 +38,8 @@ INTERPOLATED = 'interpolated'
 DUPLICATE = 'duplicate'
 OUT_OF_ORDER = 'out_of_order'
 TOO_LATE = 'too_late'
-DROP_REASONS = (DUPLICATE, OUT_OF_ORDER, TOO_LATE)
+FROM_FUTURE = 'from_future'   # stamp > now + buffer_age (a station clock far ahead)
+DROP_REASONS = (DUPLICATE, OUT_OF_ORDER, TOO_LATE, FROM_FUTURE)
 
 
 def seconds_to_ns(seconds):

@@ -15,6 +15,12 @@ import math
 import numpy as np
 
 HALF_PI = np.pi / 2.0
+#: Accepted range of an angle σ, rad. Below 1e-12 rad (a picoradian, far below any sensor)
+#: the weights 1/σ² and their products overflow float64 in the estimators' sums (σ = 1e-300
+#: made TMA's eigen-solver fail); the upper bound only keeps σ² r² finite (a σ above π
+#: already carries no information, and range-grown σ of seed 003 eqs. (9)-(10) may exceed it).
+SIGMA_MIN = 1e-12
+SIGMA_MAX = 1e3
 
 
 @dataclass
@@ -52,13 +58,25 @@ class Bearing:
         """Raise ``ValueError`` naming the first bad field; return self when valid."""
         if _scalar_fields_valid(self):
             return self
+        pos = _as_float_array(self.position, 'position')
+        if pos.size != 3:
+            raise ValueError(f'position: expected 3 coordinates, got shape {pos.shape}')
         _check_bearing_fields(
-            np.asarray(self.position, dtype=float)[None, None, :],
-            np.array([[self.azimuth]], dtype=float),
-            np.array([[self.elevation]], dtype=float),
-            np.array([[self.sigma_azimuth]], dtype=float),
-            np.array([[self.sigma_elevation]], dtype=float))
+            pos.reshape(1, 1, 3),
+            *(_as_float_array(getattr(self, name), name).reshape(1, 1)
+              for name in ('azimuth', 'elevation', 'sigma_azimuth', 'sigma_elevation')))
         return self
+
+
+def _as_float_array(value, name):
+    """``value`` as a float array; ValueError naming ``name`` when it is not numeric."""
+    try:
+        out = np.asarray(value, dtype=float)
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f'{name}: not a number ({type(value).__name__})') from None
+    if name != 'position' and out.size != 1:
+        raise ValueError(f'{name}: expected one number, got shape {out.shape}')
+    return out
 
 
 @dataclass
@@ -167,9 +185,10 @@ class BearingSet:
         """Check every field; raise ``ValueError`` naming the bad field. Returns self.
 
         Rules: finite positions and azimuths; elevation finite or NaN (1D) with |ψ| < π/2;
-        σ_θ > 0 and finite; σ_ψ > 0 and finite wherever elevation is given; at least two
-        stations and at least three independent scalar constraints with at least one elevation
-        (azimuths alone never fix the height: seed 004 needs one 2D sensor).
+        σ_θ in [SIGMA_MIN, SIGMA_MAX] = [1e-12, 1e3] rad; σ_ψ in that range wherever elevation
+        is given; at least two stations and at least three independent scalar constraints with
+        at least one elevation (azimuths alone never fix the height: seed 004 needs one 2D
+        sensor).
         """
         _check_bearing_fields(self.positions, self.azimuth, self.elevation, self.sigma_az,
                               self.sigma_el)
@@ -208,11 +227,11 @@ def _scalar_fields_valid(b):
     except OverflowError:
         return False
     if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z) and math.isfinite(az)
-            and math.isfinite(saz) and saz > 0.0):
+            and SIGMA_MIN <= saz <= SIGMA_MAX):
         return False
     if math.isnan(el):
         return True
-    return math.isfinite(el) and abs(el) < HALF_PI and math.isfinite(sel) and sel > 0.0
+    return math.isfinite(el) and abs(el) < HALF_PI and SIGMA_MIN <= sel <= SIGMA_MAX
 
 
 def _check_bearing_fields(pos, az, el, saz, sel):
@@ -226,11 +245,13 @@ def _check_bearing_fields(pos, az, el, saz, sel):
     has_el = np.isfinite(el)
     if np.any(np.abs(el[has_el]) >= HALF_PI):
         raise ValueError('elevation: |elevation| must be < pi/2')
-    if not np.all(np.isfinite(saz)) or np.any(saz <= 0):
-        raise ValueError('sigma_azimuth: must be finite and > 0')
+    if not np.all((saz >= SIGMA_MIN) & (saz <= SIGMA_MAX)):
+        raise ValueError(f'sigma_azimuth: must be finite and in [{SIGMA_MIN:g}, {SIGMA_MAX:g}] '
+                         'rad')
     sel_given = sel[has_el]
-    if not np.all(np.isfinite(sel_given)) or np.any(sel_given <= 0):
-        raise ValueError('sigma_elevation: must be finite and > 0 where elevation is measured')
+    if not np.all((sel_given >= SIGMA_MIN) & (sel_given <= SIGMA_MAX)):
+        raise ValueError(f'sigma_elevation: must be finite and in [{SIGMA_MIN:g}, '
+                         f'{SIGMA_MAX:g}] rad where elevation is measured')
 
 
 def simulate_bearings(target, positions, sigma_az, sigma_el=None, has_elevation=True, rng=None):

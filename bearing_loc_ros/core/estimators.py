@@ -207,6 +207,19 @@ def _pseudo_linear_covariance(bearings, x, ok, H, Ainv):
 
 
 def _closed_form_result(bearings, x, ok, H, Ainv, method):
+    """FixResult of a pseudo-linear solution; degenerate where it lies on a station.
+
+    A solution within 1e-9 × (1 m + largest |station coordinate| + largest station range) of
+    a station is the pseudo-linear system's answer for co-located stations (every ray starts
+    at one point, so the point itself zeroes every residual): the bearing model is undefined
+    there and the first-order covariance collapses to ~0, so it is reported as
+    degenerate_geometry instead of a confident fix.
+    """
+    with np.errstate(invalid='ignore'):
+        dist = np.linalg.norm(x[:, None, :] - bearings.positions, axis=-1)
+        scale = (1.0 + np.max(np.abs(bearings.positions), axis=(1, 2))
+                 + np.max(dist, axis=1))
+        ok = ok & ~np.any(dist <= 1e-9 * scale[:, None], axis=1)
     cov = _pseudo_linear_covariance(bearings, x, ok, H, Ainv)
     x = np.where(ok[:, None], x, np.nan)
     status = np.where(ok, STATUS_OK, STATUS_DEGENERATE)

@@ -33,12 +33,13 @@ from collections import Counter, deque
 from dataclasses import dataclass, field, replace
 from functools import lru_cache
 import math
+import numbers
 
 import numpy as np
 
 from . import estimators as _estimators
-from .alignment import (AlignmentConfig, DROP_REASONS, INTERPOLATED, NEAREST, StationBuffer,
-                        TOO_LATE, align, seconds_to_ns)
+from .alignment import (AlignmentConfig, DROP_REASONS, FROM_FUTURE, INTERPOLATED, NEAREST,
+                        StationBuffer, TOO_LATE, align, seconds_to_ns)
 from .bearings import BearingSet
 from .conventions import azimuth_elevation, los_vector, wrap_angle
 from .crlb import angle_jacobians
@@ -553,12 +554,37 @@ def _bearing_problem(b):
     path). It checks values, not the position's shape, so a position that is not exactly 3
     coordinates is refused here too (it would break the (N, 3) arrays of an epoch).
     """
+    stamp = b.stamp_ns
+    if type(stamp) is not int:
+        if isinstance(stamp, bool) or not isinstance(stamp, numbers.Real) \
+                or not math.isfinite(stamp) or stamp != int(stamp):
+            return f'stamp_ns: must be an integer number of ns, got {stamp!r}'[:120]
+    if not -2 ** 63 <= stamp < 2 ** 63:
+        return 'stamp_ns: outside the int64 range of a ROS time'
     try:
         b.validate()
     except (TypeError, ValueError) as exc:
         return str(exc)
+    problem = _position_covariance_problem(b.position_covariance)
+    if problem is not None:
+        return problem
     if np.shape(b.position) != (3,):
         return f'position: expected 3 coordinates, got shape {np.shape(b.position)}'
+    return None
+
+
+def _position_covariance_problem(pcov):
+    """None for a finite (3, 3) station position covariance with a non-negative diagonal
+    (m², the rule of ros_conversions.bearing_from_msg), else the problem text."""
+    try:
+        c = (pcov if type(pcov) is np.ndarray else np.asarray(pcov, dtype=float))
+        v = c.ravel().tolist() if c.shape == (3, 3) else None
+    except (TypeError, ValueError):
+        v = None
+    if v is None or not all(isinstance(x, (float, int)) for x in v):
+        return 'position_covariance: expected a (3, 3) array of numbers, m²'
+    if not all(map(math.isfinite, v)) or v[0] < 0.0 or v[4] < 0.0 or v[8] < 0.0:
+        return 'position_covariance: non-finite or negative variance'
     return None
 
 
@@ -647,11 +673,13 @@ class FusionCore:
     classified as the first that applies: ``duplicate`` (same stamp as a buffered bearing of
     its station), ``out_of_order`` (older than the station's newest), ``too_late`` (stamp
     < last epoch − sync_tolerance, so no future epoch could use it, or older than
-    now − buffer_age); such bearings are dropped and counted. "now" moving back by more than
-    ``time_jump_tolerance`` (a bag looping, a simulation reset) clears every buffer and the
-    epoch history and is reported as an event. In nearest mode each bearing is used in at
-    most one epoch (consecutive fixes stay independent); interpolation may reuse a bracketing
-    pair for several epochs when epochs are denser than the bearings.
+    now − buffer_age), ``from_future`` (stamp > now + buffer_age: buffered, it would make
+    every later bearing of its station out of order); such bearings are dropped and counted.
+    "now" moving back by more than ``time_jump_tolerance`` (a bag looping, a simulation
+    reset) clears every buffer and the epoch history and is reported as an event. In nearest
+    mode each bearing is used in at most one epoch (consecutive fixes stay independent);
+    interpolation may reuse a bracketing pair for several epochs when epochs are denser than
+    the bearings.
     """
 
     mode = MODE_MULTISTATION
@@ -795,6 +823,8 @@ class FusionCore:
         bad messages (``invalid_bearing`` / ``wrong_frame``), never raised.
         """
         now = int(now_ns)
+        if self._bad_station_id(bearing, now):
+            return []
         st = self.add_station(bearing.station)
         self._advance(now, bearing.station)
         st.received += 1
@@ -813,6 +843,8 @@ class FusionCore:
         reason = buf.classify(stamp)
         if reason is None and self._is_too_late(stamp, now):
             reason = TOO_LATE
+        if reason is None and stamp > now + self._align.buffer_age_ns:
+            reason = FROM_FUTURE
         if reason is not None:
             st.dropped[reason] += 1
             self.dropped[reason] += 1
@@ -834,6 +866,17 @@ class FusionCore:
         if self.config.trigger == TRIGGER_EVENT:
             return self._event_epochs(now)
         return []
+
+    def _bad_station_id(self, bearing, now):
+        """Count (as a bad message of no station) a bearing whose station id is not a
+        non-empty string; True when it was dropped."""
+        if isinstance(bearing.station, str) and bearing.station:
+            return False
+        self.bad_messages += 1
+        self._events.append(('warn', f'bearing with station id {bearing.station!r} dropped '
+                                     '(must be a non-empty string)'))
+        self._advance(now)
+        return True
 
     def tick(self, now_ns):
         """Clock tick at node-clock time ``now_ns``: prune, update states, run due epochs."""
@@ -1193,6 +1236,8 @@ class TmaFusionCore(FusionCore):
         """Ingest one bearing (see the class docstring); return new Epochs."""
         now = int(now_ns)
         station = bearing.station
+        if self._bad_station_id(bearing, now):
+            return []
         if self._tracked is not None and station != self._tracked:
             st = self.add_station(station)
             st.received += 1

@@ -1,0 +1,177 @@
+"""Robustness of the numerical core: extreme but valid inputs return a status (never NaN
+reported as converged, never an exception other than a ValueError naming the field), and
+the fusion core counts malformed bearings instead of raising."""
+import math
+
+import numpy as np
+import pytest
+
+from bearing_loc_ros.core import estimators as est
+from bearing_loc_ros.core import tma as tma_core
+from bearing_loc_ros.core.bearings import Bearing, BearingSet, simulate_bearings
+from bearing_loc_ros.core.conventions import azimuth_elevation
+from bearing_loc_ros.core.fusion import FusionConfig, FusionCore, TmaFusionCore
+
+S = 1_000_000_000
+STATIONS = np.array([[0.0, 0.0, 0.0], [10000.0, 0.0, 0.0], [0.0, 10000.0, 0.0]])
+TARGET = np.array([3000.0, 4000.0, 2000.0])
+METHODS = sorted(est.ESTIMATORS)
+
+
+def assert_honest(res):
+    """A converged fix is finite; a NaN position only with status degenerate_geometry."""
+    finite = np.all(np.isfinite(res.position), axis=1)
+    assert not np.any(res.converged & ~finite)
+    assert np.all(finite | (res.status == est.STATUS_DEGENERATE))
+    assert set(res.status) <= set(est.STATUSES)
+
+
+def extreme_sets():
+    rng = np.random.default_rng(0)
+    return {
+        'far_1e7': simulate_bearings([1e7, 1e7, 5000.0], STATIONS, 0.002, rng=rng),
+        'far_1e7_exact': simulate_bearings([1e7, 1e7, 5000.0], STATIONS, 0.002),
+        'colocated': simulate_bearings(TARGET, np.tile([1234.5, 5678.9, 90.0], (3, 1)), 0.002,
+                                       rng=rng),
+        'sigma_1e-9': simulate_bearings(TARGET, STATIONS, 1e-9, rng=rng),
+        'sigma_0.5': simulate_bearings(TARGET, STATIONS, 0.5, rng=rng),
+        'near_zenith': simulate_bearings([1.0, 1.0, 1e7], STATIONS, 0.002),
+        'near_nadir': simulate_bearings([1.0, 1.0, -1e7], STATIONS, 0.002),
+        'n2_one_2d': simulate_bearings(TARGET, STATIONS[:2], 0.002, has_elevation=[True, False],
+                                       rng=rng),
+        'on_baseline': simulate_bearings([5000.0, 0.0, 0.0], STATIONS[:2], 0.002),
+        'target_on_station': simulate_bearings(STATIONS[0] + 1e-9, STATIONS, 0.002),
+    }
+
+
+@pytest.mark.parametrize('name', sorted(extreme_sets()))
+@pytest.mark.parametrize('method', METHODS)
+def test_extreme_geometry_returns_a_status(name, method):
+    res = est.locate(method, extreme_sets()[name])
+    assert_honest(res)
+
+
+@pytest.mark.parametrize('method', ['ls', 'tls'])
+def test_colocated_stations_are_degenerate_not_a_confident_fix(method):
+    # Bug: every ray starts at one point, the pseudo-linear solution is that point with a
+    # ~1e-13 m² covariance and status ok. It must be degenerate_geometry.
+    bs = simulate_bearings(TARGET, np.tile([1234.5, 5678.9, 90.0], (3, 1)), 0.002,
+                           rng=np.random.default_rng(0))
+    res = est.locate(method, bs)
+    assert res.status[0] == est.STATUS_DEGENERATE and not res.converged[0]
+    assert np.all(np.isnan(res.position[0]))
+
+
+def test_empty_batch_returns_empty_results():
+    bs = simulate_bearings(TARGET, STATIONS, 0.002)
+    empty = BearingSet(bs.positions[:0], bs.azimuth[:0], bs.elevation[:0], bs.sigma_az[:0],
+                       bs.sigma_el[:0])
+    for method in METHODS:
+        res = est.locate(method, empty)
+        assert res.position.shape == (0, 3) and res.status.shape == (0,)
+    t = np.zeros((0, 4))
+    for method in sorted(tma_core.TMA_ESTIMATORS):
+        assert tma_core.tma(method, empty.subset(np.arange(3)), t[:, :3], 100.0).M == 0
+
+
+@pytest.mark.parametrize('sigma', [1e-300, 1e-13, 1e4, 1e300])
+def test_sigma_outside_the_numeric_range_is_a_named_error(sigma):
+    # Bug: sigma 1e-300 overflowed 1/sigma^2 (TMA: "Eigenvalues did not converge" with
+    # RuntimeWarnings; mle: overflow warnings, diverged).
+    with pytest.raises(ValueError, match='sigma_azimuth'):
+        simulate_bearings(TARGET, STATIONS, sigma)
+    b = Bearing('s1', 0, STATIONS[0], 0.1, 0.1, sigma, 0.01)
+    with pytest.raises(ValueError, match='sigma_azimuth'):
+        b.validate()
+
+
+def test_tma_extremes_return_a_status():
+    t = np.arange(20) * 5.0
+    obs = np.stack([np.zeros(20), 100.0 * t, np.zeros(20)], 1)
+    cases = [([1e7, 1e7, 3000.0], obs, t, 1e-3), ([2e4, 2e4, 3000.0], obs, t, 1e-12),
+             ([2e4, 2e4, 3000.0], obs, t, 0.5), ([2e4, 2e4, 3000.0], obs[:2], t[:2], 1e-3),
+             ([2e4, 2e4, 3000.0], obs, np.zeros(20), 1e-3),
+             ([2e4, 2e4, 3000.0], np.zeros((20, 3)), t, 1e-3)]
+    for p0, o, tt, sig in cases:
+        bs, times = tma_core.simulate_tma(tt, p0, [200.0, 0.0, 0.0], o, sig,
+                                          rng=np.random.default_rng(1))
+        for method in sorted(tma_core.TMA_ESTIMATORS):
+            res = tma_core.tma(method, bs, times, 200.0, speed_reference='ground')
+            d = res.single(0)
+            assert not (d['converged'] and not np.all(np.isfinite(d['position'])))
+
+
+# ------------------------------------------------------------------------------ fusion core
+
+def good_bearing(station, stamp):
+    p = STATIONS[int(station[1:]) - 1]
+    az, el = azimuth_elevation(TARGET - p)
+    return Bearing(station, stamp, p.copy(), float(az), float(el), 0.002, 0.002)
+
+
+BAD_FIELDS = [('azimuth', math.nan), ('elevation', math.inf), ('elevation', 2.0),
+              ('sigma_azimuth', -1.0), ('sigma_azimuth', math.nan), ('sigma_elevation', -0.1),
+              ('position', None), ('position', 'abc'), ('position', np.zeros(2)),
+              ('azimuth', None), ('azimuth', 'x'), ('stamp_ns', math.nan),
+              ('stamp_ns', None), ('stamp_ns', 'x'), ('stamp_ns', 1.5), ('stamp_ns', 10 ** 30),
+              ('station', None), ('station', ''), ('position_covariance', None),
+              ('position_covariance', -np.eye(3)), ('position_covariance', np.full((3, 3),
+                                                                                   np.nan))]
+
+
+@pytest.mark.parametrize('core_cls,extra', [(FusionCore, {'estimator': 'mle'}),
+                                            (TmaFusionCore, {'estimator': 'tma_ctls',
+                                                             'target_speed': 100.0})])
+@pytest.mark.parametrize('trigger', ['event', 'timer'])
+def test_fusion_core_counts_malformed_bearings_and_keeps_fixing(core_cls, extra, trigger):
+    # Bugs: position None -> IndexError, stamp NaN/None/'x' -> int() error, station None
+    # registered as a station, position_covariance None -> crash in the epoch (timer mode).
+    core = core_cls(FusionConfig(trigger=trigger, **extra), stations=['s1', 's2', 's3'])
+    now = 100 * S
+    for field_name, value in BAD_FIELDS:
+        now += S // 10
+        for st in ('s1', 's2', 's3'):
+            core.add_bearing(good_bearing(st, now - S // 100), now)
+        b = good_bearing('s1', now)
+        setattr(b, field_name, value)
+        assert core.add_bearing(b, now) == []
+        core.tick(now)
+    # Two bearings have no usable station id: counted globally, not under a station.
+    assert core.station_stats('s1').bad['invalid_bearing'] == len(BAD_FIELDS) - 2
+    assert set(core.stations) == {'s1', 's2', 's3'}
+    if core_cls is FusionCore:
+        assert core.bad_messages == len(BAD_FIELDS)
+        assert core.fixes > 0
+    core.diagnostics(now)
+
+
+def test_fusion_core_far_future_stamp_does_not_block_its_station():
+    # Bug: one bearing stamped 1e6 s ahead was buffered, so every later bearing of that
+    # station was dropped as out_of_order (forever, no time jump ever cleared it).
+    core = FusionCore(FusionConfig(estimator='mle'), stations=['s1', 's2', 's3'])
+    now = 100 * S
+    assert core.add_bearing(good_bearing('s1', now + 10 ** 6 * S), now) == []
+    assert core.dropped['from_future'] == 1
+    for _ in range(10):
+        now += S // 10
+        for st in ('s1', 's2', 's3'):
+            core.add_bearing(good_bearing(st, now - S // 100), now)
+    assert core.station_stats('s1').accepted == 10
+    assert core.dropped['out_of_order'] == 0
+    diag = {d.name: d.values for d in core.diagnostics(now)}
+    assert diag['fusion']['dropped.from_future'] == 1
+
+
+def test_fusion_core_clock_going_back_repeatedly_is_counted():
+    core = FusionCore(FusionConfig(estimator='mle', trigger='timer'), stations=['s1', 's2'])
+    now = 1000 * S
+    for k in range(10):
+        now -= 5 * S
+        core.tick(now)
+        core.add_bearing(good_bearing('s1', now), now)
+    assert core.time_jumps == 9          # the first tick sets the clock
+    for stamp in (-5 * S, 2 ** 62):
+        assert core.add_bearing(good_bearing('s2', stamp), now) == []
+    assert core.dropped['too_late'] == 1 and core.dropped['from_future'] == 1
+    core.tick(2 ** 62)
+    core.diagnostics(2 ** 62)
