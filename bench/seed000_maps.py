@@ -8,7 +8,7 @@ colour scale and one set of contour levels (m) for all maps. Prints the expected
 fixed positions in every map (the paper's table 1 lists such values; its numbers are not
 reproduced here).
 
-Run: .venv/bin/python bench/seed000_maps.py [--out docs/img] [--resolution 300]
+Run: .venv/bin/python bench/seed000_maps.py [--out docs/img] [--csv-out results] [--resolution 300]
 """
 import argparse
 import contextlib
@@ -42,6 +42,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--out', default='docs/img', help='output directory (default docs/img)')
     ap.add_argument('--resolution', default='300', help='cell size, m (default 300: 400x400)')
+    ap.add_argument('--csv-out', default='results',
+                    help='directory for the grids as CSV (default results/, gitignored)')
     args = ap.parse_args()
     os.chdir(ROOT)
     common = ['--scenario', SCENARIO, '--extent-km', '60', '--resolution', args.resolution,
@@ -53,14 +55,14 @@ def main():
             png = os.path.join(args.out, name + '.png')
             out = run(['plan', 'map', *common, '--altitude', str(int(alt_km) * 1000),
                        '--sigma-mrad', sigma, '--model', 'ctls', '--png', png,
-                       '--csv', os.path.join('results', name + '.csv'),
+                       '--csv', os.path.join(args.csv_out, name + '.csv'),
                        '--title', f'CTLS error (seed 000 eq. 32), sigma {sigma} mrad, '
                                   f'altitude {alt_km} km'])
             summary.append((name, out['stats']))
     png = os.path.join(args.out, 'seed000_crlb_1p5mrad_5km.png')
     out = run(['plan', 'map', *common, '--altitude', '5000', '--sigma-mrad', '1.5',
                '--model', 'crlb', '--png', png,
-               '--csv', os.path.join('results', 'seed000_crlb_1p5mrad_5km.csv'),
+               '--csv', os.path.join(args.csv_out, 'seed000_crlb_1p5mrad_5km.csv'),
                '--title', 'CRLB sqrt(trace), sigma 1.5 mrad, altitude 5 km'])
     summary.append(('seed000_crlb_1p5mrad_5km', out['stats']))
     out = run(['plan', 'place', '--scenario', SCENARIO, '--sigma-mrad', '1.5', '--altitude',
