@@ -174,6 +174,18 @@ def simulate_bag(scenario, out, duration=None, seed=0, storage='mcap', clock_rat
             'end_ns': sim.end_ns, 'duration': sim.duration}
 
 
+def check_out_parent(out):
+    """InputError naming --out unless the nearest existing ancestor of ``out`` is a writable
+    directory (the bag writer creates the missing ones)."""
+    parent = os.path.dirname(os.path.abspath(out))
+    while not os.path.exists(parent):
+        parent = os.path.dirname(parent)
+    if not os.path.isdir(parent):
+        raise InputError(f'out: cannot create {out!r}: {parent!r} is not a directory')
+    if not os.access(parent, os.W_OK):
+        raise InputError(f'out: cannot create {out!r}: {parent!r} is not writable')
+
+
 def run_simulate(args):
     """``bag simulate``."""
     from ..core.simulation import load_scenario
@@ -184,6 +196,7 @@ def run_simulate(args):
         raise InputError(f'seed: must be >= 0 (got {args.seed})')
     if os.path.exists(args.out):
         raise InputError(f'out: {args.out} exists already (a bag is never overwritten)')
+    check_out_parent(args.out)
     t0 = time.perf_counter()
     s = simulate_bag(scenario, args.out, args.duration, args.seed, args.storage,
                      args.clock_rate)
@@ -613,6 +626,7 @@ def run_process(args):
     if not os.path.isdir(args.bag):
         raise InputError(f'bag: {args.bag} is not a directory')
     params = fusion_params(args.params_file, args.param, args.estimator)
+    check_out_parent(args.out)
     t0 = time.perf_counter()
     s = process_bag(args.bag, args.out, params, args.storage, args.namespace, args.fix_topic)
     dt = time.perf_counter() - t0

@@ -27,6 +27,8 @@ DEFAULT_SIGMAS = '0.5,1,1.5,2,2.5,3'
 SWEEP_CHOICES = ('none', 'azimuth', 'elevation', 'both')
 CSV_NAME = 'evaluation.csv'
 JSON_NAME = 'evaluation.json'
+#: Upper bound of --trials: the trials of one noise level are one batch held in memory.
+MAX_TRIALS = 1_000_000
 
 
 def add_arguments(parser):
@@ -106,14 +108,15 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
                          f'{", ".join(sorted(est.ESTIMATORS))}')
     if len(set(estimators)) != len(estimators):
         raise InputError('estimators: a name is repeated')
-    if trials < 1:
-        raise InputError(f'trials: must be >= 1 (got {trials})')
-    if seed < 0:
-        raise InputError(f'seed: must be >= 0 (got {seed})')
+    if not 1 <= trials <= MAX_TRIALS:
+        raise InputError(f'trials: must be in 1..{MAX_TRIALS} (got {trials})')
+    if not 0 <= seed <= 2 ** 63 - 1 - trials:
+        raise InputError(f'seed: must be in 0..2**63-1-trials (got {seed})')
     path = resolve_scenario(scenario_path)
     scenario = load_scenario(path)
-    if range_ref is not None and not (math.isfinite(range_ref) and range_ref >= 0):
-        raise InputError(f'range_ref: must be >= 0 m (got {range_ref})')
+    if range_ref is not None and not (math.isfinite(range_ref)
+                                      and (range_ref == 0 or range_ref >= 1.0)):
+        raise InputError(f'range_ref: must be 0 (constant σ) or >= 1 m (got {range_ref})')
     tr = ev.trials_from_scenario(scenario, trials, seed, range_ref)
     sweeps = ('joint',) + {'none': (), 'azimuth': ('azimuth',), 'elevation': ('elevation',),
                            'both': ('azimuth', 'elevation')}[sweep]
@@ -250,6 +253,14 @@ def run(args):
         raise InputError(f'sigma_deg: every value must be > 0 (got {args.sigma_deg})')
     if not math.isfinite(args.fixed_sigma_deg) or args.fixed_sigma_deg <= 0:
         raise InputError(f'fixed_sigma_deg: must be > 0 (got {args.fixed_sigma_deg})')
+    if args.out:    # checked before the (long) run, so nothing is printed for a bad --out
+        try:
+            os.makedirs(args.out, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f'out: cannot create directory {args.out!r} '
+                             f'({exc.strerror or exc})') from None
+        if not os.access(args.out, os.W_OK):
+            raise InputError(f'out: directory {args.out!r} is not writable')
     progress = Progress(enabled=not args.quiet and sys.stderr.isatty())
     rows, meta = run_evaluation(args.scenario, estimators, sigmas, args.trials, args.seed,
                                 args.sweep, args.fixed_sigma_deg, progress, args.range_ref)
@@ -258,6 +269,10 @@ def run(args):
           f'{meta["elapsed_s"]:.2f} s')
     print(format_table(rows))
     if args.out:
-        files = write_outputs(rows, meta, args.out, plots=not args.no_plots)
+        try:
+            files = write_outputs(rows, meta, args.out, plots=not args.no_plots)
+        except OSError as exc:
+            raise InputError(f'out: cannot write to {args.out!r} '
+                             f'({exc.strerror or exc})') from None
         print(f'wrote {", ".join(os.path.join(args.out, f) for f in files)}')
     return 0

@@ -15,6 +15,7 @@ that starts with a minus sign must be attached with '=' (``--area-km=-10,10,-10,
 otherwise argparse takes it for an option.
 """
 
+import contextlib
 import json
 import math
 import os
@@ -25,6 +26,8 @@ import numpy as np
 from . import InputError
 
 KM = 1000.0
+#: Most values a --k1-values/--k2-values/--levels list may expand to (start:stop:step).
+MAX_VALUES = 10000
 
 
 def add_arguments(parser):
@@ -119,10 +122,16 @@ def run(args):
 
 # ----------------------------------------------------------------------------------- parsing
 
+#: Largest magnitude of any number given on the command line (m, mrad, ratios): beyond it
+#: squares overflow float64 in the error models.
+MAX_ABS = 1e12
+
+
 def _finite(value, flag, positive=False):
-    if value is None or not math.isfinite(value) or (positive and value <= 0):
-        raise InputError(f'{flag}: must be a finite number{" > 0" if positive else ""}, '
-                         f'got {value}')
+    if value is None or not math.isfinite(value) or (positive and value <= 0) \
+            or abs(value) > MAX_ABS:
+        raise InputError(f'{flag}: must be a finite number{" > 0" if positive else ""} of '
+                         f'magnitude <= {MAX_ABS:g}, got {value}')
     return value
 
 
@@ -136,15 +145,21 @@ def parse_values(text, flag):
         try:
             if ':' in part:
                 a, b, s = (float(v) for v in part.split(':'))
-                if not s > 0 or b < a:
+                if not (s > 0 and b >= a and math.isfinite(a) and math.isfinite(b)):
                     raise ValueError
-                n = int(math.floor((b - a) / s + 1e-9)) + 1
-                out.extend(round(a + i * s, 12) for i in range(n))
+                n = (b - a) / s + 1e-9
+                if not n + 1 + len(out) <= MAX_VALUES:
+                    n = None
+                else:
+                    n = int(math.floor(n)) + 1
+                    out.extend(round(a + i * s, 12) for i in range(n))
             else:
                 out.append(float(part))
         except ValueError:
             raise InputError(f'{flag}: cannot parse {part!r} (numbers or start:stop:step)') \
                 from None
+        if ':' in part and n is None:
+            raise InputError(f'{flag}: {part!r} gives more than {MAX_VALUES} values')
     if not out or not all(math.isfinite(v) for v in out):
         raise InputError(f'{flag}: need at least one finite value')
     return out
@@ -159,7 +174,7 @@ def parse_box_km(text, flag):
             from None
     if len(vals) == 1:
         vals = [-vals[0], vals[0], -vals[0], vals[0]]
-    if len(vals) != 4 or not all(math.isfinite(v) for v in vals) \
+    if len(vals) != 4 or not all(math.isfinite(v) and abs(v) * KM <= MAX_ABS for v in vals) \
             or vals[1] <= vals[0] or vals[3] <= vals[2]:
         raise InputError(f'{flag}: expected L > 0 or XMIN<XMAX,YMIN<YMAX in km, got {text!r}')
     return tuple(v * KM for v in vals)
@@ -182,8 +197,9 @@ def parse_stations(text, unit='km'):
         except ValueError:
             raise InputError(f'--stations: station {k + 1}: non-numeric coordinate in '
                              f'{item!r}') from None
-        if not all(math.isfinite(v) for v in xyz):
-            raise InputError(f'--stations: station {k + 1}: non-finite coordinate')
+        if not all(math.isfinite(v) and abs(v) <= MAX_ABS for v in xyz):
+            raise InputError(f'--stations: station {k + 1}: non-finite coordinate or one '
+                             f'beyond {MAX_ABS:g} m')
         pos.append(xyz)
         dims.append(kind == '2d')
     if not pos:
@@ -198,6 +214,11 @@ def load_stations(args):
                                                        True) * 1e-3
     sel = None if args.sigma_el_mrad is None else _finite(args.sigma_el_mrad,
                                                           '--sigma-el-mrad', True) * 1e-3
+    from ..core.bearings import SIGMA_MAX, SIGMA_MIN
+    for flag, v in (('--sigma-mrad', saz), ('--sigma-el-mrad', sel)):
+        if v is not None and not SIGMA_MIN <= v <= SIGMA_MAX:
+            raise InputError(f'{flag}: must be in [{SIGMA_MIN * 1e3:g}, {SIGMA_MAX * 1e3:g}] '
+                             f'mrad, got {v * 1e3:g}')
     if args.scenario:
         from ..core.simulation import load_scenario
         return Stations.from_scenario(load_scenario(args.scenario), 0.0, saz, sel)
@@ -214,6 +235,9 @@ def _grid(args, default_box):
     if res is None:
         res = max(box[1] - box[0], box[3] - box[2]) / 400.0
     _finite(res, '--resolution', True)
+    if res < 1e-3:
+        raise InputError(f'--resolution: cell size {res:g} m is below 1 mm (widen --extent-km '
+                         'or give a larger --resolution)')
     if max(box[1] - box[0], box[3] - box[2]) / res > 4000:
         raise InputError('--resolution: more than 4000 cells per side; use a larger cell')
     return GridSpec.from_extent(*box, res, _finite(args.altitude, '--altitude'))
@@ -232,12 +256,30 @@ def _levels(args):
     return lv
 
 
+@contextlib.contextmanager
+def _writing(flag, path):
+    """Turn an OSError while writing ``path`` into an InputError naming ``flag``."""
+    try:
+        yield
+    except OSError as exc:
+        raise InputError(f'{flag}: cannot write {path!r} ({exc.strerror or exc})') from None
+
+
 def _num(v):
     v = float(v)
     return v if math.isfinite(v) else None
 
 
 # ---------------------------------------------------------------------------------- cut-angle
+
+#: Largest variance ratio k1/k2 accepted (beyond it the cut-angle maths overflows float64).
+MAX_RATIO = 1e6
+
+
+def _ratio_bound(values, flag):
+    if max(values) > MAX_RATIO:
+        raise InputError(f'{flag}: variance ratios must be <= {MAX_RATIO:g}, got {max(values)}')
+
 
 def run_cut_angle(args):
     """Print the optimum (JSON) or seed 004's tables."""
@@ -249,6 +291,8 @@ def run_cut_angle(args):
         _finite(args.k1, '--k1', True)
         if not (math.isfinite(args.k2) and args.k2 >= 0):
             raise InputError(f'--k2: must be a finite number >= 0, got {args.k2}')
+        _ratio_bound([args.k1], '--k1')
+        _ratio_bound([args.k2], '--k2')
         print(json.dumps(optimal_cut_angle(args.k1, args.k2, el).as_dict()))
         return 0
     k1s = parse_values(args.k1_values, '--k1-values')
@@ -257,6 +301,8 @@ def run_cut_angle(args):
         raise InputError('--k1-values: every k1 must be > 0')
     if min(k2s) < 0:
         raise InputError('--k2-values: every k2 must be >= 0')
+    _ratio_bound(k1s, '--k1-values')
+    _ratio_bound(k2s, '--k2-values')
     rows = [r.as_dict() for r in cut_angle_table(k1s, k2s, el)]
     if args.json:
         print(json.dumps(rows, indent=1))
@@ -392,10 +438,12 @@ def run_map(args):
     if csv is None and args.png:
         csv = os.path.splitext(args.png)[0] + '.csv'
     if args.png:
-        plot_map(amap, args.png, args.title, levels, args.vmax, vmin=args.vmin)
+        with _writing('--png', args.png):
+            plot_map(amap, args.png, args.title, levels, args.vmax, vmin=args.vmin)
         out['png'] = args.png
     if csv:
-        write_csv(amap, csv)
+        with _writing('--csv', csv):
+            write_csv(amap, csv)
         out['csv'] = csv
     print(json.dumps(out))
     return 0
@@ -445,8 +493,9 @@ def run_place(args):
             amap = before if key == 'before' else accuracy_map(layout, grid, args.model,
                                                                _ctls_unit(args))
             ex = dict(extra, new=res_new.position) if key == 'after' else extra
-            plot_map(amap, path, f'{args.model.upper()} error {key} adding a station, '
-                                 f'altitude {alt / KM:g} km', levels, vmax, ex, args.vmin)
+            with _writing(f'--png-{key}', path):
+                plot_map(amap, path, f'{args.model.upper()} error {key} adding a station, '
+                                     f'altitude {alt / KM:g} km', levels, vmax, ex, args.vmin)
             out[f'png_{key}'] = path
     print(json.dumps(out))
     return 0

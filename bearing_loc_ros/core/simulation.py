@@ -414,6 +414,10 @@ def realize_targets(scenario, seed=0):
     return out
 
 
+#: Most bearings one :func:`simulate` call produces (all are held in memory, ~1 kB each).
+MAX_SIMULATED_BEARINGS = 1e8
+
+
 def observation_times_ns(station, duration):
     """Scenario times t_k = phase + k/rate in [0, duration), integer ns (int64 array)."""
     period = station.period_ns
@@ -486,6 +490,10 @@ def simulate(scenario, duration=None, seed=0):
     duration = float(duration)
     if not math.isfinite(duration) or duration <= 0:
         raise ValueError(f'duration: must be > 0 s (got {duration})')
+    n_obs = duration * sum(st.rate for st in scenario.stations) * len(scenario.targets)
+    if duration * NS_PER_S >= 2 ** 63 or n_obs > MAX_SIMULATED_BEARINGS:
+        raise ValueError(f'duration: {duration:g} s gives ~{n_obs:.3g} bearings, more than the '
+                         f'{MAX_SIMULATED_BEARINGS:.0e} one run holds in memory')
     targets = realize_targets(scenario, seed)
     streams, events = [], []
     for i, st in enumerate(scenario.stations):
@@ -553,7 +561,7 @@ class _Src:
 
 def _mapping(src, value, key, allowed):
     if not isinstance(value, dict):
-        raise src.error(key, f'expected a mapping, got {type(value).__name__}')
+        raise src.error(key or 'scenario', f'expected a mapping, got {type(value).__name__}')
     for k in value:
         if k not in allowed:
             raise src.error(f'{key}.{k}' if key else str(k),
@@ -570,7 +578,10 @@ def _float(src, d, key, where, default=None, lo=None, hi=None, lo_open=False,
     v = d[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)):
         raise src.error(f'{where}{key}', f'expected a number, got {v!r}')
-    v = float(v)
+    try:
+        v = float(v)
+    except OverflowError:        # an integer beyond the float range
+        v = math.inf
     if not math.isfinite(v):
         raise src.error(f'{where}{key}', f'must be finite (got {v})')
     if lo is not None and (v < lo or (lo_open and v == lo)):
@@ -594,9 +605,12 @@ def _vec(src, value, key, n=3):
     if (not isinstance(value, (list, tuple)) or len(value) != n
             or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in value)):
         raise src.error(key, f'expected a list of {n} numbers, got {value!r}')
-    v = np.array(value, dtype=float)
+    try:
+        v = np.array(value, dtype=float)
+    except OverflowError:        # an integer beyond the float range
+        v = np.array([math.inf])
     if not np.all(np.isfinite(v)):
-        raise src.error(key, f'non-finite value in {value!r}')
+        raise src.error(key, f'non-finite value in {str(value)[:80]}')
     return v
 
 
@@ -826,6 +840,9 @@ def load_scenario(path):
             data = yaml.safe_load(f)
     except OSError as exc:
         raise ValueError(f'{path}: cannot read scenario ({exc.strerror or exc})') from None
+    except UnicodeDecodeError:
+        raise ValueError(f'{path}: not a UTF-8 text file (a YAML scenario is expected)') \
+            from None
     except yaml.YAMLError as exc:
         msg = ' '.join(str(exc).split())
         raise ValueError(f'{path}: invalid YAML ({msg})') from None
