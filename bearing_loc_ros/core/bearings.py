@@ -59,10 +59,10 @@ class Bearing:
         if _scalar_fields_valid(self):
             return self
         pos = _as_float_array(self.position, 'position')
-        if pos.size != 3:
-            raise ValueError(f'position: expected 3 coordinates, got shape {pos.shape}')
+        if pos.ndim == 0:
+            raise ValueError('position: expected 3 coordinates, got a scalar')
         _check_bearing_fields(
-            pos.reshape(1, 1, 3),
+            pos[None, None, :],
             *(_as_float_array(getattr(self, name), name).reshape(1, 1)
               for name in ('azimuth', 'elevation', 'sigma_azimuth', 'sigma_elevation')))
         return self
