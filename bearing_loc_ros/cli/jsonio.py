@@ -36,6 +36,29 @@ def number(value, field, positive=False):
     return value
 
 
+def request_header(doc, top_fields, problem_key, methods, default_method, method_override,
+                   kind='estimator'):
+    """Check a request's top level; return (method, options dict).
+
+    ``doc`` must be an object whose keys are all in ``top_fields``; the method is the
+    override, else ``doc["method"]``, else ``default_method`` and must be a key of
+    ``methods``; ``options`` (default {}) must be an object.
+    """
+    if not isinstance(doc, dict):
+        raise InputError(f'input: must be a JSON object with "{problem_key}" or "problems"')
+    for key in doc:
+        if key not in top_fields:
+            raise InputError(f'{key}: unknown field (expected one of {", ".join(top_fields)})')
+    method = method_override or doc.get('method') or default_method
+    if not isinstance(method, str) or method not in methods:
+        raise InputError(f'method: unknown {kind} {method!r}; choose one of '
+                         f'{", ".join(sorted(methods))}')
+    options = doc.get('options', {})
+    if not isinstance(options, dict):
+        raise InputError('options: must be an object')
+    return method, options
+
+
 def finite_or_none(x):
     """Nested lists of floats with NaN/inf replaced by None (strict JSON null)."""
     if isinstance(x, list):

@@ -29,7 +29,7 @@ from ..core.bearings import BearingSet
 from ..core.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, locate, noise_model_crlb
 from . import InputError
 from .jsonio import (add_io_arguments, finite_or_none, number, read_json,
-                     write_results)
+                     request_header, write_results)
 
 BEARING_FIELDS = ('station', 'position', 'azimuth', 'elevation', 'sigma_azimuth',
                   'sigma_elevation')
@@ -96,18 +96,8 @@ def parse_bearings(items, where='bearings'):
 
 def parse_request(doc, method_override=None):
     """Validate a request document; return (method, options, [BearingSet], is_batch)."""
-    if not isinstance(doc, dict):
-        raise InputError('input: must be a JSON object with "bearings" or "problems"')
-    for key in doc:
-        if key not in TOP_FIELDS:
-            raise InputError(f'{key}: unknown field (expected one of {", ".join(TOP_FIELDS)})')
-    method = method_override or doc.get('method') or DEFAULT_ESTIMATOR
-    if not isinstance(method, str) or method not in ESTIMATORS:
-        raise InputError(f'method: unknown estimator {method!r}; choose one of '
-                         f'{", ".join(sorted(ESTIMATORS))}')
-    options = doc.get('options', {})
-    if not isinstance(options, dict):
-        raise InputError('options: must be an object')
+    method, options = request_header(doc, TOP_FIELDS, 'bearings', ESTIMATORS,
+                                     DEFAULT_ESTIMATOR, method_override)
     if ('bearings' in doc) == ('problems' in doc):
         raise InputError('input: give exactly one of "bearings" (one problem) or "problems" '
                          '(a batch)')

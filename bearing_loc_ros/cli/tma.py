@@ -36,7 +36,7 @@ from ..core.conventions import compass_to_enu
 from ..core.tma import SPEED_REFERENCES, tma, TMA_ESTIMATORS
 from . import InputError
 from .jsonio import (add_io_arguments, finite_or_none, number, read_json,
-                     write_results)
+                     request_header, write_results)
 
 DEFAULT_METHOD = 'ctls'
 TOP_FIELDS = ('method', 'speed', 'speed_reference', 'options', 'sigma_azimuth',
@@ -99,18 +99,8 @@ def parse_observations(items, where, defaults, compass=False):
 
 def parse_request(doc, method_override=None, speed_override=None, compass=False):
     """Validate a request; return (method, options, [(BearingSet, times, speed)], is_batch)."""
-    if not isinstance(doc, dict):
-        raise InputError('input: must be a JSON object with "observations" or "problems"')
-    for key in doc:
-        if key not in TOP_FIELDS:
-            raise InputError(f'{key}: unknown field (expected one of {", ".join(TOP_FIELDS)})')
-    method = method_override or doc.get('method') or DEFAULT_METHOD
-    if not isinstance(method, str) or method not in TMA_ESTIMATORS:
-        raise InputError(f'method: unknown TMA estimator {method!r}; choose one of '
-                         f'{", ".join(sorted(TMA_ESTIMATORS))}')
-    options = doc.get('options', {})
-    if not isinstance(options, dict):
-        raise InputError('options: must be an object')
+    method, options = request_header(doc, TOP_FIELDS, 'observations', TMA_ESTIMATORS,
+                                     DEFAULT_METHOD, method_override, kind='TMA estimator')
     options = dict(options)
     for key, value in options.items():
         if key in ('alpha', 'max_range_ratio', 'dtol', 'xtol', 'min_bearings',
