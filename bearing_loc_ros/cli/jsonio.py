@@ -59,6 +59,16 @@ def request_header(doc, top_fields, problem_key, methods, default_method, method
     return method, options
 
 
+def check_object(obj, where, fields):
+    """Require ``obj`` to be a JSON object whose keys are all in ``fields`` (typos are errors)."""
+    if not isinstance(obj, dict):
+        raise InputError(f'{where}: must be an object')
+    for key in obj:
+        if key not in fields:
+            raise InputError(f'{where}.{key}: unknown field (expected one of '
+                             f'{", ".join(fields)})')
+
+
 def finite_or_none(x):
     """Nested lists of floats with NaN/inf replaced by None (strict JSON null)."""
     if isinstance(x, list):

@@ -28,7 +28,7 @@ import numpy as np
 from ..core.bearings import BearingSet
 from ..core.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, locate, noise_model_crlb
 from . import InputError
-from .jsonio import (add_io_arguments, finite_or_none, number, read_json,
+from .jsonio import (add_io_arguments, check_object, finite_or_none, number, read_json,
                      request_header, write_results)
 
 BEARING_FIELDS = ('station', 'position', 'azimuth', 'elevation', 'sigma_azimuth',
@@ -55,12 +55,7 @@ def parse_bearings(items, where='bearings'):
     pos, az, el, saz, sel, names = [], [], [], [], [], []
     for i, b in enumerate(items):
         f = f'{where}[{i}]'
-        if not isinstance(b, dict):
-            raise InputError(f'{f}: must be an object')
-        for key in b:
-            if key not in BEARING_FIELDS:
-                raise InputError(f'{f}.{key}: unknown field (expected one of '
-                                 f'{", ".join(BEARING_FIELDS)})')
+        check_object(b, f, BEARING_FIELDS)
         for key in ('position', 'azimuth', 'sigma_azimuth'):
             if key not in b:
                 raise InputError(f'{f}.{key}: missing')

@@ -35,7 +35,7 @@ from ..core.bearings import BearingSet
 from ..core.conventions import compass_to_enu
 from ..core.tma import SPEED_REFERENCES, tma, TMA_ESTIMATORS
 from . import InputError
-from .jsonio import (add_io_arguments, finite_or_none, number, read_json,
+from .jsonio import (add_io_arguments, check_object, finite_or_none, number, read_json,
                      request_header, write_results)
 
 DEFAULT_METHOD = 'ctls'
@@ -67,12 +67,7 @@ def parse_observations(items, where, defaults, compass=False):
     rows = []
     for i, ob in enumerate(items):
         f = f'{where}[{i}]'
-        if not isinstance(ob, dict):
-            raise InputError(f'{f}: must be an object')
-        for key in ob:
-            if key not in OBS_FIELDS:
-                raise InputError(f'{f}.{key}: unknown field (expected one of '
-                                 f'{", ".join(OBS_FIELDS)})')
+        check_object(ob, f, OBS_FIELDS)
         ob = dict(defaults, **{k: v for k, v in ob.items() if v is not None or k not in
                                defaults})
         for key in OBS_FIELDS:
