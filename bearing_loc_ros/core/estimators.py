@@ -683,6 +683,22 @@ ESTIMATORS = {
 }
 
 
+#: Accepted options and their defaults, per estimator (validated by :func:`parse_options`).
+OPTION_DEFAULTS = {
+    'ls': _COMMON_OPTIONS,
+    'tls': _COMMON_OPTIONS,
+    'ctls': dict(_ITERATIVE_OPTIONS, step_decay=1.0),
+    'ctls_am': dict(_ITERATIVE_OPTIONS, step_decay=1.0),
+    'mle': _ITERATIVE_OPTIONS,
+    'wmle': dict(_ITERATIVE_OPTIONS, reference_range=DEFAULT_REFERENCE_RANGE),
+}
+
+
+def option_defaults(method):
+    """The options estimator ``method`` accepts, with their defaults ({} for a TMA name)."""
+    return dict(OPTION_DEFAULTS.get(method, {}))
+
+
 def locate(method, bearings, **options):
     """Run estimator ``method`` (a name in :data:`ESTIMATORS`, None = DEFAULT_ESTIMATOR).
 

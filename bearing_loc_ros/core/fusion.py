@@ -38,6 +38,7 @@ import numbers
 import numpy as np
 
 from . import estimators as _estimators
+from . import registry as _registry
 from .alignment import (AlignmentConfig, DROP_REASONS, FROM_FUTURE, INTERPOLATED, NEAREST,
                         StationBuffer, TOO_LATE, align, seconds_to_ns)
 from .bearings import BearingSet
@@ -74,15 +75,8 @@ NOT_TRACKED = 'not_tracked'
 #: Fusion modes (the node's ``mode`` parameter; ``auto`` follows the estimator).
 MODE_MULTISTATION = 'multistation'
 MODE_TMA = 'tma'
-#: Single-station TMA estimators of the fusion node -> core.tma method (seed 001).
-TMA_ESTIMATORS = {'tma_ple': 'ple', 'tma_ctls': 'ctls', 'tma_ctls6': 'ctls6',
-                  'tma_mle': 'mle'}
-
-
-def mode_for_estimator(name):
-    """The fusion mode an estimator belongs to: ``tma`` for TMA_ESTIMATORS, else
-    ``multistation``."""
-    return MODE_TMA if name in TMA_ESTIMATORS else MODE_MULTISTATION
+TMA_ESTIMATORS = _registry.TMA_ESTIMATORS
+mode_for_estimator = _registry.mode_of
 
 
 #: Station states.
@@ -101,13 +95,7 @@ GEOMETRY_MOVE_TOLERANCE_M = 1.0
 RATE_WINDOW_NS = 5 * NS_PER_S
 
 
-def default_estimator():
-    """The estimator used when none is configured: estimators.DEFAULT_ESTIMATOR if defined,
-    else ``mle`` when registered, else ``ls``."""
-    name = getattr(_estimators, 'DEFAULT_ESTIMATOR', None)
-    if name in _estimators.ESTIMATORS:
-        return name
-    return 'mle' if 'mle' in _estimators.ESTIMATORS else 'ls'
+default_estimator = _registry.default_estimator
 
 
 @lru_cache(maxsize=64)
@@ -345,60 +333,14 @@ class FusionConfig:
         return max(1, int(round(NS_PER_S / float(self.rate))))
 
 
-#: Estimator options and the estimators that accept them (core/estimators.py module
-#: docstring): None = every estimator; others are passed only to the listed ones, so one set
-#: of node parameters serves every estimator (each rejects options it does not know).
-ESTIMATOR_OPTION_SCOPE = {
-    'max_iterations': None,
-    'tolerance': None,
-    'reference_range': ('wmle',),
-    'step_decay': ('ctls', 'ctls_am'),
-}
-
-
-def estimator_kwargs(name, options):
-    """The subset of ``options`` that estimator ``name`` accepts (ESTIMATOR_OPTION_SCOPE).
-
-    Options not listed in the scope table are passed through unchanged (the estimator
-    validates them).
-    """
-    out = {}
-    for k, v in options.items():
-        scope = ESTIMATOR_OPTION_SCOPE.get(k)
-        if scope is None or name in scope:
-            out[k] = v
-    return out
+ESTIMATOR_OPTION_SCOPE = _registry.OPTION_SCOPE
+estimator_kwargs = _registry.scoped_options
+noise_sigmas = _registry.noise_sigmas
 
 
 def check_estimator(name, options):
-    """Validate an estimator name and its options without side effects (ValueError).
-
-    The options are checked by running the estimator once on a fixed, well-conditioned
-    three-station problem: this uses the estimator's own validation
-    (``options.<name>: ...`` messages), so no option rule is duplicated here.
-    """
-    if name not in _estimators.ESTIMATORS:
-        raise ValueError(f'estimator: unknown estimator {name!r}; choose one of '
-                         f'{sorted(_estimators.ESTIMATORS) + sorted(TMA_ESTIMATORS)}')
-    pos = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0], [0.0, 1000.0, 0.0]])
-    az, el = azimuth_elevation(np.array([400.0, 500.0, 300.0]) - pos)
-    bs = BearingSet.from_arrays(pos, az, el, 0.01, 0.01)
-    try:
-        _estimators.locate(name, bs, **estimator_kwargs(name, options))
-    except ValueError as exc:
-        raise ValueError(f'{exc}') from None
-
-
-def noise_sigmas(estimator, bearings, position, options):
-    """(σ_θ, σ_ψ) (M, N), rad, that estimator ``estimator`` assumes at ``position`` (M, 3).
-
-    ``wmle`` grows σ with range (seed 003 eqs. (9)-(10), option ``reference_range``); every
-    other estimator uses the bearings' σ as given.
-    """
-    if estimator == 'wmle':
-        d_ref = options.get('reference_range', _estimators.DEFAULT_REFERENCE_RANGE)
-        return _estimators.range_scaled_sigmas(bearings, position, d_ref)
-    return bearings.sigma_az, bearings.sigma_el
+    """Validate an estimator name and its options without side effects (ValueError)."""
+    _registry.check(name, options)
 
 
 @dataclass
