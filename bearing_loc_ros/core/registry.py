@@ -20,7 +20,7 @@ from . import estimators as _estimators
 MODE_MULTISTATION = 'multistation'
 MODE_TMA = 'tma'
 
-#: Single-station TMA estimators (Lin et al., 3D angle-of-arrival TMA with a speed prior) -> core.tma method.
+#: Single-station TMA estimators (Lin et al., speed-prior 3D TMA) -> core.tma method.
 TMA_ESTIMATORS = {'tma_ple': 'ple', 'tma_ctls': 'ctls', 'tma_ctls6': 'ctls6',
                   'tma_mle': 'mle'}
 
