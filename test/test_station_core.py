@@ -18,6 +18,8 @@ from bearing_loc_ros.core.conventions import azimuth_elevation, wrap_angle
 from bearing_loc_ros.core.station import (ConfigError, parse_datagram, pose_sample, PoseBuffer,
                                           raw_reading, ReadingError, station_config,
                                           to_world_bearing)
+from bearing_loc_ros.core.station import (MAX_ABS_ANGLE, MAX_DATAGRAM_BYTES,
+                                          MAX_NUMBER_CHARS)
 
 TOL = 1e-12  # radians: a few float operations on angles of order 1
 
@@ -67,12 +69,54 @@ def test_datagram_minimal_and_null_elevation():
     (b'{"t": 1, "azimuth_deg": 1, "sigma_deg": 0}', 'bad_sigma'),
     (b'{"t": 1, "azimuth_deg": 1, "sigma_deg": -1}', 'bad_sigma'),
     (b'{"t": 1, "azimuth_deg": 1, "sigma_elevation_deg": [1]}', 'bad_sigma'),
-    (b'[' * 100000, 'bad_json'),
+    (b'[' * 100000, 'too_large'),
+    (b'[' * 8000, 'bad_json'),
+    (b' ' * (MAX_DATAGRAM_BYTES + 1), 'too_large'),
+    # Integer literals past float range (once OverflowError, killing the node).
+    (b'{"t": 1, "azimuth_deg": 1' + b'0' * 400 + b'}', 'bad_azimuth'),
+    (b'{"t": 1, "azimuth_deg": 1, "elevation_deg": -1' + b'0' * 400 + b'}', 'bad_elevation'),
+    (b'{"t": 1, "azimuth_deg": 1, "sigma_deg": 1' + b'0' * 400 + b'}', 'bad_sigma'),
+    (b'{"t": 1, "azimuth_deg": 1, "sigma_elevation_deg": ' + b'9' * 400 + b'}',
+     'bad_sigma'),
+    (b'{"t": 1' + b'0' * 400 + b', "azimuth_deg": 1}', 'bad_t'),
+    # Huge exponents (once built into a 10^200000 integer: a stall of seconds).
+    (b'{"t": 1e200000, "azimuth_deg": 1}', 'bad_t'),
+    (b'{"t": 1e999990, "azimuth_deg": 1}', 'bad_t'),
+    (b'{"t": 1e-999990, "azimuth_deg": 1}', 'bad_t'),
+    (b'{"t": 1, "azimuth_deg": 1e-999990}', 'bad_azimuth'),
+    (b'{"t": 1, "azimuth_deg": 0.' + b'0' * 60 + b'1}', 'bad_azimuth'),
+    # Angles whose wrap would be meaningless (1e300 was published as azimuth 0.0).
+    (b'{"t": 1, "azimuth_deg": 1e300}', 'bad_azimuth'),
+    (b'{"t": 1, "azimuth_deg": -573000}', 'bad_azimuth'),
+    (b'{"t": 1, "azimuth_deg": 1, "elevation_deg": 1e300}', 'bad_elevation'),
+    (b'{"t": 1, "azimuth_deg": 1, "sigma_deg": 1e300}', 'bad_sigma'),
+    (b'{"t": 1, "azimuth_deg": 1, "sigma_deg": 1e-300}', 'bad_sigma'),
 ])
 def test_datagram_rejections(data, reason):
     with pytest.raises(ReadingError) as info:
         parse_datagram(data)
     assert info.value.reason == reason
+
+
+def test_datagram_number_rejections_say_why():
+    with pytest.raises(ReadingError, match=r'azimuth_deg: number literal of 401 characters'):
+        parse_datagram(b'{"t": 1, "azimuth_deg": 1' + b'0' * 400 + b'}')
+    with pytest.raises(ReadingError, match=r'exponent beyond'):
+        parse_datagram(b'{"t": 1e200000, "azimuth_deg": 1}')
+
+
+def test_datagram_limits_are_inclusive_and_ignored_keys_harmless():
+    # The largest accepted angle is MAX_ABS_ANGLE rad; a sane sensor never comes near it.
+    limit_deg = math.degrees(MAX_ABS_ANGLE)
+    r = parse_datagram(f'{{"t": 1, "azimuth_deg": {limit_deg * (1 - 1e-12)!r}}}'.encode())
+    assert r.azimuth == pytest.approx(MAX_ABS_ANGLE)
+    # A 40-character literal is still converted exactly; an absurd literal in a key the
+    # format ignores does not reject the reading.
+    t = '1700000000.' + '1' * 29
+    assert len(t) == MAX_NUMBER_CHARS
+    r = parse_datagram(f'{{"t": {t}, "azimuth_deg": 1, "x": 1{"0" * 999}}}'.encode())
+    assert r.stamp_ns == 1_700_000_000_111_111_111
+    assert r.azimuth == pytest.approx(math.radians(1.0))
 
 
 def test_datagram_without_t_when_restamping():
@@ -87,7 +131,15 @@ def test_raw_reading_units_and_rejections():
     for kwargs, reason in (({'stamp_ns': 0}, 'bad_stamp'),
                            ({'azimuth': math.inf}, 'bad_azimuth'),
                            ({'elevation': -math.inf}, 'bad_elevation'),
-                           ({'sigma_azimuth': 0.0}, 'bad_sigma')):
+                           ({'sigma_azimuth': 0.0}, 'bad_sigma'),
+                           ({'stamp_ns': 'now'}, 'bad_stamp'),
+                           ({'azimuth': 10 ** 400}, 'bad_azimuth'),
+                           ({'azimuth': 1e300}, 'bad_azimuth'),
+                           ({'azimuth': 'north'}, 'bad_azimuth'),
+                           ({'azimuth': True}, 'bad_azimuth'),
+                           ({'elevation': 1e300}, 'bad_elevation'),
+                           ({'sigma_elevation': 1e300}, 'bad_sigma'),
+                           ({'sigma_azimuth': 1e-300}, 'bad_sigma')):
         args = {'stamp_ns': 5, 'azimuth': 1.0, **kwargs}
         with pytest.raises(ReadingError) as info:
             raw_reading(**args)

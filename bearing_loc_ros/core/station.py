@@ -8,7 +8,9 @@ tested without ROS:
 * :class:`RawReading` and :func:`raw_reading`: one reading (azimuth, optional elevation,
   optional σ) converted to radians, still in the sensor's reference.
 * :func:`parse_datagram`: the UDP JSON format
-  ``{"t": unix_seconds, "azimuth_deg": a, "elevation_deg": e | null, "sigma_deg": s}``.
+  ``{"t": unix_seconds, "azimuth_deg": a, "elevation_deg": e | null, "sigma_deg": s}``,
+  parsed in time linear in the datagram's size (at most :data:`MAX_DATAGRAM_BYTES`): no
+  number literal is ever converted to a big integer or decimal.
 * :func:`station_config`: station parameters (the ROS parameter names, degrees in ``_deg``
   names) -> validated :class:`StationConfig` in SI units, or :class:`ConfigError` naming the
   parameter.
@@ -44,12 +46,25 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
-from .bearings import Bearing, HALF_PI
+from .bearings import Bearing, HALF_PI, SIGMA_MAX, SIGMA_MIN
 from .conventions import azimuth_elevation, los_vector, wrap_angle
 
 NS_PER_S = 1_000_000_000
 #: Largest stamp a builtin_interfaces/Time can carry (sec is an int32).
 MAX_STAMP_NS = (2 ** 31 - 1) * NS_PER_S
+#: Largest |raw angle|, rad (about 1592 turns, 573,000 degrees). Wrapping a larger angle
+#: into (−π, π] keeps fewer digits: the spacing of doubles near 1e4 is 1.8e-12 rad, near
+#: 1e9 it is 1.2e-7 rad and near 1e16 it is 2 rad, so such a reading says nothing about the
+#: direction; no sensor reports it.
+MAX_ABS_ANGLE = 1.0e4
+#: Largest UDP datagram parsed, bytes (a reading is ~100 bytes); larger ones are rejected
+#: unread (``too_large``), which bounds the parse time.
+MAX_DATAGRAM_BYTES = 8192
+#: Longest JSON number literal converted, characters (sign, digits, point, exponent). Longer
+#: literals, and exponents beyond ±:data:`MAX_EXPONENT`, are rejected before conversion:
+#: building a 10^200000 integer from ``1e200000`` would take seconds.
+MAX_NUMBER_CHARS = 40
+MAX_EXPONENT = 400
 UNITS = ('deg', 'rad')
 AZIMUTH_REFERENCES = ('enu', 'compass')
 #: Tolerance on |q| − 1 for platform orientations (as for bearing messages).
@@ -103,36 +118,102 @@ def raw_reading(stamp_ns, azimuth, elevation=float('nan'), units='rad',
                 sigma_azimuth=float('nan'), sigma_elevation=float('nan')):
     """Build a validated :class:`RawReading`, converting ``units`` ('deg' or 'rad') to rad.
 
-    Rejections (:class:`ReadingError` reasons): stamp ≤ 0 or beyond 2038 (``bad_stamp``),
-    non-finite azimuth (``bad_azimuth``), infinite elevation (``bad_elevation``; NaN means
-    "not measured"), σ given but not finite and > 0 (``bad_sigma``).
+    Rejections (:class:`ReadingError` reasons): stamp ≤ 0 or beyond 2038 (``bad_stamp``);
+    azimuth not finite or, in rad, beyond ±:data:`MAX_ABS_ANGLE` (``bad_azimuth``);
+    elevation infinite or beyond ±:data:`MAX_ABS_ANGLE` rad (``bad_elevation``; NaN means
+    "not measured"); σ given (not NaN) but, in rad, not in [SIGMA_MIN, SIGMA_MAX] =
+    [1e-12, 1e3] (``bad_sigma``, the range :class:`~bearing_loc_ros.core.bearings.Bearing`
+    accepts). A value that is not a number is rejected with the same reasons, never with
+    another exception.
     """
     k = _scale(units)
-    stamp_ns = int(stamp_ns)
+    try:
+        stamp_ns = int(stamp_ns)
+    except (TypeError, ValueError, OverflowError):
+        raise ReadingError('bad_stamp', f'stamp {stamp_ns!r} is not an integer') from None
     if stamp_ns <= 0 or stamp_ns > MAX_STAMP_NS:
         raise ReadingError('bad_stamp', f'stamp {stamp_ns} ns (0 means "not set")')
-    az, el = float(azimuth), float(elevation)
-    if not math.isfinite(az):
-        raise ReadingError('bad_azimuth', f'azimuth {az}')
-    if math.isinf(el):
-        raise ReadingError('bad_elevation', f'elevation {el}')
+    az = _float(azimuth, 'bad_azimuth', 'azimuth') * k
+    if not (math.isfinite(az) and abs(az) <= MAX_ABS_ANGLE):
+        raise ReadingError('bad_azimuth', f'azimuth {az:.6g} rad is not finite or beyond '
+                                          f'±{MAX_ABS_ANGLE:g} rad')
+    el = _float(elevation, 'bad_elevation', 'elevation') * k
+    if not (math.isnan(el) or abs(el) <= MAX_ABS_ANGLE):
+        raise ReadingError('bad_elevation', f'elevation {el:.6g} rad is infinite or beyond '
+                                            f'±{MAX_ABS_ANGLE:g} rad')
     sigmas = []
     for s in (sigma_azimuth, sigma_elevation):
-        s = float(s)
-        if not math.isnan(s) and not (math.isfinite(s) and s > 0.0):
-            raise ReadingError('bad_sigma', f'sigma {s}')
-        sigmas.append(s * k)
-    return RawReading(stamp_ns, az * k, el * k, sigmas[0], sigmas[1])
+        s = _float(s, 'bad_sigma', 'sigma') * k
+        if not (math.isnan(s) or SIGMA_MIN <= s <= SIGMA_MAX):
+            raise ReadingError('bad_sigma', f'sigma {s:.6g} rad is not in '
+                                            f'[{SIGMA_MIN:g}, {SIGMA_MAX:g}] rad')
+        sigmas.append(s)
+    return RawReading(stamp_ns, az, el, sigmas[0], sigmas[1])
 
 
-def _number(value, reason, name):
-    if isinstance(value, bool) or not isinstance(value, (int, float, decimal.Decimal)):
+def _float(value, reason, name):
+    """``float(value)``, or :class:`ReadingError` ``reason`` (never Overflow/TypeError)."""
+    if isinstance(value, bool):
         raise ReadingError(reason, f'{name} must be a number, got {value!r}')
+    try:
+        return float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise ReadingError(reason, f'{name} is not a float: {str(value)[:40]!r}') from None
+
+
+class _BadNumber:
+    """A JSON number literal refused before conversion (too long or exponent out of range)."""
+
+    __slots__ = ('problem',)
+
+    def __init__(self, problem):
+        self.problem = problem
+
+
+def _literal_problem(text):
+    """Why a JSON number literal must not be converted, or '' when it is safe (cheap)."""
+    if len(text) > MAX_NUMBER_CHARS:
+        return f'number literal of {len(text)} characters (at most {MAX_NUMBER_CHARS})'
+    return ''
+
+
+def _json_int(text):
+    problem = _literal_problem(text)
+    return _BadNumber(problem) if problem else int(text)
+
+
+def _json_float(text):
+    problem = _literal_problem(text)
+    if problem:
+        return _BadNumber(problem)
+    value = decimal.Decimal(text)  # exact and cheap: ≤ MAX_NUMBER_CHARS characters
+    if value and abs(value.adjusted()) > MAX_EXPONENT:
+        return _BadNumber(f'number {text} has a decimal exponent beyond ±{MAX_EXPONENT}')
     return value
 
 
 def _reject_constant(name):
     raise ValueError(f'{name} is not allowed')
+
+
+def _number(value, reason, name):
+    """A parsed JSON number (int or Decimal) or :class:`ReadingError` ``reason``."""
+    if isinstance(value, _BadNumber):
+        raise ReadingError(reason, f'{name}: {value.problem}')
+    if isinstance(value, bool) or not isinstance(value, (int, decimal.Decimal)):
+        raise ReadingError(reason, f'{name} must be a number, got {str(value)[:40]!r}')
+    return value
+
+
+def _stamp_ns(t):
+    """Unix seconds (int or Decimal, range-checked first) -> integer ns, exactly rounded."""
+    if not 0 < t <= MAX_STAMP_NS // NS_PER_S:
+        raise ReadingError('bad_t', f't {t} is not a unix time in seconds (1970 to 2038)')
+    stamp_ns = int((decimal.Decimal(t) * NS_PER_S).to_integral_value(
+        rounding=decimal.ROUND_HALF_EVEN))
+    if not 0 < stamp_ns <= MAX_STAMP_NS:
+        raise ReadingError('bad_t', f't {t} is not a unix time in seconds (1970 to 2038)')
+    return stamp_ns
 
 
 def parse_datagram(data, require_t=True):
@@ -146,39 +227,49 @@ def parse_datagram(data, require_t=True):
     ``require_t`` False (the node re-stamps on receipt) ``t`` may be missing; stamp_ns is
     then 1 as a placeholder.
 
-    Rejections (:class:`ReadingError` reasons): not UTF-8 JSON, NaN/Infinity literals
-    (``bad_json``); not an object (``not_object``); ``t`` missing (``missing_t``), not a
-    number or out of range (``bad_t``); ``azimuth_deg`` missing (``missing_azimuth``) or not
-    a finite number (``bad_azimuth``); ``elevation_deg`` neither null nor a number
-    (``bad_elevation``); a σ not a finite number > 0 (``bad_sigma``).
+    Cost is linear in the datagram's length: a datagram longer than
+    :data:`MAX_DATAGRAM_BYTES` is not parsed, and a number literal longer than
+    :data:`MAX_NUMBER_CHARS` characters or with a decimal exponent beyond
+    ±:data:`MAX_EXPONENT` is never converted (it makes its field invalid; in an ignored key
+    it is harmless). ``t`` is range-checked before it is scaled to ns.
+
+    Rejections (:class:`ReadingError` reasons): longer than :data:`MAX_DATAGRAM_BYTES`
+    (``too_large``); not UTF-8 JSON, NaN/Infinity literals, nesting too deep (``bad_json``);
+    not an object (``not_object``); ``t`` missing (``missing_t``), not a number, too long a
+    literal or outside 1970-2038 (``bad_t``); ``azimuth_deg`` missing (``missing_azimuth``),
+    not a number, too long a literal, or beyond ±:data:`MAX_ABS_ANGLE` rad
+    (``bad_azimuth``); ``elevation_deg`` neither null nor such a number
+    (``bad_elevation``); a σ not a number in [1e-12, 1e3] rad (``bad_sigma``). Nothing else
+    is raised, whatever ``data`` holds.
     """
+    if not isinstance(data, (bytes, bytearray, memoryview, str)):
+        raise ReadingError('bad_json', f'expected bytes, got {type(data).__name__}')
+    if len(data) > MAX_DATAGRAM_BYTES:
+        raise ReadingError('too_large', f'{len(data)} bytes (at most {MAX_DATAGRAM_BYTES})')
+    if isinstance(data, memoryview):
+        data = data.tobytes()
     try:
-        obj = json.loads(data, parse_float=decimal.Decimal, parse_constant=_reject_constant)
+        obj = json.loads(data, parse_float=_json_float, parse_int=_json_int,
+                         parse_constant=_reject_constant)
     except (ValueError, TypeError, RecursionError) as exc:
         raise ReadingError('bad_json', str(exc).splitlines()[0][:120]) from None
     if not isinstance(obj, dict):
         raise ReadingError('not_object', f'expected a JSON object, got {type(obj).__name__}')
     if 't' in obj:
-        t = decimal.Decimal(_number(obj['t'], 'bad_t', 't'))
-        try:
-            stamp_ns = int((t * NS_PER_S).to_integral_value(rounding=decimal.ROUND_HALF_EVEN))
-        except (ArithmeticError, ValueError):  # decimal overflow, NaN
-            stamp_ns = -1
-        if stamp_ns <= 0 or stamp_ns > MAX_STAMP_NS:
-            raise ReadingError('bad_t', f't {t} is not a unix time in seconds')
+        stamp_ns = _stamp_ns(_number(obj['t'], 'bad_t', 't'))
     elif require_t:
         raise ReadingError('missing_t', 'no "t" (unix seconds)')
     else:
         stamp_ns = 1
     if 'azimuth_deg' not in obj:
         raise ReadingError('missing_azimuth', 'no "azimuth_deg"')
-    az = float(_number(obj['azimuth_deg'], 'bad_azimuth', 'azimuth_deg'))
+    az = _number(obj['azimuth_deg'], 'bad_azimuth', 'azimuth_deg')
     el = obj.get('elevation_deg')
-    el = float('nan') if el is None else float(_number(el, 'bad_elevation', 'elevation_deg'))
+    el = float('nan') if el is None else _number(el, 'bad_elevation', 'elevation_deg')
     sig = []
     for key in ('sigma_deg', 'sigma_elevation_deg'):
         s = obj.get(key)
-        sig.append(float('nan') if s is None else float(_number(s, 'bad_sigma', key)))
+        sig.append(float('nan') if s is None else _number(s, 'bad_sigma', key))
     return raw_reading(stamp_ns, az, el, 'deg', sig[0], sig[1])
 
 
