@@ -19,7 +19,7 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, os.path.dirname(HERE))
 
-from bearing_loc_ros.core.bearings import BearingSet, simulate_bearings  # noqa: E402
+from bearing_loc_ros.core.bearings import simulate_bearings  # noqa: E402
 
 PATH = os.path.join(os.path.dirname(HERE), 'test', 'data', 'estimators_reference.npz')
 MULTI = ('ls', 'tls', 'ctls', 'ctls_am', 'mle', 'wmle')
