@@ -268,7 +268,7 @@ def test_bag_play_publishes_every_message_with_clock(bags):
     from rosgraph_msgs.msg import Clock
     from ros_helpers import spin_until
 
-    from bearing_loc_ros.cli.bag import _import_msg_class
+    from bearing_loc_ros.bag_player import _import_msg_class
     from bearing_loc_ros.ros_conversions import time_to_ns
     _, paths = bags
     path = paths['mcap']
@@ -390,7 +390,7 @@ def test_fusion_defaults_mirror_the_node():
     import rclpy
 
     from bearing_loc_ros import fusion_node
-    from bearing_loc_ros.cli import bag as bagcli
+    from bearing_loc_ros import bag_process as bagcli
     from bearing_loc_ros.core import estimators
     assert bagcli.FUSION_ESTIMATOR_OPTIONS == fusion_node.ESTIMATOR_OPTIONS
     ctx = rclpy.Context()

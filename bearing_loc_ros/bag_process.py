@@ -1,0 +1,241 @@
+"""Offline fusion over a rosbag2 bag (``bearing_loc bag process``).
+
+Runs the fusion node's alignment and estimation core (core.fusion) message by message over a
+bag, with the fusion node's parameters, and writes the fixes as a bag and a CSV.
+"""
+
+import math
+import os
+
+from .cli import InputError
+
+NS_PER_S = 1_000_000_000
+UPPER_TRIANGLE = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+
+
+#: Defaults of the fusion node's parameters that shape the fusion (fusion_node.py
+#: _declare_parameters; test_bag.py checks them against a live FusionNode). bag process
+#: starts from these, so a bag processed offline with the node's --params-file gives the
+#: node's fixes.
+FUSION_NODE_DEFAULTS = {
+    'frame_id': 'map', 'stations': [], 'trigger': 'event', 'rate': 10.0, 'max_latency': 0.2,
+    'sync_tolerance': 0.05, 'interpolation': False, 'max_interpolation_gap': 1.0,
+    'station_timeout': 5.0, 'buffer_size': 50, 'buffer_age': 10.0,
+    'time_jump_tolerance': 0.1, 'estimator': None, 'min_stations': 2, 'outlier_gate': 0.999,
+    'max_iterations': 50, 'tolerance': 1e-9, 'reference_range': None, 'step_decay': 1.0,
+    'target_speed': 0.0, 'window': 120.0, 'speed_reference': 'relative',
+}
+#: Node parameters that go into FusionConfig.estimator_options (fusion_node.ESTIMATOR_OPTIONS).
+FUSION_ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay')
+#: Node parameters with no effect on the fixes (accepted in a params file, ignored here).
+FUSION_DISPLAY_PARAMS = ('mode', 'discover', 'discovery_period', 'qos_depth', 'qos_reliability',
+                         'geodetic_origin', 'publish_markers', 'marker_ray_length',
+                         'ellipsoid_sigma', 'diagnostics_period', 'use_sim_time',
+                         'start_type_description_service', 'accuracy_map.enabled',
+                         'accuracy_map.size', 'accuracy_map.resolution',
+                         'accuracy_map.altitude', 'accuracy_map.center', 'accuracy_map.model',
+                         'accuracy_map.scale', 'accuracy_map.min_error',
+                         'accuracy_map.max_error', 'accuracy_map.move_threshold',
+                         'accuracy_map')
+
+
+def read_params_file(path):
+    """ros__parameters of the first node entry of a ROS 2 parameters YAML file (a dict).
+
+    Accepts ``fusion:``, ``/fusion:``, ``/**:`` or ``/ns/fusion:`` keys (the forms
+    ``--ros-args --params-file`` accepts). Raises InputError naming the file.
+    """
+    import yaml
+    try:
+        with open(path, encoding='utf-8') as f:
+            data = yaml.safe_load(f)
+    except OSError as exc:
+        raise InputError(f'params_file: cannot read {path} ({exc.strerror})') from None
+    except yaml.YAMLError as exc:
+        raise InputError(f'params_file: {path}: invalid YAML ({" ".join(str(exc).split())})') \
+            from None
+    if isinstance(data, dict):
+        for node, body in data.items():
+            if isinstance(body, dict) and isinstance(body.get('ros__parameters'), dict):
+                return dict(body['ros__parameters'])
+    raise InputError(f'params_file: {path}: no "<node>: ros__parameters:" mapping')
+
+
+def fusion_params(params_file=None, overrides=(), estimator=None):
+    """Fusion node parameters: node defaults < params file < NAME=VALUE overrides < estimator."""
+    import yaml
+    from .core import estimators
+    p = dict(FUSION_NODE_DEFAULTS)
+    p['estimator'] = estimators.DEFAULT_ESTIMATOR
+    p['reference_range'] = float(estimators.DEFAULT_REFERENCE_RANGE)
+    given = dict(read_params_file(params_file)) if params_file else {}
+    for item in overrides:
+        name, sep, value = item.partition('=')
+        if not sep or not name:
+            raise InputError(f'param: expected NAME=VALUE, got {item!r}')
+        given[name.strip()] = yaml.safe_load(value)
+    if estimator is not None:
+        given['estimator'] = estimator
+    for name, value in given.items():
+        if name not in p and name not in FUSION_DISPLAY_PARAMS:
+            raise InputError(f'{name}: not a fusion node parameter')
+        p[name] = value
+    return p
+
+
+def fusion_config(p):
+    """FusionConfig from fusion node parameters (the mapping fusion_node uses)."""
+    from .core.fusion import FusionConfig
+    try:
+        return FusionConfig(
+            frame_id=p['frame_id'], trigger=p['trigger'], rate=float(p['rate']),
+            max_latency=float(p['max_latency']), sync_tolerance=float(p['sync_tolerance']),
+            interpolation=bool(p['interpolation']),
+            max_interpolation_gap=float(p['max_interpolation_gap']),
+            station_timeout=float(p['station_timeout']), buffer_size=int(p['buffer_size']),
+            buffer_age=float(p['buffer_age']), min_stations=int(p['min_stations']),
+            estimator=p['estimator'],
+            estimator_options={k: p[k] for k in FUSION_ESTIMATOR_OPTIONS},
+            outlier_gate=float(p['outlier_gate']),
+            time_jump_tolerance=float(p['time_jump_tolerance']),
+            target_speed=float(p['target_speed']), window=float(p['window']),
+            speed_reference=p['speed_reference']).validate()
+    except (TypeError, ValueError) as exc:
+        raise InputError(str(exc)) from None
+
+
+def _interp_truth(stamps, positions, t, max_gap_ns):
+    """Truth at fix times t: linear between samples, nearest within max_gap outside, else NaN."""
+    import numpy as np
+    out = np.full((len(t), 3), np.nan)
+    if not len(stamps):
+        return out
+    order = np.argsort(stamps, kind='stable')
+    s = np.asarray(stamps, dtype=np.int64)[order]
+    p = np.asarray(positions, dtype=float)[order]
+    t = np.asarray(t, dtype=np.int64)
+    inside = (t >= s[0] - max_gap_ns) & (t <= s[-1] + max_gap_ns)
+    for a in range(3):
+        out[:, a] = np.interp(t.astype(float), s.astype(float), p[:, a])
+    out[~inside] = np.nan
+    return out
+
+
+def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'):
+    """Run the fusion node's pipeline (core.fusion.FusionCore + replay) offline over a bag.
+
+    Exactly what fusion_node does, message by message in bag order: a ``/clock`` message
+    sets the node clock (and runs the node's timer ticks, via core.fusion.replay); a
+    bearing on ``<ns>/<station>/bearing`` is converted by ``ros_conversions.bearing_from_msg``
+    (a ConversionError is counted as a bad message) and given to the core at the current
+    node-clock time (the bearing's stamp before the first /clock; the bag time when the bag
+    has no /clock). Stations: the ``stations`` parameter, else every bearing topic of the
+    namespace in sorted order. Writes ``<out>/`` (a bag with the fixes on ``<ns>/fix``, bag
+    time = node-clock time the fix was computed) and ``<out>.csv``; returns a summary dict
+    (epochs, fixes, no_fix reasons, dropped, bad, and ``errors`` against ``<ns>/truth`` when
+    the bag has it).
+    """
+    import numpy as np
+    from . import bagio
+    from .core.evaluation import track_errors
+    from .core.fusion import make_core, replay
+    from .ros_conversions import bearing_from_msg, ConversionError
+    out = str(out).rstrip('/')
+    csv_path = out + '.csv'
+    if os.path.exists(out) or os.path.exists(csv_path):
+        raise InputError(f'out: {out} or {csv_path} exists already (never overwritten)')
+    ns = namespace.strip('/')
+    prefix = '/' + ns + '/' if ns else '/'
+    config = fusion_config(params)
+    with bagio.BagReader(path) as reader:
+        topics = reader.topics
+        station_topics = {}
+        for name, t in topics.items():
+            if t.msgtype != bagio.POSE_COV_STAMPED or not name.startswith(prefix):
+                continue
+            station = bagio.station_from_topic(name[len(prefix) - 1:])
+            if station is not None:
+                station_topics[name] = station
+        stations = list(params.get('stations') or sorted(set(station_topics.values())))
+        wanted = {prefix + s + '/bearing': s for s in stations}
+        if not any(t in topics for t in wanted):
+            raise InputError(f'bag: no bearing topics {prefix}<station>/bearing in {path}')
+        truth_topic = prefix + 'truth'
+        has_truth = truth_topic in topics
+        has_clock = bagio.CLOCK_TOPIC in topics
+        core = make_core(config, stations=stations)
+        truth_t, truth_p = [], []
+        clock = [None]
+
+        def items():
+            for m in reader.messages():
+                if m.topic == bagio.CLOCK_TOPIC:
+                    clock[0] = bagio.stamp_ns(bagio.deserialize(m.raw, m.msgtype))
+                    yield clock[0], None
+                elif m.topic in wanted:
+                    now = clock[0] if has_clock else m.log_time_ns
+                    station = wanted[m.topic]
+                    try:
+                        b = bearing_from_msg(bagio.deserialize(m.raw, m.msgtype), station,
+                                             expected_frame=config.frame_id)
+                    except ConversionError as exc:
+                        core.count_bad_message(station, exc.reason, now)
+                        continue
+                    yield (now if now is not None else b.stamp_ns), b
+                elif m.topic == truth_topic and has_truth:
+                    msg = bagio.deserialize(m.raw, m.msgtype)
+                    truth_t.append(bagio.stamp_ns(msg))
+                    truth_p.append(bagio.position_of(msg))
+
+        epochs = list(replay(core, items()))
+    fixes = [e for e in epochs if e.ok]
+    stamps = np.array([e.stamp_ns for e in fixes], dtype=np.int64)
+    pos = np.array([e.position for e in fixes]).reshape(-1, 3)
+    cov = np.array([e.covariance for e in fixes]).reshape(-1, 3, 3)
+    truth = None
+    if has_truth and fixes:
+        period = int(np.median(np.diff(np.unique(truth_t)))) if len(set(truth_t)) > 1 else 0
+        truth = _interp_truth(truth_t, truth_p, stamps, max(period, NS_PER_S))
+    _write_fix_csv(csv_path, fixes, truth)
+    fix_name = prefix + fix_topic.strip('/')
+    with bagio.BagWriter(out, storage=storage, custom_data={
+            'generator': 'bearing_loc bag process', 'source': str(path),
+            'estimator': config.estimator, 'trigger': config.trigger}) as bag:
+        bag.add_topic(fix_name, bagio.POSE_COV_STAMPED, bagio.qos_profile(10))
+        for e in fixes:
+            bag.write(fix_name, e.produced_ns,
+                      bagio.fix_message(e.position, e.covariance, e.stamp_ns, config.frame_id))
+    from collections import Counter
+    summary = {'stations': stations, 'epochs': len(epochs), 'fixes': len(fixes),
+               'no_fix': dict(Counter(e.reason for e in epochs if not e.ok)),
+               'dropped': dict(core.dropped), 'bad_messages': core.bad_messages,
+               'outliers': core.outliers, 'time_jumps': core.time_jumps,
+               'estimator': config.estimator, 'fix_topic': fix_name, 'bag': out,
+               'csv': csv_path, 'errors': None, 'epoch_list': epochs}
+    if truth is not None:
+        summary['errors'] = track_errors(truth, pos, cov)
+    return summary
+
+
+def _write_fix_csv(path, fixes, truth):
+    import csv
+    cols = ['stamp_ns', 'stamp_s', 'x', 'y', 'z', 'cov_xx', 'cov_xy', 'cov_xz', 'cov_yy',
+            'cov_yz', 'cov_zz', 'n_stations', 'stations', 'rejected', 'estimator', 'status',
+            'iterations', 'chi2', 'dof', 'produced_ns']
+    if truth is not None:
+        cols += ['truth_x', 'truth_y', 'truth_z', 'error_m']
+    with open(path, 'w', newline='', encoding='utf-8') as f:
+        w = csv.writer(f)
+        w.writerow(cols)
+        for k, e in enumerate(fixes):
+            c = e.covariance
+            row = [e.stamp_ns, f'{e.stamp_ns / NS_PER_S:.9f}', *map(repr, map(float, e.position)),
+                   *(repr(float(c[i, j])) for i, j in UPPER_TRIANGLE),
+                   len(e.bearings), ' '.join(e.stations),
+                   ' '.join(b.station for b in e.rejected), e.estimator, e.status,
+                   e.iterations, repr(float(e.chi2)), e.dof, e.produced_ns]
+            if truth is not None:
+                t = truth[k]
+                err = math.dist(t, e.position) if all(map(math.isfinite, t)) else float('nan')
+                row += [*map(repr, map(float, t)), repr(err)]
+            w.writerow(row)
