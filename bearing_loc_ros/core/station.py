@@ -65,6 +65,10 @@ MAX_DATAGRAM_BYTES = 8192
 #: building a 10^200000 integer from ``1e200000`` would take seconds.
 MAX_NUMBER_CHARS = 40
 MAX_EXPONENT = 400
+#: Every reason :func:`parse_datagram` rejects a datagram with (counted as
+#: ``rejected_<reason>`` in the station's diagnostics).
+DATAGRAM_REJECTIONS = ('too_large', 'bad_json', 'not_object', 'missing_t', 'bad_t',
+                       'missing_azimuth', 'bad_azimuth', 'bad_elevation', 'bad_sigma')
 UNITS = ('deg', 'rad')
 AZIMUTH_REFERENCES = ('enu', 'compass')
 #: Tolerance on |q| − 1 for platform orientations (as for bearing messages).
@@ -209,8 +213,9 @@ def _stamp_ns(t):
     """Unix seconds (int or Decimal, range-checked first) -> integer ns, exactly rounded."""
     if not 0 < t <= MAX_STAMP_NS // NS_PER_S:
         raise ReadingError('bad_t', f't {t} is not a unix time in seconds (1970 to 2038)')
-    stamp_ns = int((decimal.Decimal(t) * NS_PER_S).to_integral_value(
-        rounding=decimal.ROUND_HALF_EVEN))
+    with decimal.localcontext(prec=MAX_NUMBER_CHARS + 20):  # exact: no double rounding
+        stamp_ns = int(decimal.Decimal(t).scaleb(9).to_integral_value(
+            rounding=decimal.ROUND_HALF_EVEN))
     if not 0 < stamp_ns <= MAX_STAMP_NS:
         raise ReadingError('bad_t', f't {t} is not a unix time in seconds (1970 to 2038)')
     return stamp_ns
