@@ -1,0 +1,214 @@
+"""Geographic export flags shared by ``bag process``, ``locate`` and ``plan map``.
+
+``--geojson FILE`` (RFC 7946), ``--kml FILE`` (with the accuracy map as a GroundOverlay PNG
+next to it where there is one), ``--geo-csv FILE`` (fixes, ENU and latitude/longitude), all
+about the geodetic origin ``--origin LAT LON ALT`` (degrees, degrees, m on WGS84; ``bag
+process`` also takes the fusion parameter ``geodetic_origin``). Error ellipses are drawn at
+``--ellipse-probability`` (default 0.95: the 2-dof chi-square quantile of the horizontal
+marginal, core.gis.ellipse_scale).
+"""
+
+import math
+import os
+
+import numpy as np
+
+from . import InputError
+
+#: Side of the bag-process accuracy overlay: this factor x the largest horizontal distance of
+#: a station from the stations' centroid (as the fusion node's automatic accuracy_map).
+OVERLAY_SIZE_FACTOR = 3.0
+OVERLAY_MIN_SIZE = 100.0
+OVERLAY_CELLS = 200
+
+
+def add_gis_arguments(parser, fixes=True):
+    """Add the export flags; ``fixes`` False (plan map) offers only --kml and --origin."""
+    g = parser.add_argument_group('geographic export (needs a geodetic origin)')
+    if fixes:
+        g.add_argument('--geojson', default=None, metavar='FILE',
+                       help='write fixes, error ellipses, stations and bearing rays as '
+                            'GeoJSON (RFC 7946, WGS84 lon/lat)')
+    g.add_argument('--kml', default=None, metavar='FILE',
+                   help='write a KML file' + (' (fixes, ellipses, stations, bearing rays' if
+                                              fixes else ' (stations') +
+                        ', accuracy map as a GroundOverlay PNG next to it)')
+    if fixes:
+        g.add_argument('--geo-csv', default=None, metavar='FILE',
+                       help='write the fixes as CSV with latitude/longitude next to ENU')
+        g.add_argument('--ellipse-probability', type=float, default=0.95, metavar='P',
+                       help='probability of the drawn error ellipses (default 0.95)')
+    g.add_argument('--origin', type=float, nargs=3, default=None,
+                   metavar=('LAT_DEG', 'LON_DEG', 'ALT_M'),
+                   help='geodetic origin of the ENU frame (WGS84)')
+
+
+def wanted(args):
+    """True when any geographic output was asked for."""
+    return any(getattr(args, k, None) for k in ('geojson', 'kml', 'geo_csv'))
+
+
+def origin_of(args, params=None):
+    """The geodetic origin: --origin, else the ``geodetic_origin`` parameter; InputError."""
+    from ..core import gis
+    origin = args.origin
+    if origin is None and params and params.get('geodetic_origin'):
+        origin = list(params['geodetic_origin'])
+    if origin is None:
+        raise InputError('origin: --geojson/--kml/--geo-csv need a geodetic origin: '
+                         '--origin LAT_DEG LON_DEG ALT_M (or -p geodetic_origin=[lat,lon,alt])')
+    try:
+        return gis.check_origin(origin)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def _check_paths(args):
+    for flag in ('geojson', 'kml', 'geo_csv'):
+        path = getattr(args, flag, None)
+        if path and not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+            raise InputError(f'--{flag.replace("_", "-")}: directory of {path} does not exist')
+    p = getattr(args, 'ellipse_probability', 0.5)
+    if not (math.isfinite(p) and 0.0 < p < 1.0):
+        raise InputError(f'--ellipse-probability: must be in (0, 1), got {p:g}')
+
+
+def check(args, params=None):
+    """Validate the flags before the work starts; return the origin (or None if unused)."""
+    if not wanted(args):
+        return None
+    _check_paths(args)
+    return origin_of(args, params)
+
+
+def overlay_png_path(kml_path, suffix='accuracy'):
+    """PNG written next to a KML file: ``<kml stem>_<suffix>.png``."""
+    return os.path.splitext(kml_path)[0] + f'_{suffix}.png'
+
+
+def _station_layout(epochs):
+    """core.planning.Stations of the last position/σ of every station seen in fixes."""
+    from ..core.planning import Stations
+    last = {}
+    for e in epochs:
+        for b in e.bearings:
+            last[b.station] = b
+    if len(last) < 2:
+        return None
+    bs = list(last.values())
+    pos = np.array([np.asarray(b.position, float) for b in bs])
+    saz = np.array([b.sigma_azimuth for b in bs])
+    sel = np.array([b.sigma_elevation if b.has_elevation else b.sigma_azimuth for b in bs])
+    has = np.array([b.has_elevation for b in bs])
+    return Stations.from_arrays(pos, saz, sel, has, names=list(last))
+
+
+def _auto_grid(st, altitude):
+    from ..core.planning import GridSpec
+    c = st.positions[:, :2].mean(axis=0)
+    r = float(np.max(np.hypot(*(st.positions[:, :2] - c).T)))
+    side = max(OVERLAY_SIZE_FACTOR * r, OVERLAY_MIN_SIZE)
+    res = side / OVERLAY_CELLS
+    return GridSpec(c[0] - side / 2, c[1] - side / 2, res, OVERLAY_CELLS, OVERLAY_CELLS,
+                    altitude)
+
+
+def export_epochs(args, params, epochs, printer=print):
+    """``bag process`` exports of the fusion epochs (fixes only); prints what was written."""
+    from ..core import gis
+    from .. import gis_export as gx
+    if not wanted(args):
+        return []
+    origin = origin_of(args, params)
+    fixes = [e for e in epochs if e.ok]
+    fc = gis.features_from_epochs(fixes, origin, args.ellipse_probability)
+    written = []
+    if args.geojson:
+        gx.write_geojson(args.geojson, fc)
+        written.append(args.geojson)
+    if args.kml:
+        overlays = []
+        st = _station_layout(fixes)
+        if st is not None:
+            from ..core.planning import accuracy_map
+            alt = float(np.median([e.position[2] for e in fixes]))
+            amap = accuracy_map(st, _auto_grid(st, alt), 'crlb')
+            png = overlay_png_path(args.kml)
+            overlays.append(gx.accuracy_overlay(amap.grid, amap.error, origin, png,
+                                                'CRLB expected position error'))
+            written.append(png)
+        gx.write_kml(args.kml, fc, 'bearing_loc bag process', overlays)
+        written.append(args.kml)
+    if args.geo_csv:
+        gx.write_geo_csv(args.geo_csv, [gis.GeoFix.from_epoch(e) for e in fixes], origin)
+        written.append(args.geo_csv)
+    printer('wrote ' + ', '.join(written) + f' ({len(fixes)} fixes, '
+            f'{100 * args.ellipse_probability:g}% ellipses)')
+    return written
+
+
+def export_locate(args, results, sets):
+    """``locate`` exports: one fix per problem, its bearings drawn a bit beyond it.
+
+    ``results``: the output dicts of cli.locate.solve; ``sets``: the one-problem BearingSets.
+    Problems without a finite position are skipped (and counted on stderr).
+    """
+    import sys
+    from ..core import gis
+    from ..core.bearings import Bearing
+    from .. import gis_export as gx
+    if not wanted(args):
+        return []
+    origin = origin_of(args)
+    fixes, rays, stations, skipped = [], [], {}, 0
+    for k, (res, bs) in enumerate(zip(results, sets)):
+        pos = res['position']
+        if pos is None or any(v is None for v in pos):
+            skipped += 1
+            continue
+        cov = np.array([[np.nan if v is None else v for v in row] for row in res['covariance']])
+        p = np.asarray(pos, dtype=float)
+        fixes.append(gis.GeoFix(0, p, cov, res['status'], res['method'], list(bs.stations)))
+        for i, name in enumerate(bs.stations):
+            b = Bearing(name, 0, bs.positions[0, i], float(bs.azimuth[0, i]),
+                        float(bs.elevation[0, i]), float(bs.sigma_az[0, i]))
+            rays.append((b, p))
+            stations[name] = bs.positions[0, i]
+    fc = gis.feature_collection(origin, fixes, rays, stations, args.ellipse_probability)
+    written = []
+    if args.geojson:
+        gx.write_geojson(args.geojson, fc)
+        written.append(args.geojson)
+    if args.kml:
+        gx.write_kml(args.kml, fc, 'bearing_loc locate')
+        written.append(args.kml)
+    if args.geo_csv:
+        gx.write_geo_csv(args.geo_csv, fixes, origin)
+        written.append(args.geo_csv)
+    if skipped:
+        print(f'bearing_loc locate: {skipped} problem(s) without a finite fix left out of '
+              f'{", ".join(written)}', file=sys.stderr)
+    return written
+
+
+def export_plan_map(args, amap):
+    """``plan map --kml``: stations + the map as a GroundOverlay PNG; returns {kml, png}."""
+    from ..core import gis
+    from .. import gis_export as gx
+    if not args.kml:
+        return {}
+    _check_paths(args)
+    origin = origin_of(args)
+    st = amap.stations
+    stations = {n: p for n, p in zip(st.names or [f'station_{i + 1}' for i in range(st.N)],
+                                     st.positions)}
+    fc = gis.feature_collection(origin, stations=stations)
+    png = overlay_png_path(args.kml)
+    try:
+        ov = gx.accuracy_overlay(amap.grid, amap.error, origin, png,
+                                 f'{amap.model.upper()} expected position error',
+                                 args.vmin, args.vmax)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    gx.write_kml(args.kml, fc, 'bearing_loc plan map', [ov])
+    return {'kml': args.kml, 'kml_overlay_png': png}

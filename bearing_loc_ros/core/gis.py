@@ -1,0 +1,462 @@
+"""Fixes, error ellipses, stations and bearing rays as geographic features (RFC 7946).
+
+Everything here is geometry in plain Python/numpy; the file formats (GeoJSON, KML, CSV) are
+written by :mod:`bearing_loc_ros.gis_export` and the live map by the Foxglove view node.
+
+Conventions (DESIGN.md "Frames, units, angles"):
+
+* Input is in the local ENU frame (m) of a geodetic ``origin`` (lat0_deg, lon0_deg, h0_m on
+  WGS84); conversions are :mod:`bearing_loc_ros.core.geodesy` (pymap3d).
+* Output positions follow RFC 7946 section 3.1.1: ``[longitude, latitude]`` in decimal
+  degrees on WGS84, with the ellipsoidal height (m) as a third element for points.
+* An azimuth θ is ENU yaw (counter-clockwise from East) in the *origin's* axes. A bearing ray
+  is drawn as the geodesic (Vincenty's direct solution, ``pymap3d.vincenty.vreckon``) that
+  leaves the station with the same direction expressed in the station's own ENU axes
+  (meridian convergence applied with :func:`~bearing_loc_ros.core.geodesy.enu_axes_rotation`),
+  i.e. the ground track of the horizontal component of the line of sight.
+* Error ellipse: the horizontal marginal of the fix covariance, C₂ = C[:2, :2] (m²), drawn
+  at probability p as the set {x : (x − x̂)ᵀ C₂⁻¹ (x − x̂) = k²} with k² = χ²₂(p) =
+  −2 ln(1 − p) (the 2-degree-of-freedom chi-square quantile), so a Gaussian error of
+  covariance C₂ falls inside with probability p (default 95 %, k = 2.4477).
+* Antimeridian: lines and polygons that cross ±180° of longitude are split into
+  ``MultiLineString`` / ``MultiPolygon`` parts that meet at ±180° (RFC 7946 section 3.1.9).
+  Polar origins (|lat0| > :data:`MAX_ORIGIN_LAT_DEG`) are refused with a one-line
+  ``ValueError``: a local tangent-plane picture there does not map onto longitude/latitude.
+"""
+
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+import math
+
+import numpy as np
+from pymap3d import vincenty
+
+from . import geodesy
+
+#: Default probability of the drawn error ellipses.
+DEFAULT_PROBABILITY = 0.95
+#: Vertices of an ellipse ring (plus the closing vertex) and of a bearing ray.
+ELLIPSE_POINTS = 72
+RAY_POINTS = 33
+#: A bearing ray reaches this factor times the station-to-fix horizontal distance.
+RAY_OVERSHOOT = 1.25
+#: Ray length (m) when there is no fix to aim at and no length is given.
+DEFAULT_RAY_LENGTH = 10_000.0
+#: Largest |latitude| of a geodetic origin, degrees (polar origins are refused).
+MAX_ORIGIN_LAT_DEG = 85.0
+#: Closest approach of a drawn ellipse to a pole, degrees of latitude.
+POLE_MARGIN_DEG = 0.5
+#: Decimal places of output degrees (1e-9 deg is about 0.1 mm).
+DEG_DECIMALS = 9
+NS_PER_S = 1_000_000_000
+
+
+def check_origin(origin):
+    """Validate a geodetic origin (lat0_deg, lon0_deg, h0_m); return it as a float tuple.
+
+    ValueError (one line) for a malformed origin or a polar one (|lat0| above
+    :data:`MAX_ORIGIN_LAT_DEG`).
+    """
+    if origin is None:
+        raise ValueError('origin: a geodetic origin [lat_deg, lon_deg, alt_m] is required for '
+                         'geographic output')
+    lat, lon, alt = geodesy.geodetic_triplet(origin, 'origin')
+    if abs(lat) > MAX_ORIGIN_LAT_DEG:
+        raise ValueError(f'origin: latitude {lat:g} deg is polar (beyond +-{MAX_ORIGIN_LAT_DEG:g}'
+                         ' deg); a local ENU picture cannot be drawn in longitude/latitude there')
+    return lat, lon, alt
+
+
+def ellipse_scale(probability=DEFAULT_PROBABILITY):
+    """k with P(χ²₂ ≤ k²) = p: k = sqrt(−2 ln(1 − p)) (2-dof chi-square quantile, exact).
+
+    The Mahalanobis radius of the p-probability region of a 2D Gaussian. ValueError unless
+    0 < p < 1.
+    """
+    p = float(probability)
+    if not 0.0 < p < 1.0:
+        raise ValueError(f'probability: must be in (0, 1), got {probability!r}')
+    return math.sqrt(-2.0 * math.log1p(-p))
+
+
+def horizontal_ellipse(covariance, probability=DEFAULT_PROBABILITY):
+    """Semi-axes and orientation of the horizontal error ellipse of a (3, 3) covariance, m².
+
+    C₂ = C[:2, :2] = V diag(λ₁, λ₂) Vᵀ (λ₁ ≥ λ₂); semi-major a = k sqrt(λ₁), semi-minor
+    b = k sqrt(λ₂) with k = :func:`ellipse_scale` (p); orientation = angle of the major axis,
+    rad, ENU (CCW from East), in (−π/2, π/2]. Returns (a, b, orientation) in m, m, rad.
+    ValueError for a non-finite, asymmetric or not positive semi-definite C₂.
+    """
+    c = np.asarray(covariance, dtype=float)
+    if c.shape != (3, 3):
+        raise ValueError(f'covariance: expected shape (3, 3), got {c.shape}')
+    c2 = c[:2, :2]
+    if not np.all(np.isfinite(c2)):
+        raise ValueError('covariance: horizontal block is not finite (unobservable fix)')
+    if abs(c2[0, 1] - c2[1, 0]) > 1e-9 * max(1.0, abs(c2[0, 0]) + abs(c2[1, 1])):
+        raise ValueError('covariance: not symmetric')
+    lam, vec = np.linalg.eigh(0.5 * (c2 + c2.T))
+    if lam[0] < -1e-9 * max(1.0, lam[1]):
+        raise ValueError('covariance: not positive semi-definite')
+    k = ellipse_scale(probability)
+    a, b = k * math.sqrt(max(lam[1], 0.0)), k * math.sqrt(max(lam[0], 0.0))
+    ang = math.atan2(vec[1, 1], vec[0, 1])
+    if ang <= -math.pi / 2:
+        ang += math.pi
+    elif ang > math.pi / 2:
+        ang -= math.pi
+    return a, b, ang
+
+
+def ellipse_ring_enu(position, covariance, probability=DEFAULT_PROBABILITY,
+                     points=ELLIPSE_POINTS):
+    """Closed ring (points + 1, 3) of the horizontal error ellipse at the fix altitude, m.
+
+    x(t) = x̂ + k L (cos t, sin t) for t = 0, 2π/n, ..., 2π, where L Lᵀ = C₂ (L = V
+    diag(sqrt λ)) and k = :func:`ellipse_scale` (p); counter-clockwise (RFC 7946 exterior
+    ring orientation). ValueError as :func:`horizontal_ellipse`.
+    """
+    a, b, ang = horizontal_ellipse(covariance, probability)
+    p = np.asarray(position, dtype=float)
+    if p.shape != (3,) or not np.all(np.isfinite(p)):
+        raise ValueError('position: expected 3 finite ENU coordinates, m')
+    t = np.linspace(0.0, 2.0 * np.pi, int(points) + 1)
+    ca, sa = math.cos(ang), math.sin(ang)
+    u, v = a * np.cos(t), b * np.sin(t)
+    ring = np.empty((t.size, 3))
+    ring[:, 0] = p[0] + ca * u - sa * v
+    ring[:, 1] = p[1] + sa * u + ca * v
+    ring[:, 2] = p[2]
+    ring[-1] = ring[0]
+    return ring
+
+
+def enu_to_lonlat(enu, origin):
+    """ENU points (..., 3) m -> (lon_deg, lat_deg, alt_m) arrays (geodesy.enu_to_geodetic)."""
+    lat, lon, alt = geodesy.enu_to_geodetic(enu, check_origin(origin))
+    return lon, lat, alt
+
+
+def _wrap_lon(lon):
+    """Longitude(s) wrapped to [−180, 180), degrees."""
+    return (np.asarray(lon, dtype=float) + 180.0) % 360.0 - 180.0
+
+
+def _cross_lat(lon_a, lat_a, lon_b, lat_b, edge):
+    """Latitude where the segment a-b (unwrapped longitudes) meets longitude ``edge``."""
+    f = (edge - lon_a) / (lon_b - lon_a)
+    return lat_a + f * (lat_b - lat_a)
+
+
+def split_line(lon, lat):
+    """Split a polyline at the antimeridian: list of (k, 2) [lon, lat] parts.
+
+    A step of more than 180° in longitude between consecutive vertices is taken as a
+    crossing; the crossing latitude is interpolated linearly in (unwrapped) longitude and
+    both parts end on the meridian, at +180 on one side and −180 on the other.
+    """
+    lon = _wrap_lon(lon)
+    lat = np.asarray(lat, dtype=float)
+    parts, cur = [], [[lon[0], lat[0]]]
+    for i in range(1, lon.size):
+        a, b = lon[i - 1], lon[i]
+        if abs(b - a) > 180.0:
+            b_un = b - 360.0 if b > a else b + 360.0
+            edge = 180.0 if b_un > a else -180.0
+            y = _cross_lat(a, lat[i - 1], b_un, lat[i], edge)
+            cur.append([edge, y])
+            parts.append(np.array(cur))
+            cur = [[-edge, y]]
+        cur.append([b, lat[i]])
+    parts.append(np.array(cur))
+    return [p for p in parts if len(p) >= 2]
+
+
+def _clip(ring, keep_below, edge):
+    """Sutherland-Hodgman clip of a closed ring (n, 2) by the half-plane lon <= edge (or >=)."""
+    def inside(pt):
+        return pt[0] <= edge if keep_below else pt[0] >= edge
+    out = []
+    pts = ring[:-1]
+    for i in range(len(pts)):
+        cur, prev = pts[i], pts[i - 1]
+        if inside(cur):
+            if not inside(prev):
+                out.append([edge, _cross_lat(prev[0], prev[1], cur[0], cur[1], edge)])
+            out.append(list(cur))
+        elif inside(prev):
+            out.append([edge, _cross_lat(prev[0], prev[1], cur[0], cur[1], edge)])
+    if len(out) < 3:
+        return None
+    out.append(out[0])
+    return np.array(out)
+
+
+def split_ring(lon, lat):
+    """Split a closed ring at the antimeridian: list of closed (k, 2) [lon, lat] rings.
+
+    Longitudes are unwrapped along the ring; the part beyond +180 (below −180) is clipped off
+    with the meridian as its edge and shifted by −360° (+360°). ValueError when the ring
+    spans more than 180° of longitude or comes within :data:`POLE_MARGIN_DEG` of a pole (it
+    could enclose the pole, which a lon/lat polygon cannot express).
+    """
+    lat = np.asarray(lat, dtype=float)
+    if np.max(np.abs(lat)) > 90.0 - POLE_MARGIN_DEG:
+        raise ValueError('ellipse: reaches a pole; too large to draw in longitude/latitude')
+    un = np.degrees(np.unwrap(np.radians(_wrap_lon(lon))))
+    if un.max() - un.min() > 180.0:
+        raise ValueError('ellipse: spans more than 180 deg of longitude; too large to draw')
+    ring = np.column_stack([un, lat])
+    if un.max() <= 180.0 and un.min() >= -180.0:
+        return [ring]
+    edge = 180.0 if un.max() > 180.0 else -180.0
+    a = _clip(ring, edge > 0, edge)
+    b = _clip(ring, edge < 0, edge)
+    out = [r for r in (a,) if r is not None]
+    if b is not None:
+        b = b.copy()
+        b[:, 0] -= 360.0 if edge > 0 else -360.0
+        out.append(b)
+    return out
+
+
+def _positions(parts, decimals=DEG_DECIMALS):
+    return [[[round(float(x), decimals), round(float(y), decimals)] for x, y in p]
+            for p in parts]
+
+
+def line_geometry(lon, lat):
+    """GeoJSON LineString (or MultiLineString when split at the antimeridian) geometry."""
+    parts = _positions(split_line(lon, lat))
+    if len(parts) == 1:
+        return {'type': 'LineString', 'coordinates': parts[0]}
+    return {'type': 'MultiLineString', 'coordinates': parts}
+
+
+def polygon_geometry(lon, lat):
+    """GeoJSON Polygon (or MultiPolygon when split at the antimeridian) of a closed ring."""
+    parts = _positions(split_ring(lon, lat))
+    if len(parts) == 1:
+        return {'type': 'Polygon', 'coordinates': [parts[0]]}
+    return {'type': 'MultiPolygon', 'coordinates': [[p] for p in parts]}
+
+
+def point_geometry(lon, lat, alt):
+    """GeoJSON Point [lon, lat, alt] (degrees wrapped to [−180, 180), m)."""
+    return {'type': 'Point', 'coordinates': [round(float(_wrap_lon(lon)), DEG_DECIMALS),
+                                             round(float(lat), DEG_DECIMALS),
+                                             round(float(alt), 4)]}
+
+
+def compass_at(azimuth, station_enu, origin):
+    """Initial geodesic azimuth (deg, clockwise from North) at a station of an ENU azimuth θ.
+
+    d = (cos θ, sin θ, 0) in the origin's ENU axes is rotated into the station's ENU axes,
+    d' = R d (:func:`~bearing_loc_ros.core.geodesy.enu_axes_rotation`), and the compass
+    azimuth is atan2(d'_E, d'_N) (the horizontal part; the meridian convergence is
+    (λ − λ0) sin φ).
+    """
+    lon, lat, _ = enu_to_lonlat(np.asarray(station_enu, dtype=float), origin)
+    rot = geodesy.enu_axes_rotation(check_origin(origin), float(lat), float(lon))
+    d = rot @ np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
+    return math.degrees(math.atan2(d[0], d[1])) % 360.0
+
+
+def ray_lonlat(station_enu, azimuth, length, origin, points=RAY_POINTS):
+    """Geodesic bearing ray from a station: (lon_deg, lat_deg) arrays of ``points`` vertices.
+
+    Vincenty's direct problem (pymap3d.vincenty.vreckon) from the station's geodetic
+    position with the initial azimuth of :func:`compass_at`, at ground distances
+    0 .. ``length`` m (> 0).
+    """
+    length = float(length)
+    if not (math.isfinite(length) and length > 0.0):
+        raise ValueError(f'length: ray length must be finite and > 0 m, got {length!r}')
+    lon0, lat0, _ = enu_to_lonlat(np.asarray(station_enu, dtype=float), origin)
+    az = compass_at(azimuth, station_enu, origin)
+    dist = np.linspace(0.0, length, int(points))
+    lat, lon = vincenty.vreckon(float(lat0), float(lon0), dist, az, ell=geodesy.WGS84)
+    lat = np.array(lat, dtype=float).reshape(dist.shape)
+    lon = np.array(lon, dtype=float).reshape(dist.shape)
+    lat[0], lon[0] = float(lat0), float(lon0)
+    return _wrap_lon(lon), lat
+
+
+def iso_time(stamp_ns):
+    """Integer ns since the Unix epoch -> ISO 8601 UTC string with 'Z' (µs resolution)."""
+    t = datetime.fromtimestamp(int(stamp_ns) // 1000 / 1e6, tz=timezone.utc)
+    return t.isoformat().replace('+00:00', 'Z')
+
+
+@dataclass
+class GeoFix:
+    """One fix to draw: ENU position (3,) m, covariance (3, 3) m², stamp ns, and provenance."""
+
+    stamp_ns: int
+    position: np.ndarray
+    covariance: np.ndarray
+    status: str = 'ok'
+    estimator: str = ''
+    stations: list = field(default_factory=list)
+
+    @classmethod
+    def from_epoch(cls, ep):
+        """From a fusion Epoch with a fix (core.fusion.Epoch)."""
+        return cls(int(ep.stamp_ns), np.asarray(ep.position, float),
+                   np.asarray(ep.covariance, float), ep.status or ep.reason,
+                   ep.estimator, list(ep.stations))
+
+
+def _feature(geometry, props):
+    return {'type': 'Feature', 'geometry': geometry, 'properties': props}
+
+
+def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
+    """Point feature of a fix and, when drawable, its error-ellipse polygon feature.
+
+    Point properties: kind 'fix', time (ISO 8601 UTC), stamp_ns, status, estimator,
+    stations, position_enu_m, covariance_enu_m2 (row-major 3x3), sigma_east_m,
+    sigma_north_m, sigma_up_m, sigma_horizontal_m = sqrt(C_xx + C_yy), sigma_3d_m =
+    sqrt(trace C), and ellipse (probability, semi-axes m, orientation rad ENU) or
+    ellipse_error (why none is drawn: non-finite covariance, too large, ...).
+    """
+    p = np.asarray(fix.position, dtype=float)
+    c = np.asarray(fix.covariance, dtype=float)
+    lon, lat, alt = enu_to_lonlat(p, origin)
+    d = np.diag(c) if c.shape == (3, 3) else np.full(3, np.nan)
+
+    def num(v):
+        v = float(v)
+        return v if math.isfinite(v) else None
+
+    props = {'kind': 'fix', 'time': iso_time(fix.stamp_ns), 'stamp_ns': int(fix.stamp_ns),
+             'status': str(fix.status), 'estimator': str(fix.estimator),
+             'stations': list(fix.stations), 'position_enu_m': [num(v) for v in p],
+             'covariance_enu_m2': [num(v) for v in c.ravel()],
+             'sigma_east_m': num(math.sqrt(d[0])) if d[0] >= 0 else None,
+             'sigma_north_m': num(math.sqrt(d[1])) if d[1] >= 0 else None,
+             'sigma_up_m': num(math.sqrt(d[2])) if d[2] >= 0 else None,
+             'sigma_horizontal_m': num(math.sqrt(max(d[0] + d[1], 0.0))),
+             'sigma_3d_m': num(math.sqrt(max(np.sum(d), 0.0)))}
+    if fix_id is not None:
+        props['id'] = fix_id
+    out = [_feature(point_geometry(lon, lat, alt), props)]
+    try:
+        a, b, ang = horizontal_ellipse(c, probability)
+        ring = ellipse_ring_enu(p, c, probability)
+        rlon, rlat, _ = enu_to_lonlat(ring, origin)
+        geom = polygon_geometry(rlon, rlat)
+    except ValueError as exc:
+        props['ellipse_error'] = str(exc)
+        return out
+    ell = {'probability': float(probability), 'semi_major_m': a, 'semi_minor_m': b,
+           'orientation_rad': ang}
+    props['ellipse'] = ell
+    eprops = {'kind': 'ellipse', 'time': props['time'], 'stamp_ns': props['stamp_ns'],
+              'estimator': props['estimator'], **ell}
+    if fix_id is not None:
+        eprops['fix_id'] = fix_id
+    out.append(_feature(geom, eprops))
+    return out
+
+
+def station_feature(name, position_enu, origin, dims=None):
+    """Point feature of a station: kind 'station', name, position_enu_m, dims (1/2)."""
+    p = np.asarray(position_enu, dtype=float)
+    lon, lat, alt = enu_to_lonlat(p, origin)
+    props = {'kind': 'station', 'name': str(name), 'position_enu_m': [float(v) for v in p]}
+    if dims is not None:
+        props['dims'] = int(dims)
+    return _feature(point_geometry(lon, lat, alt), props)
+
+
+def ray_length_for(station_enu, target_enu=None, default=DEFAULT_RAY_LENGTH):
+    """Ray length (m): RAY_OVERSHOOT x horizontal station-to-target distance, else default."""
+    if target_enu is not None and np.all(np.isfinite(target_enu)):
+        d = math.hypot(target_enu[0] - station_enu[0], target_enu[1] - station_enu[1])
+        if d > 0.0:
+            return RAY_OVERSHOOT * d
+    return float(default)
+
+
+def bearing_feature(bearing, origin, length):
+    """LineString feature of a core Bearing's ray (geodesic, :func:`ray_lonlat`).
+
+    Properties: kind 'bearing', station, time, stamp_ns, azimuth_rad (ENU), compass_deg
+    (clockwise from North at the station), elevation_rad (or None), sigma_azimuth_rad,
+    length_m.
+    """
+    pos = np.asarray(bearing.position, dtype=float)
+    lon, lat = ray_lonlat(pos, bearing.azimuth, length, origin)
+    el = float(bearing.elevation)
+    props = {'kind': 'bearing', 'station': str(bearing.station),
+             'time': iso_time(bearing.stamp_ns), 'stamp_ns': int(bearing.stamp_ns),
+             'azimuth_rad': float(bearing.azimuth),
+             'compass_deg': compass_at(bearing.azimuth, pos, origin),
+             'elevation_rad': el if math.isfinite(el) else None,
+             'sigma_azimuth_rad': float(bearing.sigma_azimuth), 'length_m': float(length)}
+    return _feature(line_geometry(lon, lat), props)
+
+
+def feature_collection(origin, fixes=(), bearings=(), stations=None,
+                       probability=DEFAULT_PROBABILITY, ray_length=None):
+    """RFC 7946 FeatureCollection (a dict) of fixes, ellipses, stations and bearing rays.
+
+    ``fixes``: GeoFix objects; ``bearings``: (bearing, fix position or None) pairs, each
+    ray drawn to :data:`RAY_OVERSHOOT` x the distance to its fix (``ray_length`` m when
+    given, else :data:`DEFAULT_RAY_LENGTH` without a fix); ``stations``: name -> ENU
+    position (default: the positions of the bearings, last one per station). Feature order:
+    stations, bearings, ellipses and fixes (fixes drawn last, on top).
+    """
+    origin = check_origin(origin)
+    bearings = list(bearings)
+    if stations is None:
+        stations = {}
+        for b, _ in bearings:
+            stations[b.station] = np.asarray(b.position, dtype=float)
+    feats = [station_feature(n, p, origin) for n, p in stations.items()]
+    for b, target in bearings:
+        length = ray_length if ray_length else ray_length_for(b.position, target)
+        feats.append(bearing_feature(b, origin, length))
+    pts = []
+    for k, f in enumerate(fixes):
+        fx = fix_features(f, origin, probability, fix_id=k)
+        pts.append(fx[0])
+        feats.extend(fx[1:])
+    feats.extend(pts)
+    return {'type': 'FeatureCollection', 'features': feats}
+
+
+def features_from_epochs(epochs, origin, probability=DEFAULT_PROBABILITY, last_bearings=False):
+    """FeatureCollection of fusion epochs with a fix (core.fusion.Epoch objects).
+
+    Every fix with its ellipse; the bearings of every fix (or of the last one only with
+    ``last_bearings``), each ray drawn a bit beyond its fix; the stations at their last
+    reported position.
+    """
+    eps = [e for e in epochs if e.ok]
+    fixes = [GeoFix.from_epoch(e) for e in eps]
+    chosen = eps[-1:] if last_bearings else eps
+    rays = [(b, np.asarray(e.position, float)) for e in chosen for b in e.bearings]
+    stations = {}
+    for e in eps:
+        for b in e.bearings:
+            stations[b.station] = np.asarray(b.position, dtype=float)
+    return feature_collection(origin, fixes, rays, stations, probability)
+
+
+def grid_corners_lonlat(origin_x, origin_y, width_m, height_m, altitude, origin):
+    """Corners of an ENU-aligned raster, counter-clockwise from lower-left, as (4, 2) lon/lat.
+
+    Order (lower-left, lower-right, upper-right, upper-left) is KML's gx:LatLonQuad order.
+    ValueError when the raster crosses the antimeridian (a quad there is ambiguous).
+    """
+    xs = [origin_x, origin_x + width_m, origin_x + width_m, origin_x]
+    ys = [origin_y, origin_y, origin_y + height_m, origin_y + height_m]
+    enu = np.column_stack([xs, ys, np.full(4, float(altitude))])
+    lon, lat, _ = enu_to_lonlat(enu, origin)
+    un = np.degrees(np.unwrap(np.radians(lon)))
+    if np.any(np.abs(un) > 180.0) or un.max() - un.min() > 180.0:
+        raise ValueError('raster: crosses the antimeridian; cannot be georeferenced as one '
+                         'overlay')
+    return np.column_stack([lon, lat])
