@@ -32,7 +32,7 @@ import numpy as np
 from sensor_msgs.msg import NavSatFix, NavSatStatus
 
 from .core import geodesy
-from .core.bearings import Bearing, HALF_PI
+from .core.bearings import Bearing, HALF_PI, SIGMA_MAX, SIGMA_MIN
 from .core.conventions import (azel_from_quaternion_scalar, quaternion_from_azel_scalar,
                                wrap_angle_scalar)
 from .core.station import pose_sample, raw_reading, ReadingError
@@ -77,9 +77,17 @@ def ns_to_time(ns):
     return Time(sec=ns // NS_PER_S, nanosec=ns % NS_PER_S)
 
 
-def time_to_ns(t):
-    """builtin_interfaces/Time -> integer nanoseconds (exact)."""
-    return int(t.sec) * NS_PER_S + int(t.nanosec)
+def time_to_ns(t, reason='bad_stamp'):
+    """builtin_interfaces/Time -> integer nanoseconds (exact): sec · 10⁹ + nanosec.
+
+    A stamp that is not normalised (nanosec ≥ 10⁹, which would shift the time by whole
+    seconds) or before 1970 (sec < 0) raises :class:`ConversionError` ``reason``.
+    """
+    sec, nanosec = int(t.sec), int(t.nanosec)
+    if sec < 0 or not 0 <= nanosec < NS_PER_S:
+        raise ConversionError(reason, f'stamp sec={sec} nanosec={nanosec} is not normalised '
+                                      '(need sec >= 0 and 0 <= nanosec < 1e9)')
+    return sec * NS_PER_S + nanosec
 
 
 def bearing_to_msg(bearing):
@@ -127,10 +135,12 @@ def bearing_from_msg(msg, station, expected_frame=None):
     equal to ``expected_frame`` when given (``wrong_frame``), non-finite position
     (``bad_position``), NaN or non-unit quaternion (``bad_quaternion``), roll ≠ 0
     (``nonzero_roll``: |sin φ cos ψ| or −cos φ cos ψ above 1e-6, so any roll of 1e-6/cos ψ or
-    more, including an upside-down φ = π), azimuth variance NaN or <= 0
-    (``bad_azimuth_variance``), elevation variance neither −1 nor finite > 0
+    more, including an upside-down φ = π), azimuth variance whose σ is not in the core's
+    [SIGMA_MIN, SIGMA_MAX] = [1e-12, 1e3] rad, NaN and <= 0 included
+    (``bad_azimuth_variance``), elevation variance neither −1 nor such a σ²
     (``bad_elevation_variance``), non-finite or negative-diagonal position covariance
-    (``bad_position_covariance``); the first rule that applies, in this order.
+    (``bad_position_covariance``), header.stamp not normalised (``bad_stamp``: nanosec ≥ 10⁹
+    or sec < 0, :func:`time_to_ns`); the first rule that applies, in this order.
 
     The azimuth is returned wrapped to (−π, π]. Round trips through :func:`bearing_to_msg`
     are exact up to float rounding (~1e-15 rad) for any θ and any |ψ| < π/2. A quaternion
@@ -181,12 +191,12 @@ def bearing_from_msg(msg, station, expected_frame=None):
         cov = np.asarray(cov, dtype=float).reshape(36)
     c = cov.tolist()
     var_az = c[IDX_AZ_VAR]
-    if not math.isfinite(var_az) or var_az <= 0.0:
+    if not (var_az > 0.0 and SIGMA_MIN <= math.sqrt(var_az) <= SIGMA_MAX):
         raise ConversionError('bad_azimuth_variance', f'azimuth variance {var_az}')
     var_el = c[IDX_EL_VAR]
     if var_el == NO_ELEVATION:
         elevation, sigma_el = math.nan, math.nan
-    elif math.isfinite(var_el) and var_el > 0.0:
+    elif var_el > 0.0 and SIGMA_MIN <= math.sqrt(var_el) <= SIGMA_MAX:
         elevation, sigma_el = el, math.sqrt(var_el)
     else:
         raise ConversionError('bad_elevation_variance',
@@ -322,7 +332,7 @@ def pose_from_odometry(msg, expected_frame):
     p, o = msg.pose.pose.position, msg.pose.pose.orientation
     cov = np.asarray(msg.pose.covariance, dtype=float).reshape(6, 6)[:3, :3]
     try:
-        return pose_sample(time_to_ns(msg.header.stamp), [p.x, p.y, p.z],
+        return pose_sample(time_to_ns(msg.header.stamp, 'odometry_bad_stamp'), [p.x, p.y, p.z],
                            [o.x, o.y, o.z, o.w], cov)
     except ReadingError as exc:
         raise _reading_error(exc) from None

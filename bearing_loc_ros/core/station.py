@@ -444,7 +444,7 @@ def pose_sample(stamp_ns, position, quaternion, position_covariance=None):
     if not np.all(np.isfinite(p)):
         raise ReadingError('odometry_bad_position', 'non-finite position')
     q = np.asarray(quaternion, dtype=float).reshape(4)
-    n = float(np.linalg.norm(q))
+    n = math.hypot(*q.tolist())  # no overflow warning for |q| near 1e308
     if not math.isfinite(n) or abs(n - 1.0) > QUATERNION_NORM_TOL:
         raise ReadingError('odometry_bad_quaternion', f'quaternion norm {n:.6g} is not 1')
     cov = np.zeros((3, 3)) if position_covariance is None else \
