@@ -7,13 +7,14 @@ against the definition, not against themselves.
 """
 
 import math
+import socket
 
 import numpy as np
 import pymap3d
 import pytest
 from scipy.spatial.transform import Rotation
 
-from bearing_loc_ros.core import geodesy
+from bearing_loc_ros.core import geodesy, udp
 from bearing_loc_ros.core.conventions import azimuth_elevation, wrap_angle
 from bearing_loc_ros.core.station import (ConfigError, parse_datagram, pose_sample, PoseBuffer,
                                           raw_reading, ReadingError, station_config,
@@ -382,3 +383,50 @@ def test_pose_sample_rejections():
         with pytest.raises(ReadingError) as info:
             pose_sample(**kw)
         assert info.value.reason == reason
+
+
+# ---------------------------------------------------------------- kernel UDP drops
+
+@pytest.mark.parametrize('family, address', [(socket.AF_INET, '127.0.0.1'),
+                                             (socket.AF_INET6, '::1')])
+def test_udp_drops_counts_what_the_kernel_discarded(family, address):
+    """Overflow a small receive buffer on loopback: received + dropped = sent, exactly."""
+    try:
+        rx = socket.socket(family, socket.SOCK_DGRAM)
+        rx.bind((address, 0))
+    except OSError:
+        pytest.skip(f'no {address} loopback')
+    tx = socket.socket(family, socket.SOCK_DGRAM)
+    try:
+        rx.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        rx.setblocking(False)
+        assert udp.udp_drops(rx) == 0
+        sent = 300
+        for _ in range(sent):
+            tx.sendto(b'{"t": 1, "azimuth_deg": 1}'.ljust(200), rx.getsockname()[:2])
+        received = 0
+        while True:
+            try:
+                rx.recv(65535)
+            except BlockingIOError:
+                break
+            received += 1
+        drops = udp.udp_drops(rx)
+        assert 0 < received < sent and drops == sent - received
+        # Both sources read the same kernel counter.
+        assert udp._drops_proc(rx) == drops
+        assert udp._drops_meminfo(rx) in (drops, None)
+    finally:
+        tx.close()
+        rx.close()
+    assert udp.udp_drops(rx) is None  # closed: unknown, not an exception
+
+
+def test_udp_drops_unsupported_sources_give_none(tmp_path):
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(('127.0.0.1', 0))
+        assert udp._drops_proc(s, tables=(str(tmp_path / 'missing'),)) is None
+        other = tmp_path / 'udp'
+        other.write_text('  sl  local_address rem_address ...\n'
+                         '   0: 0100007F:0001 00000000:0000 07 0:0 00:0 0 0 0 1 2 0 5\n')
+        assert udp._drops_proc(s, tables=(str(other),)) is None  # another socket's line
