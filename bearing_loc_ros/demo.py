@@ -26,13 +26,6 @@ import numpy as np
 from .processes import ChildProcess
 
 NS_PER_S = 1_000_000_000
-HERE = os.path.dirname(os.path.abspath(__file__))
-
-
-def scenario_path():
-    """seed000.yaml in the source tree, else the name the simulator resolves in its share."""
-    local = os.path.join(os.path.dirname(HERE), 'config', 'scenarios', 'seed000.yaml')
-    return local if os.path.isfile(local) else 'seed000.yaml'
 
 
 def parse_args(argv):
@@ -161,10 +154,10 @@ def write_png(path, sc, fixes, truth_track, bearings, stats, x_true, t_fix):
 def run(args):
     """Run the demo; return the exit code."""
     from .core.simulation import load_scenario, simulate
-    from .simulator_node import resolve_scenario_path
+    from .scenarios import resolve_scenario
 
     os.makedirs(args.out, exist_ok=True)
-    path = resolve_scenario_path(scenario_path())
+    path = resolve_scenario('seed000.yaml')
     sc = load_scenario(path)
     domain = args.domain_id
     if domain is None:

@@ -15,7 +15,6 @@ simulator publishes under its namespace):
 Parameters and the scenario format: README "Simulator".
 """
 
-import os
 import time
 
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
@@ -28,6 +27,7 @@ from rosgraph_msgs.msg import Clock as ClockMsg
 from .core.simulation import bearing_topic, load_scenario, NS_PER_S, simulate, truth_topic
 from .ros_common import declare, main_for, ParameterError
 from .ros_conversions import bearing_to_msg, ns_to_time
+from .scenarios import resolve_scenario, ScenarioNotFoundError
 
 PACKAGE = 'bearing_loc_ros'
 BEARING_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
@@ -46,31 +46,14 @@ ACK_TIMEOUT = 4.0
 
 
 def resolve_scenario_path(path, cwd=None):
-    """Find a scenario file: absolute; else relative to ``cwd``; else in the package share.
+    """Scenario file of the ``scenario`` parameter (scenarios.resolve_scenario).
 
-    Share candidates (installed package, via ament_index_python): ``<share>/<path>`` and
-    ``<share>/config/scenarios/<path>``. Raises ParameterError('scenario', ...) if not found.
+    Raises ParameterError('scenario', ...) if not found.
     """
-    if not path:
-        raise ParameterError('scenario', 'required: path of a scenario YAML, for example '
-                             'config/scenarios/seed000.yaml')
-    path = os.path.expanduser(path)
-    if os.path.isabs(path):
-        candidates = [path]
-    else:
-        candidates = [os.path.join(cwd or os.getcwd(), path)]
-        try:
-            from ament_index_python.packages import get_package_share_directory
-            share = get_package_share_directory(PACKAGE)
-            candidates += [os.path.join(share, path),
-                           os.path.join(share, 'config', 'scenarios', path)]
-        except Exception:  # package not installed with its share dir: cwd only
-            pass
-    for c in candidates:
-        if os.path.isfile(c):
-            return c
-    raise ParameterError('scenario', f'file not found: {path!r} (looked in: '
-                         f'{", ".join(candidates)})')
+    try:
+        return resolve_scenario(path, cwd)
+    except ScenarioNotFoundError as exc:
+        raise ParameterError('scenario', exc.problem) from None
 
 
 def truth_to_msg(position, stamp_ns, frame_id):

@@ -19,7 +19,8 @@ import yaml
 
 from bearing_loc_ros import bagio
 from bearing_loc_ros.cli import main as cli_main
-from bearing_loc_ros.cli.bag import resolve_scenario, simulate_bag
+from bearing_loc_ros.cli.bag import simulate_bag
+from bearing_loc_ros.scenarios import resolve_scenario
 from bearing_loc_ros.core.simulation import load_scenario, simulate
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

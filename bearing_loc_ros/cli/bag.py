@@ -85,28 +85,6 @@ def run(args):
 
 # ----------------------------------------------------------------------------------- helpers
 
-def resolve_scenario(path):
-    """Scenario file: as given (absolute or cwd-relative), else in config/scenarios/.
-
-    Looks in the source tree's config/scenarios and, when installed, the package share
-    directory (``<share>/config/scenarios``). Raises InputError naming the file.
-    """
-    if os.path.isfile(path):
-        return path
-    here = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-    cands = [os.path.join(here, path), os.path.join(here, 'config', 'scenarios', path)]
-    try:
-        from ament_index_python.packages import get_package_share_directory
-        share = get_package_share_directory('bearing_loc_ros')
-        cands += [os.path.join(share, path), os.path.join(share, 'config', 'scenarios', path)]
-    except Exception:
-        pass
-    for c in cands:
-        if os.path.isfile(c):
-            return c
-    raise InputError(f'scenario: file not found: {path!r}')
-
-
 def _abs(topic):
     return topic if topic.startswith('/') else '/' + topic
 
@@ -185,6 +163,7 @@ def check_out_parent(out):
 def run_simulate(args):
     """``bag simulate``."""
     from ..core.simulation import load_scenario
+    from ..scenarios import resolve_scenario
     scenario = load_scenario(resolve_scenario(args.scenario))
     if args.duration < 0 or not math.isfinite(args.duration):
         raise InputError(f'duration: must be >= 0 s (got {args.duration})')

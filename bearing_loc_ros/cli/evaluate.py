@@ -101,7 +101,7 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
     from ..core import estimators as est
     from ..core import evaluation as ev
     from ..core.simulation import load_scenario
-    from .bag import resolve_scenario
+    from ..scenarios import resolve_scenario
     unknown = [e for e in estimators if e not in est.ESTIMATORS]
     if unknown:
         raise InputError(f'estimators: unknown {", ".join(unknown)}; choose from '

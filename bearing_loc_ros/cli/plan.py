@@ -221,7 +221,9 @@ def load_stations(args):
                              f'mrad, got {v * 1e3:g}')
     if args.scenario:
         from ..core.simulation import load_scenario
-        return Stations.from_scenario(load_scenario(args.scenario), 0.0, saz, sel)
+        from ..scenarios import resolve_scenario
+        return Stations.from_scenario(load_scenario(resolve_scenario(args.scenario)), 0.0,
+                                      saz, sel)
     if saz is None:
         raise InputError('--sigma-mrad: required with --stations')
     pos, has_el = parse_stations(args.stations, args.stations_unit)
