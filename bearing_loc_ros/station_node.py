@@ -37,6 +37,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from . import ros_common as rcm
 from .core.station import (ConfigError, parse_datagram, PoseBuffer, ReadingError,
                            station_config, to_world_bearing, UNITS)
+from .core.udp import udp_drops
 from .ros_conversions import (bearing_to_msg, ConversionError, pose_from_odometry,
                               raw_reading_from_msg)
 
@@ -88,6 +89,7 @@ class StationNode(Node):
         self.last_stamp_ns = None
         self._rejected_reported = 0
         self._published_reported = 0
+        self._udp_drops_reported = 0
         self.sources = []
 
         self.pub = self.create_publisher(PoseWithCovarianceStamped, 'bearing', OUTPUT_QOS)
@@ -291,9 +293,18 @@ class StationNode(Node):
         }
         values.update({f'received_{k}': v for k, v in sorted(self.received.items())})
         values.update({f'rejected_{k}': v for k, v in sorted(self.rejected.items())})
-        if new_rej:
+        new_drops = 0
+        if self._sock is not None:  # datagrams the kernel discarded: the queue was full
+            drops = udp_drops(self._sock)
+            values['udp_dropped_by_kernel'] = 'unsupported' if drops is None else drops
+            if drops is not None:
+                new_drops, self._udp_drops_reported = drops - self._udp_drops_reported, drops
+        if new_rej or new_drops:
             level = rcm.WARN
-            message = f'{new_rej} input(s) rejected since last report'
+            message = '; '.join(
+                ([f'{new_rej} input(s) rejected'] if new_rej else [])
+                + ([f'{new_drops} UDP datagram(s) dropped by the kernel (node busy or '
+                    'receive buffer full)'] if new_drops else [])) + ' since last report'
         elif self.published == 0:
             level, message = rcm.OK, 'waiting for readings'
         else:
