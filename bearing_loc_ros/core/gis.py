@@ -460,3 +460,58 @@ def grid_corners_lonlat(origin_x, origin_y, width_m, height_m, altitude, origin)
         raise ValueError('raster: crosses the antimeridian; cannot be georeferenced as one '
                          'overlay')
     return np.column_stack([lon, lat])
+
+
+class LivePicture:
+    """The current picture of a live system: last bearing per station, last fixes.
+
+    :meth:`update_bearing` keeps the newest bearing of each station (by stamp);
+    :meth:`update_fix` the newest fix and a trail of the last ``trail`` fix positions.
+    :meth:`collection` draws stations, each station's last ray (to a bit beyond the last
+    fix, or ``ray_length`` m without one), the trail as a LineString (kind 'track'), and
+    the last fix with its error ellipse. ``changed`` is set by every update and cleared by
+    :meth:`collection`.
+    """
+
+    def __init__(self, origin, probability=DEFAULT_PROBABILITY, ray_length=DEFAULT_RAY_LENGTH,
+                 trail=100):
+        self.origin = check_origin(origin)
+        ellipse_scale(probability)
+        self.probability = float(probability)
+        self.ray_length = float(ray_length)
+        self.trail = max(int(trail), 0)
+        self.bearings = {}
+        self.fix = None
+        self.track = []
+        self.changed = False
+
+    def update_bearing(self, bearing):
+        """Keep ``bearing`` (a core Bearing) if it is the newest of its station."""
+        old = self.bearings.get(bearing.station)
+        if old is None or bearing.stamp_ns >= old.stamp_ns:
+            self.bearings[bearing.station] = bearing
+            self.changed = True
+
+    def update_fix(self, fix):
+        """Keep ``fix`` (a :class:`GeoFix`) as the current one and extend the trail."""
+        if self.fix is not None and fix.stamp_ns < self.fix.stamp_ns:
+            return
+        self.fix = fix
+        if self.trail:
+            self.track.append(np.asarray(fix.position, dtype=float))
+            del self.track[:-self.trail]
+        self.changed = True
+
+    def collection(self):
+        """The FeatureCollection dict of the current picture (see class docstring)."""
+        self.changed = False
+        target = None if self.fix is None else np.asarray(self.fix.position, dtype=float)
+        rays = [(b, target) for b in self.bearings.values()]
+        fc = feature_collection(self.origin, [self.fix] if self.fix is not None else [], rays,
+                                ray_length=None if target is not None else self.ray_length,
+                                probability=self.probability)
+        if len(self.track) >= 2:
+            lon, lat, _ = enu_to_lonlat(np.array(self.track), self.origin)
+            fc['features'].insert(len(self.bearings), _feature(
+                line_geometry(lon, lat), {'kind': 'track', 'fixes': len(self.track)}))
+        return fc

@@ -1,0 +1,301 @@
+"""A Foxglove WebSocket server of the package's topics (foxglove-sdk), live or from a bag.
+
+Used by the ``view_node`` node (live topics over DDS) and by ``bearing_loc view --bag``
+(recorded topics). What it serves (WebSocket subprotocol ``foxglove.sdk.v1`` of
+foxglove-sdk, understood by Foxglove and by Lichtblick releases that speak it):
+
+* every forwarded ROS topic as a channel with ``cdr`` message encoding and a ``ros2msg``
+  schema (:mod:`bearing_loc_ros.msgdefs`); the CDR bytes are forwarded unchanged;
+* ``accuracy_map`` (and every other latched channel) is sent again to each new subscriber,
+  so late joiners get the transient-local map;
+* ``/map_geojson`` (foxglove schema ``foxglove.GeoJSON``, as foxglove-sdk ships it): the
+  current picture for the Map panel (stations, last bearing rays, last fix, its error
+  ellipse and the fix trail, :class:`~bearing_loc_ros.core.gis.LivePicture`), at most every
+  ``geojson_period`` s, when a geodetic origin is set;
+* ``/<station>/navsat`` (sensor_msgs/NavSatFix, latched) for every station seen in a bearing
+  message, when a geodetic origin is set;
+* the server time (Foxglove ``time`` capability) from ``/clock`` when ``use_time`` is set
+  (a node running with ``use_sim_time``, or a bag).
+
+Slow clients: foxglove-sdk queues at most ``backlog`` messages per client and drops the
+oldest data message when the queue is full, so a stalled client costs bounded memory.
+"""
+
+import importlib
+import threading
+import time
+
+from .core import gis
+
+#: Topic of the GeoJSON picture.
+GEOJSON_TOPIC = '/map_geojson'
+#: Leaf names (last path component) of the package's topics that are forwarded by default.
+DEFAULT_LEAVES = ('bearing', 'fix', 'navsat', 'markers', 'accuracy_map', 'track', 'truth')
+DEFAULT_GLOBAL = ('/diagnostics', '/clock')
+#: Topics whose last message is sent again to every new subscriber.
+LATCHED_LEAVES = ('accuracy_map',)
+CLOCK_TYPE = 'rosgraph_msgs/msg/Clock'
+BEARING_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+DEFAULT_BACKLOG = 512
+
+
+def wanted_topic(topic, msgtype, leaves=DEFAULT_LEAVES, extra=DEFAULT_GLOBAL):
+    """True for a topic the view forwards by default (a package topic)."""
+    if topic in extra:
+        return True
+    leaf = topic.rstrip('/').rsplit('/', 1)[-1]
+    return leaf in leaves
+
+
+def message_class(msgtype):
+    """The rclpy message class of 'pkg/msg/Type' (ValueError when not installed)."""
+    from .msgdefs import split_type
+    pkg, name = split_type(msgtype)
+    try:
+        return getattr(importlib.import_module(f'{pkg}.msg'), name)
+    except (ImportError, AttributeError):
+        raise ValueError(f'{msgtype}: message package not installed') from None
+
+
+def station_of(topic):
+    """Station name of a '<ns>/<station>/bearing' topic, else None."""
+    parts = topic.strip('/').split('/')
+    if len(parts) >= 2 and parts[-1] == 'bearing':
+        return parts[-2]
+    return None
+
+
+class FoxgloveView:
+    """Channels, forwarding, latched re-send and the map picture (module docstring).
+
+    Thread-safe: :meth:`forward` may be called from any thread; the server's listener
+    callbacks run on foxglove-sdk's threads.
+    """
+
+    def __init__(self, host='127.0.0.1', port=8765, name='bearing_loc_ros', origin=None,
+                 use_time=False, backlog=DEFAULT_BACKLOG, geojson_period=0.5,
+                 probability=gis.DEFAULT_PROBABILITY, frame_id='map', log=None):
+        import foxglove
+        from foxglove.websocket import Capability, ServerListener
+
+        self.log = log or (lambda text: None)
+        self.frame_id = frame_id
+        self.origin = gis.check_origin(origin) if origin else None
+        self.picture = gis.LivePicture(self.origin, probability) if self.origin else None
+        self.geojson_period = float(geojson_period)
+        self._last_geojson = 0.0
+        self._lock = threading.Lock()
+        self._channels = {}       # topic -> foxglove Channel
+        self._types = {}          # topic -> msgtype
+        self._latched = {}        # channel id -> (topic, payload bytes or callable, log_time)
+        self._latched_topics = set()
+        self._station_pos = {}    # station -> last position tuple published as NavSatFix
+        self.forwarded = 0
+        self.forwarded_bytes = 0
+        self.dropped = 0          # messages the picture could not use (counted)
+        self.subscriptions = 0
+        self.time_ns = None
+        self.context = foxglove.Context()
+        view = self
+
+        class Listener(ServerListener):
+            def on_subscribe(self, client, channel):
+                view._on_subscribe(channel.id)
+
+        caps = [Capability.Time] if use_time else []
+        self.server = foxglove.start_server(
+            name=name, host=host, port=int(port), capabilities=caps,
+            server_listener=Listener(), context=self.context,
+            message_backlog_size=int(backlog))
+        self._geo_channel = None
+        if self.picture is not None:
+            from foxglove.channels import GeoJsonChannel
+            self._geo_channel = GeoJsonChannel(GEOJSON_TOPIC, context=self.context)
+            self._latched_topics.add(GEOJSON_TOPIC)
+
+    @property
+    def port(self):
+        """The TCP port the server listens on (useful with port 0)."""
+        return self.server.port
+
+    # ------------------------------------------------------------------------------ channels
+
+    def _channel(self, topic, msgtype):
+        ch = self._channels.get(topic)
+        if ch is not None:
+            if self._types[topic] != msgtype:
+                raise ValueError(f'{topic}: type changed from {self._types[topic]} to {msgtype}')
+            return ch
+        from foxglove import Channel, Schema
+        from .msgdefs import message_definition
+        schema = Schema(name=msgtype, encoding='ros2msg',
+                        data=message_definition(msgtype).encode('utf-8'))
+        ch = Channel(topic, schema=schema, message_encoding='cdr', context=self.context)
+        self._channels[topic] = ch
+        self._types[topic] = msgtype
+        leaf = topic.rstrip('/').rsplit('/', 1)[-1]
+        if leaf in LATCHED_LEAVES or topic.endswith('/navsat') and station_of(
+                topic[:-len('navsat')] + 'bearing'):
+            self._latched_topics.add(topic)
+        return ch
+
+    def _remember(self, topic, channel_id, payload, log_time):
+        if topic in self._latched_topics:
+            self._latched[channel_id] = (topic, payload, log_time)
+
+    def _on_subscribe(self, channel_id):
+        """A client subscribed: send it the channel's latched message (a broadcast)."""
+        with self._lock:
+            self.subscriptions += 1
+            item = self._latched.get(channel_id)
+            if item is None:
+                return
+            topic, payload, log_time = item
+            if topic == GEOJSON_TOPIC:
+                self._geo_channel.log(payload, log_time=log_time)
+            else:
+                self._channels[topic].log(payload, log_time=log_time)
+
+    # ----------------------------------------------------------------------------- messages
+
+    def forward(self, topic, msgtype, raw, log_time_ns):
+        """Forward one CDR message unchanged; update clock, picture and station positions."""
+        raw = bytes(raw)
+        log_time_ns = int(log_time_ns)
+        with self._lock:
+            ch = self._channel(topic, msgtype)
+            ch.log(raw, log_time=log_time_ns)
+            self._remember(topic, ch.id(), raw, log_time_ns)
+            self.forwarded += 1
+            self.forwarded_bytes += len(raw)
+        if msgtype == CLOCK_TYPE and topic == '/clock':
+            self._on_clock(raw)
+        elif self.picture is not None and msgtype == BEARING_TYPE:
+            self._observe(topic, raw, log_time_ns)
+
+    def set_time(self, stamp_ns):
+        """Broadcast the server time (Foxglove ``time`` capability)."""
+        self.time_ns = int(stamp_ns)
+        self.server.broadcast_time(self.time_ns)
+
+    def _on_clock(self, raw):
+        from rclpy.serialization import deserialize_message
+        from rosgraph_msgs.msg import Clock
+        from .ros_conversions import time_to_ns
+        try:
+            self.set_time(time_to_ns(deserialize_message(raw, Clock).clock))
+        except Exception:  # a malformed /clock message: counted, never fatal
+            self.dropped += 1
+
+    def _observe(self, topic, raw, log_time_ns):
+        from geometry_msgs.msg import PoseWithCovarianceStamped
+        from rclpy.serialization import deserialize_message
+        from .ros_conversions import bearing_from_msg, fix_from_msg
+        leaf = topic.rstrip('/').rsplit('/', 1)[-1]
+        try:
+            msg = deserialize_message(raw, PoseWithCovarianceStamped)
+            if leaf == 'fix':
+                stamp, pos, cov = fix_from_msg(msg)
+                self.picture.update_fix(gis.GeoFix(stamp, pos, cov, 'ok'))
+            elif leaf == 'bearing':
+                b = bearing_from_msg(msg, station_of(topic))
+                self.picture.update_bearing(b)
+                self._station_navsat(topic, b, log_time_ns)
+            else:
+                return
+        except Exception:  # malformed or contract-breaking message: counted, never fatal
+            self.dropped += 1
+            return
+        self.publish_geojson(log_time_ns)
+
+    def _station_navsat(self, topic, b, log_time_ns):
+        """Publish a station's position as NavSatFix when it is new or moved."""
+        key = tuple(float(v) for v in b.position)
+        if self._station_pos.get(b.station) == key:
+            return
+        from rclpy.serialization import serialize_message
+        from .ros_conversions import fix_to_navsat
+        msg = fix_to_navsat(b.position, b.position_covariance, b.stamp_ns, self.origin,
+                            b.frame_id or self.frame_id)
+        self._station_pos[b.station] = key
+        navsat = topic[:-len('bearing')] + 'navsat'
+        self.forward(navsat, 'sensor_msgs/msg/NavSatFix', serialize_message(msg), log_time_ns)
+
+    def publish_geojson(self, log_time_ns, force=False):
+        """Send the current picture on /map_geojson (rate-limited unless ``force``)."""
+        if self.picture is None or not (self.picture.changed or force):
+            return False
+        now = time.monotonic()
+        if not force and now - self._last_geojson < self.geojson_period:
+            return False
+        from foxglove.messages import GeoJson
+        from .gis_export import geojson_text
+        try:
+            text = geojson_text(self.picture.collection())
+        except ValueError as exc:
+            self.log(f'geojson: {exc}')
+            self.dropped += 1
+            return False
+        msg = GeoJson(geojson=text)
+        with self._lock:
+            self._geo_channel.log(msg, log_time=int(log_time_ns))
+            self._latched[self._geo_channel.id()] = (GEOJSON_TOPIC, msg, int(log_time_ns))
+        self._last_geojson = now
+        return True
+
+    def stats(self):
+        """Counters: forwarded messages/bytes, channels, subscriptions, dropped."""
+        return {'forwarded': self.forwarded, 'forwarded_bytes': self.forwarded_bytes,
+                'channels': len(self._channels), 'subscriptions': self.subscriptions,
+                'dropped': self.dropped}
+
+    def stop(self):
+        """Stop the server (idempotent)."""
+        self.server.stop()
+
+
+def serve_bag(view, paths, rate=1.0, loop=False, stop=None, topics=None, log=print):
+    """Forward the messages of one or more bags (merged by bag time) at ``rate`` x real time.
+
+    Raw CDR bytes from :class:`bearing_loc_ros.bagio.BagReader`; the server time follows
+    ``/clock`` when the bag has it, else the bag time of each message. ``stop``: a
+    threading.Event that ends the replay; ``topics``: forward only these (default: all).
+    Returns the number of messages forwarded.
+    """
+    import heapq
+    from . import bagio
+    if not rate > 0:
+        raise ValueError(f'rate: must be > 0, got {rate}')
+    stop = stop or threading.Event()
+    sent = 0
+    while True:
+        readers = [bagio.BagReader(p) for p in paths]
+        try:
+            for r in readers:
+                r.open()
+            has_clock = any(bagio.CLOCK_TOPIC in r.topics for r in readers)
+            streams = [r.messages() for r in readers]
+            merged = heapq.merge(*streams, key=lambda m: m.log_time_ns)
+            t0_bag = t0_wall = None
+            for m in merged:
+                if stop.is_set():
+                    return sent
+                if topics and m.topic not in topics:
+                    continue
+                if t0_bag is None:
+                    t0_bag, t0_wall = m.log_time_ns, time.monotonic()
+                due = t0_wall + (m.log_time_ns - t0_bag) / 1e9 / rate
+                delay = due - time.monotonic()
+                if delay > 0 and stop.wait(delay):
+                    return sent
+                view.forward(m.topic, m.msgtype, m.raw, m.log_time_ns)
+                if not has_clock:
+                    view.set_time(m.log_time_ns)
+                sent += 1
+            view.publish_geojson(t0_bag or 0, force=True)
+        finally:
+            for r in readers:
+                r.close()
+        if not loop:
+            return sent
+        log(f'view: {sent} messages forwarded; replaying again')
