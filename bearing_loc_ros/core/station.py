@@ -332,6 +332,27 @@ def _covariance(values, name):
     return cov
 
 
+def _config_floats(values, name):
+    """A parameter array as a list of floats (NaN/inf kept for the checks that follow)."""
+    if isinstance(values, (str, bytes, dict)) or not hasattr(values, '__len__'):
+        raise ConfigError(name, f'expected a list of numbers, got {str(values)[:40]!r}')
+    try:
+        return [_config_float(v, name) for v in values]
+    except ConfigError:
+        raise ConfigError(name, f'expected a list of numbers, got {str(values)[:60]!r}') \
+            from None
+
+
+def _config_float(value, name):
+    """A parameter scalar as a float, or :class:`ConfigError` (never Overflow/TypeError)."""
+    if isinstance(value, (bool, str, bytes)):
+        raise ConfigError(name, f'expected a number, got {value!r}')
+    try:
+        return float(value)
+    except (TypeError, ValueError, OverflowError):
+        raise ConfigError(name, f'expected a number, got {str(value)[:40]!r}') from None
+
+
 def station_config(station, frame_id='map', position=(), geodetic_position=(),
                    geodetic_origin=(), position_covariance=(), sigma_azimuth_deg=2.0,
                    sigma_elevation_deg=2.0, measures_elevation=False, azimuth_reference='enu',
@@ -343,7 +364,8 @@ def station_config(station, frame_id='map', position=(), geodetic_position=(),
     ``geodetic_origin`` ([lat_deg, lon_deg, alt_m]) by :mod:`bearing_loc_ros.core.geodesy`;
     exactly one of them unless ``moving`` (then neither: the platform odometry gives it).
     ``position_covariance``: 3 (diagonal) or 9 (row-major) values, m², symmetric PSD.
-    σ in degrees, > 0 and ≤ 180. Raises :class:`ConfigError` naming the parameter.
+    σ in degrees, > 0 and ≤ 180. Raises :class:`ConfigError` naming the parameter, for any
+    value of any type (numbers beyond float range and wrong types included).
 
     With a geodetic origin, a fixed station's readings are taken to be relative to its own
     true North and local horizontal, which differ from the origin's ENU axes by the meridian
@@ -357,13 +379,20 @@ def station_config(station, frame_id='map', position=(), geodetic_position=(),
     def geo(values, name):
         try:
             return geodesy.geodetic_triplet(values, name)
-        except ValueError as exc:
-            raise ConfigError(name, str(exc).partition(': ')[2]) from None
+        except (ValueError, TypeError, OverflowError) as exc:
+            raise ConfigError(name, str(exc).partition(': ')[2] or str(exc)) from None
 
-    if not station:
+    if not isinstance(station, str) or not station:
         raise ConfigError('station_id', 'empty (run the node in a namespace or set it)')
-    if not frame_id:
-        raise ConfigError('frame_id', 'must not be empty')
+    if not isinstance(frame_id, str) or not frame_id:
+        raise ConfigError('frame_id', 'must be a non-empty string')
+    position = _config_floats(position, 'position')
+    geodetic_position = _config_floats(geodetic_position, 'geodetic_position')
+    geodetic_origin = _config_floats(geodetic_origin, 'geodetic_origin')
+    position_covariance = _config_floats(position_covariance, 'position_covariance')
+    sigma_azimuth_deg = _config_float(sigma_azimuth_deg, 'sigma_azimuth_deg')
+    sigma_elevation_deg = _config_float(sigma_elevation_deg, 'sigma_elevation_deg')
+    azimuth_offset_deg = _config_float(azimuth_offset_deg, 'azimuth_offset_deg')
     pos = None
     origin = geo(geodetic_origin, 'geodetic_origin') if len(geodetic_origin) else None
     if len(position) and len(geodetic_position):
@@ -397,7 +426,7 @@ def station_config(station, frame_id='map', position=(), geodetic_position=(),
                       ('sigma_elevation_deg', sigma_elevation_deg)):
         if not (math.isfinite(val) and 0.0 < val <= 180.0):
             raise ConfigError(name, f'{val} must be > 0 and <= 180 degrees')
-    if azimuth_reference not in AZIMUTH_REFERENCES:
+    if not isinstance(azimuth_reference, str) or azimuth_reference not in AZIMUTH_REFERENCES:
         raise ConfigError('azimuth_reference', f'{azimuth_reference!r} is not one of '
                                                f'{AZIMUTH_REFERENCES}')
     if not (math.isfinite(azimuth_offset_deg) and abs(azimuth_offset_deg) <= 360.0):
