@@ -17,6 +17,7 @@ VERBS = {
     'plan': 'Station placement: cut angle, accuracy maps, placement.',
     'evaluate': 'Monte Carlo evaluation of estimators against the CRLB.',
     'bag': 'rosbag2 datasets: simulate, play, process.',
+    'calibrate': 'Receiver heading biases and confidence->sigma from a calibration run.',
 }
 
 

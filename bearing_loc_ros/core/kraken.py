@@ -161,14 +161,18 @@ def _stamp_ms(value, name, allow_zero=False):
                           name) from None
     if not d.is_finite():
         raise KrakenError('not_finite', f'{name}: {d}', name)
-    try:
-        ns = int((d * NS_PER_MS).to_integral_value(rounding=decimal.ROUND_HALF_EVEN))
-    except (ArithmeticError, ValueError):
-        ns = -1
+    ns = -1
+    # compare before converting: int() of a huge exponent (1e999990) would take seconds
+    if -1 < d <= MAX_STAMP_NS // NS_PER_MS + 1:
+        try:
+            ns = int((d * NS_PER_MS).to_integral_value(rounding=decimal.ROUND_HALF_EVEN))
+        except (ArithmeticError, ValueError):
+            ns = -1
     if ns == 0 and allow_zero:
         return 0
     if ns <= 0 or ns > MAX_STAMP_NS:
-        raise KrakenError('out_of_range', f'{name}: {d} is not a unix time in ms', name)
+        raise KrakenError('out_of_range', f'{name}: {str(d)[:40]} is not a unix time in ms',
+                          name)
     return ns
 
 
@@ -226,8 +230,8 @@ def parse_xml(data):
         root = _xml_fromstring(data, forbid_dtd=True)
     except DefusedXmlException as exc:
         raise KrakenError('malformed_xml', f'refused: {type(exc).__name__}') from None
-    except (ParseError, ValueError, TypeError) as exc:
-        raise KrakenError('malformed_xml', str(exc).splitlines()[0][:120]) from None
+    except (ParseError, ValueError, TypeError, LookupError) as exc:   # LookupError: encoding
+        raise KrakenError('malformed_xml', (str(exc).splitlines() or [''])[0][:120]) from None
     if root.tag != 'DATA':
         raise KrakenError('malformed_xml', f'root element is <{str(root.tag)[:40]}>, '
                                            'expected <DATA>')
@@ -477,3 +481,24 @@ def channel_map_from_params(names, bands_mhz):
                          f'MHz per channel), got {len(bands_mhz)}')
     return ChannelMap({n: (bands_mhz[2 * k] * 1e6, bands_mhz[2 * k + 1] * 1e6)
                        for k, n in enumerate(names)})
+
+
+def csv_line(record, spectrum=True):
+    """One "Kraken App" CSV line (no newline) for ``record``: the inverse of
+    :func:`parse_csv_line` (field 2 = 360 − doa_deg; a NaN value is written as an empty
+    field, which parses back to NaN; the spectrum only when the record has one and
+    ``spectrum`` is true). Used to write recordings for tests, simulations and examples."""
+    def num(v):
+        return '' if not math.isfinite(v) else repr(float(v))
+
+    ms = decimal.Decimal(int(record.stamp_ns)) / NS_PER_MS
+    reported = 0.0 if record.doa_deg in (0.0, 360.0) else 360.0 - record.doa_deg
+    fields = [format(ms, 'f'), repr(reported),
+              repr(float(record.confidence)), num(record.power_db),
+              repr(float(record.frequency_hz)), record.array_type or 'UCA',
+              num(record.latency_ms), record.station_id, num(record.latitude_deg),
+              num(record.longitude_deg), num(record.heading_deg), num(record.heading_deg),
+              'GPS', '0', '0', '0', '0']
+    if spectrum and record.spectrum is not None:
+        fields += [repr(float(v)) for v in record.spectrum]
+    return ', '.join(fields)

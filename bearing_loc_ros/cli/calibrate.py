@@ -1,0 +1,226 @@
+"""``bearing_loc calibrate``: heading biases and confidence -> σ from a calibration run.
+
+Input: one recorded "Kraken App" CSV log per station (``--station NAME=FILE``), taken while a
+transmitter sat at a known position (``--transmitter X Y Z`` in the ENU frame, or
+``--transmitter-geodetic LAT LON ALT`` with a ``geodetic_origin``), and the stations' current
+parameters (``--params FILE``: a station parameter YAML with ``/NAME/station_node:``,
+``/NAME/**:`` or ``/**:`` entries). Each reading becomes a bearing with the station's current
+geometry (:mod:`bearing_loc_ros.core.receiver`); its compass residual against the true
+bearing feeds the maximum-likelihood fit of :mod:`bearing_loc_ros.core.calibration`.
+
+Output (``--out FILE``): a station parameter YAML, one ``/NAME/station_node:`` entry per
+station holding its given parameters with ``kraken.heading_offset_deg`` corrected by the
+fitted bias and ``kraken.sigma_conf1_deg`` / ``kraken.sigma_conf0_deg`` set to the fitted
+σ model; pass it to each station node with ``--params-file``.
+"""
+
+from collections import Counter
+import math
+import os
+
+from . import InputError
+
+STATION_NODE = 'station_node'
+
+
+def add_arguments(parser):
+    """Register the ``calibrate`` options."""
+    parser.add_argument('--station', action='append', required=True, metavar='NAME=CSV',
+                        help='a station and its recorded Kraken CSV log (repeat per station)')
+    parser.add_argument('--params', metavar='YAML', help='station parameter file (position, '
+                        'geodetic_origin, kraken.* of every station)')
+    g = parser.add_mutually_exclusive_group(required=True)
+    g.add_argument('--transmitter', nargs=3, type=float, metavar=('X', 'Y', 'Z'),
+                   help='transmitter position in the ENU world frame, m')
+    g.add_argument('--transmitter-geodetic', nargs=3, type=float,
+                   metavar=('LAT', 'LON', 'ALT'), help='transmitter position, WGS84 degrees '
+                   'and ellipsoidal height (needs geodetic_origin in --params)')
+    parser.add_argument('--max-residual-deg', type=float, default=45.0, help='readings '
+                        'further than this from the station median are outliers (default 45)')
+    parser.add_argument('--out', required=True, help='station parameter YAML to write')
+
+
+def load_station_params(path):
+    """The parsed parameter YAML (dict) of ``path``; InputError naming the file."""
+    import yaml
+    try:
+        with open(path, encoding='utf-8') as f:
+            data = yaml.safe_load(f)
+    except OSError as exc:
+        raise InputError(f'params: cannot read {path} ({exc.strerror})') from None
+    except yaml.YAMLError as exc:
+        raise InputError(f'params: {path}: invalid YAML ({" ".join(str(exc).split())})') \
+            from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise InputError(f'params: {path}: expected "<node>: ros__parameters:" mappings')
+    return data
+
+
+def station_params(data, station):
+    """ros__parameters for ``station`` (flat dotted names): ``/**`` < ``/NAME/**`` <
+    ``NAME`` < ``/NAME/station_node`` (later keys override earlier ones)."""
+    from ..core.receiver_params import flatten
+    out = {}
+    for key in ('/**', f'/{station}/**', station, f'/{station}/{STATION_NODE}'):
+        body = data.get(key)
+        if isinstance(body, dict) and isinstance(body.get('ros__parameters'), dict):
+            out.update(flatten(body['ros__parameters']))
+    return out
+
+
+def read_log(path):
+    """(records, rejections Counter) of a Kraken CSV file; InputError when unreadable."""
+    from ..core import kraken
+    records, bad = [], Counter()
+    try:
+        with open(path, encoding='utf-8', errors='replace') as f:
+            for line in f:
+                if not line.strip():
+                    continue
+                try:
+                    records.append(kraken.parse_csv_line(line))
+                except kraken.KrakenError as exc:
+                    bad[exc.reason] += 1
+    except OSError as exc:
+        raise InputError(f'station: cannot read {path} ({exc.strerror})') from None
+    return records, bad
+
+
+def parse_station_args(items):
+    """``NAME=CSV`` items -> {name: path}; InputError for a malformed or repeated item."""
+    out = {}
+    for item in items:
+        name, sep, path = item.partition('=')
+        name = name.strip().strip('/')
+        if not sep or not name or not path:
+            raise InputError(f'station: expected NAME=CSV, got {item!r}')
+        if name in out:
+            raise InputError(f'station: {name} given twice')
+        out[name] = path
+    return out
+
+
+def residuals(station, records, params, transmitter_enu):
+    """Compass residuals (rad) and confidences of one station's readings.
+
+    Each reading -> bearing with the station's parameters (azimuth θ in the world ENU
+    axes); β = π/2 − θ; β* = atan2(Δx, Δy) from the bearing's station position to the
+    transmitter; r = β − β* (wrapped later). Returns (r list, c list, rejections Counter).
+    """
+    from ..core.calibration import true_compass
+    from ..core.kraken import KrakenError
+    from ..core.receiver import ReceiverGeometry
+    from ..core.receiver_params import receiver_from_params
+    from ..core.station import ConfigError
+    try:
+        cfg, _ = receiver_from_params(station, params)
+    except ConfigError as exc:
+        raise InputError(f'params: station {station}: {exc}') from None
+    geo = ReceiverGeometry(cfg)
+    if cfg.needs_odometry:
+        raise InputError(f'params: station {station}: calibration needs a fixed or GPS '
+                         'heading and position (no odometry)')
+    r, c, bad = [], [], Counter()
+    for rec in records:
+        try:
+            b = geo.to_bearing(rec)
+        except KrakenError as exc:
+            bad[exc.reason] += 1
+            continue
+        beta = math.pi / 2.0 - b.azimuth
+        r.append(beta - float(true_compass(b.position[:2], transmitter_enu[:2])))
+        c.append(rec.confidence)
+    return r, c, bad
+
+
+def transmitter_position(args, params):
+    """Transmitter ENU (3,) from --transmitter or --transmitter-geodetic."""
+    import numpy as np
+    from ..core import geodesy
+    if args.transmitter is not None:
+        t = np.asarray(args.transmitter, dtype=float)
+        if not np.all(np.isfinite(t)):
+            raise InputError('transmitter: expected finite X Y Z')
+        return t
+    origins = {tuple(p.get('geodetic_origin') or ()) for p in params.values()}
+    origins.discard(())
+    if len(origins) != 1:
+        raise InputError('transmitter-geodetic: needs one geodetic_origin shared by every '
+                         'station in --params')
+    try:
+        return geodesy.geodetic_to_enu(*args.transmitter_geodetic, list(origins.pop()),
+                                       field='transmitter-geodetic')
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+
+
+def corrected_params(params, result):
+    """{station: nested ros__parameters} with the fitted correction applied."""
+    from ..core.receiver_params import DEFAULTS, nest
+    out = {}
+    for k, s in enumerate(result.stations):
+        p = dict(params[s])
+        old = float(p.get('kraken.heading_offset_deg', DEFAULTS['kraken.heading_offset_deg']))
+        new = (old - math.degrees(result.bias[k]) + 180.0) % 360.0 - 180.0
+        p['kraken.heading_offset_deg'] = round(new, 6)
+        p['kraken.sigma_conf1_deg'] = round(result.sigma_conf1_deg, 6)
+        p['kraken.sigma_conf0_deg'] = round(result.sigma_conf0_deg, 6)
+        out[s] = nest(p)
+    return out
+
+
+def write_params(path, corrected, header):
+    """Write ``/NAME/station_node: ros__parameters:`` entries to ``path`` (YAML)."""
+    import yaml
+    doc = {f'/{s}/{STATION_NODE}': {'ros__parameters': p} for s, p in corrected.items()}
+    text = yaml.safe_dump(doc, sort_keys=False, default_flow_style=None)
+    try:
+        with open(path, 'w', encoding='utf-8') as f:
+            f.write(''.join(f'# {line}\n' for line in header) + text)
+    except OSError as exc:
+        raise InputError(f'out: cannot write {path} ({exc.strerror})') from None
+
+
+def run(args):
+    """``calibrate``: fit, print the estimates with standard errors, write --out."""
+    from ..core.calibration import fit_calibration
+    stations = parse_station_args(args.station)
+    data = load_station_params(args.params) if args.params else {}
+    params = {s: station_params(data, s) for s in stations}
+    if not (math.isfinite(args.max_residual_deg) and 0.0 < args.max_residual_deg <= 180.0):
+        raise InputError('max-residual-deg: must be in (0, 180]')
+    parent = os.path.dirname(os.path.abspath(args.out))
+    if not os.path.isdir(parent):
+        raise InputError(f'out: directory {parent} does not exist')
+    tx = transmitter_position(args, params)
+    res, conf, notes = {}, {}, {}
+    for s, path in stations.items():
+        records, bad = read_log(path)
+        r, c, rej = residuals(s, records, params[s], tx)
+        res[s], conf[s], notes[s] = r, c, bad + rej
+    try:
+        fit = fit_calibration(res, conf, math.radians(args.max_residual_deg))
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    cov = fit.covariance
+    S = len(fit.stations)
+    se0 = fit.sigma_conf0_deg * math.sqrt(max(cov[S, S] + cov[S + 1, S + 1]
+                                              + 2.0 * cov[S, S + 1], 0.0))
+    status = 'converged' if fit.converged else 'NOT converged'
+    lines = [f'bearing_loc calibrate: transmitter at ENU ({tx[0]:.2f}, {tx[1]:.2f}, '
+             f'{tx[2]:.2f}) m, maximum likelihood ({status})',
+             f'sigma(confidence) = exp(a + b (1 - c)): sigma at c=1 {fit.sigma_conf1_deg:.3f} '
+             f'+- {fit.sigma_conf1_deg * fit.a_se:.3f} deg, at c=0 {fit.sigma_conf0_deg:.3f} '
+             f'+- {se0:.3f} deg']
+    for k, s in enumerate(fit.stations):
+        rejected = ', '.join(f'{r} {n}' for r, n in sorted(notes[s].items())) or 'none'
+        lines.append(f'{s}: heading bias {math.degrees(fit.bias[k]):+.3f} +- '
+                     f'{math.degrees(fit.bias_se[k]):.3f} deg (clockwise), {fit.n_used[s]} '
+                     f'readings, {fit.n_outliers[s]} outliers, rejected: {rejected}')
+    for line in lines:
+        print(line)
+    write_params(args.out, corrected_params(params, fit), lines)
+    print(f'wrote {args.out}')
+    return 0
