@@ -20,7 +20,7 @@ import numpy as np
 
 from bearing_loc_ros.core.bearings import BearingSet, simulate_bearings
 from bearing_loc_ros.core.crlb import crlb_for, gdop
-from bearing_loc_ros.core.ctls import ctls_covariance
+from bearing_loc_ros.core.constrained_tls import ctls_covariance
 from bearing_loc_ros.core.estimators import locate
 
 STATIONS_KM = np.array([[30.0, -10.0, 0.1], [30.0, 20.0, 0.2], [-30.0, 5.0, 0.15]])

@@ -34,8 +34,8 @@ import time
 import numpy as np
 
 from bearing_loc_ros.core.simulation import load_scenario, observation_times_ns
-from bearing_loc_ros.core.tma import (estimate_from_sums, mle, prefix_sums, simulate_tma,
-                                      state_transform, STATUS_OK, tma_crlb)
+from bearing_loc_ros.core.tma import (estimate_from_sums, prefix_sums, simulate_tma,
+                                      state_transform, STATUS_OK, tma_crlb, tma_mle)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SCENARIO = os.path.join(HERE, '..', 'config', 'scenarios', 'seed001.yaml')
@@ -82,7 +82,7 @@ def mle_track(bs, t, k_eval, stride):
     start = None
     for i, k in enumerate(ks):
         sub = bs.subset(slice(0, k + 1))
-        res = mle(sub, t[:k + 1], SPEED, start=start, covariance=False)
+        res = tma_mle(sub, t[:k + 1], SPEED, start=start, covariance=False)
         good = res.ok
         pos[:, i], rng[:, i], ok[:, i] = res.position, res.range, good
         if np.all(good):
@@ -186,7 +186,7 @@ def accumulator_timing(t, obs, start, velocity, window=60.0, repeat=20):
     for m in ('ple', 'ctls', 'ctls6', 'mle'):
         t0 = time.perf_counter()
         for _ in range(repeat):
-            acc.estimate(m)
+            acc.estimate('tma_' + m)
         out[m] = 1e3 * (time.perf_counter() - t0) / repeat
     return len(acc), out
 

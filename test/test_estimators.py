@@ -1,4 +1,4 @@
-"""Estimators of core/estimators.py and core/ctls.py: exactness, maths, options, degenerate input.
+"""Estimators of core/estimators.py and core/constrained_tls.py: exactness, maths, options, degenerate input.
 
 Statistical (Monte Carlo) acceptance tests live in test_estimators_mc.py.
 """
@@ -7,7 +7,7 @@ import pytest
 
 from bearing_loc_ros.core.bearings import BearingSet, simulate_bearings
 from bearing_loc_ros.core.crlb import crlb_for
-from bearing_loc_ros.core.ctls import ctls_cost, ctls_covariance, ctls_derivatives
+from bearing_loc_ros.core.constrained_tls import ctls_cost, ctls_covariance, ctls_derivatives
 from bearing_loc_ros.core.estimators import (DEFAULT_ESTIMATOR, ESTIMATORS, FixResult, locate,
                                              noise_model_crlb, pseudo_linear_system,
                                              range_scaled_sigmas, STATUSES, tls)

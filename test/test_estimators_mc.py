@@ -12,7 +12,7 @@ import pytest
 from bearing_loc_ros.core.bearings import BearingSet, simulate_bearings
 from bearing_loc_ros.core.conventions import azimuth_elevation, wrap_angle
 from bearing_loc_ros.core.crlb import crlb, crlb_for, gdop
-from bearing_loc_ros.core.ctls import ctls_covariance
+from bearing_loc_ros.core.constrained_tls import ctls_covariance
 from bearing_loc_ros.core.estimators import DEFAULT_ESTIMATOR, locate
 
 SEED000_STATIONS = np.array([[30.0, -10.0, 0.1], [30.0, 20.0, 0.2], [-30.0, 5.0, 0.15]]) * 1e3

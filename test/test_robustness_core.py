@@ -70,7 +70,7 @@ def test_empty_batch_returns_empty_results():
         res = est.locate(method, empty)
         assert res.position.shape == (0, 3) and res.status.shape == (0,)
     t = np.zeros((0, 4))
-    for method in sorted(tma_core.TMA_ESTIMATORS):
+    for method in sorted(tma_core.TMA_FUNCTIONS):
         assert tma_core.tma(method, empty.subset(np.arange(3)), t[:, :3], 100.0).M == 0
 
 
@@ -95,7 +95,7 @@ def test_tma_extremes_return_a_status():
     for p0, o, tt, sig in cases:
         bs, times = tma_core.simulate_tma(tt, p0, [200.0, 0.0, 0.0], o, sig,
                                           rng=np.random.default_rng(1))
-        for method in sorted(tma_core.TMA_ESTIMATORS):
+        for method in sorted(tma_core.TMA_FUNCTIONS):
             res = tma_core.tma(method, bs, times, 200.0, speed_reference='ground')
             d = res.single(0)
             assert not (d['converged'] and not np.all(np.isfinite(d['position'])))

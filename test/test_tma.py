@@ -19,7 +19,7 @@ V_T = np.array([-340.0, 80.0, -1.21])
 V_REL = V_T - V_OBS
 VC = float(np.linalg.norm(V_REL))           # exact prior (the paper rounds it to 380 m/s)
 SIG = np.deg2rad(0.1)
-METHODS = ('ple', 'ctls', 'ctls6', 'mle')
+METHODS = ('tma_ple', 'tma_ctls', 'tma_ctls6', 'tma_mle')
 
 
 def _truth_at(t, start=P_T):
@@ -62,10 +62,10 @@ def test_mle_uses_a_manoeuvring_observer_exactly():
     v_o, _ = T.observer_track((TIMES - TIMES[0])[None], obs[None])
     bs, t = T.simulate_tma(TIMES, P_T, V_T, obs, SIG)
     vc = float(np.linalg.norm(V_T - v_o[0]))
-    r = T.mle(bs, t, vc)
+    r = T.tma_mle(bs, t, vc)
     assert r.status[0] == 'ok'
     assert np.linalg.norm(r.position[0] - _truth_at(100.0)) < 1e-6 * _range_at_end()
-    c = T.ctls(bs, t, vc)
+    c = T.tma_ctls(bs, t, vc)
     assert np.linalg.norm(c.position[0] - _truth_at(100.0)) > 1e-3 * _range_at_end()
 
 
@@ -163,7 +163,7 @@ def test_ctls_is_unbiased_where_ple_is_not():
         bs, t = _paper_setting(start, sigma, n, seed=7)
         r_true = _range_at_end(start)
         for m in ('ple', 'ctls'):
-            res = T.tma(m, bs, t, VC, covariance=False)
+            res = T.tma('tma_' + m, bs, t, VC, covariance=False)
             assert np.all(res.status == 'ok')
             e = (res.range - r_true) / r_true
             mean, rmse, se = e.mean(), np.sqrt(np.mean(e ** 2)), e.std() / np.sqrt(n)
@@ -193,14 +193,14 @@ def test_mle_reaches_the_crlb_and_ctls6_is_close():
     bound = np.sqrt(np.trace((Tm @ C @ Tm.T)[:3, :3]))
     assert np.allclose(C @ T.constraint_gradient(V_REL, V_OBS), 0,
                        atol=1e-9 * np.abs(C).max())
-    r = T.mle(bs, t, VC, covariance=False)
+    r = T.tma_mle(bs, t, VC, covariance=False)
     assert np.all(r.status == 'ok')
     rmse = np.sqrt(np.mean(np.sum((r.position - _truth_at(100.0)) ** 2, -1)))
     assert abs(rmse / bound - 1) < 0.10, (rmse, bound)
     x = np.concatenate([r.relative_position0 - (P_T - OBS[0]), r.relative_velocity - V_REL], 1)
     nees = np.einsum('mi,ij,mj->m', x, np.linalg.pinv(C, hermitian=True), x)
     assert abs(nees.mean() - 5) < 4 * np.sqrt(10 / n), nees.mean()
-    c6 = T.ctls6(bs, t, VC, covariance=False)
+    c6 = T.tma_ctls6(bs, t, VC, covariance=False)
     rmse6 = np.sqrt(np.mean(np.sum((c6.position - _truth_at(100.0)) ** 2, -1)))
     assert rmse6 < 1.25 * bound, (rmse6, bound)
 
@@ -245,16 +245,16 @@ def test_collision_course_is_unobservable_not_a_fix_from_noise(method):
 def test_observability_gates_and_no_false_alarm():
     # Two bearings, and a 2 s window (bearing change 0.1° = 1 σ): unobservable.
     bs, t = T.simulate_tma(TIMES, P_T, V_T, OBS, SIG, rng=np.random.default_rng(5), M=30)
-    r = T.ctls(bs.subset([0, 1]), t[:, :2], VC)
+    r = T.tma_ctls(bs.subset([0, 1]), t[:, :2], VC)
     assert np.all(r.status == 'unobservable') and 'too few' in r.reason[0]
-    r = T.ctls(bs.subset(slice(0, 11)), t[:, :11], VC)
+    r = T.tma_ctls(bs.subset(slice(0, 11)), t[:, :11], VC)
     assert np.all(r.status == 'unobservable')
     # 20 s of noise-free bearings (σ = 0.1°): the line of sight turns by 1° = 10 σ (the
     # chi-square test passes) but the CRLB range std is twice the range: the gate fires.
     bs1, t1 = T.simulate_tma(TIMES[:101], P_T, V_T, OBS[:101], SIG)
-    r = T.ctls(bs1, t1, VC)
+    r = T.tma_ctls(bs1, t1, VC)
     assert r.status[0] == 'unobservable' and 'range not resolved' in r.reason[0]
-    r = T.ctls(bs1, t1, VC, max_range_ratio=np.inf)
+    r = T.tma_ctls(bs1, t1, VC, max_range_ratio=np.inf)
     assert r.status[0] == 'ok'
     # The full seed scenario is never flagged (false alarm rate of the tests ≪ 1/30 here).
     for m in METHODS:
@@ -263,7 +263,7 @@ def test_observability_gates_and_no_false_alarm():
     cbs, ct = _collision_course(None, None)
     acc = T.TmaAccumulator(380.0)
     _feed(acc, cbs, ct, range(len(TIMES)))
-    assert acc.estimate('mle').status[0] == 'unobservable'
+    assert acc.estimate('tma_mle').status[0] == 'unobservable'
 
 
 def test_mle_never_reports_nan_as_converged():
@@ -271,14 +271,14 @@ def test_mle_never_reports_nan_as_converged():
     bad_start = (np.tile(-(P_T - OBS[0]), (20, 1)), np.tile(-V_REL, (20, 1)))   # behind
     for kw in (dict(max_iterations=1), dict(start=bad_start), dict(start=bad_start,
                                                                    max_iterations=3)):
-        r = T.mle(bs, t, VC, **kw)
+        r = T.tma_mle(bs, t, VC, **kw)
         usable = np.isin(r.status, ('ok', 'max_iterations'))
         assert np.all(np.isfinite(r.position[usable]))
         assert not np.any(r.converged & ~np.all(np.isfinite(r.position), -1))
         assert np.all((r.status == 'max_iterations') == (usable & ~r.converged))
-    r = T.mle(bs, t, VC, max_iterations=1)
+    r = T.tma_mle(bs, t, VC, max_iterations=1)
     assert np.all(r.status == 'max_iterations') and np.all(r.iterations == 1)
-    r = T.mle(bs, t, VC, start=(np.full((20, 3), np.nan), np.tile(V_REL, (20, 1))))
+    r = T.tma_mle(bs, t, VC, start=(np.full((20, 3), np.nan), np.tile(V_REL, (20, 1))))
     assert np.all(r.status == 'degenerate_geometry') and np.all(np.isnan(r.position))
 
 
@@ -289,17 +289,19 @@ def test_invalid_input_names_the_field():
         (dict(speed=-1.0), 'speed'),
         (dict(speed=np.nan), 'speed'),
         (dict(method='kalman'), 'method: unknown TMA estimator'),
-        (dict(options={'tolerance': 1}), 'options: unknown'),
+        (dict(options={'tolerance': 1}), 'options.tolerance: unknown option'),
+        (dict(options={'alpha': 1.5}), 'options.alpha: must be'),
+        (dict(options={'min_bearings': 2.5}), 'options.min_bearings: must be'),
         (dict(options={'speed_reference': 'north'}), 'speed_reference'),
     ]
     for kw, msg in cases:
-        args = dict(method='ctls', times=t, speed=380.0, options={})
+        args = dict(method='tma_ctls', times=t, speed=380.0, options={})
         args.update(kw)
         with pytest.raises(ValueError, match=msg):
             T.tma(args['method'], bs, args['times'], args['speed'], **args['options'])
     azonly = T.BearingSet.from_arrays(bs.positions, bs.azimuth, None, SIG, validate=False)
     with pytest.raises(ValueError, match='elevation'):
-        T.ctls(azonly, t, 380.0)
+        T.tma_ctls(azonly, t, 380.0)
     acc = T.TmaAccumulator(380.0, window=10.0)
     with pytest.raises(ValueError, match='observations'):
         acc.estimate()
@@ -316,3 +318,20 @@ def test_invalid_input_names_the_field():
         T.TmaAccumulator(380.0, window=0.0)
     with pytest.raises(ValueError, match='speed'):
         T.TmaAccumulator(0.0)
+
+
+def test_tma_results_are_fix_results_and_former_names_still_work():
+    # One result type: a TMA result is a FixResult whose position covariance is the (3, 3)
+    # block of the (6, 6) state covariance; the former short names give identical answers.
+    from bearing_loc_ros.core.fix import FixResult
+    bs, t = T.simulate_tma(TIMES[:40], P_T, V_T, OBS[:40], SIG, rng=np.random.default_rng(3),
+                           M=4)
+    for name in METHODS:
+        r = T.tma(name, bs, t, VC)
+        old = T.tma(name[len('tma_'):], bs, t, VC)
+        assert isinstance(r, FixResult) and T.TmaResult is FixResult
+        assert r.method == name and r.has_velocity and r.state_covariance.shape == (4, 6, 6)
+        np.testing.assert_array_equal(r.position_covariance, r.covariance[:, :3, :3])
+        np.testing.assert_array_equal(r.position, old.position)
+        np.testing.assert_array_equal(r.status, old.status)
+        assert set(r.single(0)) >= {'t', 'velocity', 'covariance', 'reason', 'range'}

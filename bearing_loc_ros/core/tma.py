@@ -1,18 +1,18 @@
-"""Target motion analysis (TMA) from one moving station with a speed prior (seed 001).
+"""Target motion analysis (TMA) from one moving station with a speed prior (Lin et al.).
 
 One station (the observer) measures azimuth and elevation of a target over time. The target
 moves at constant velocity; the prior speed v_c fixes the scale that bearings alone leave
-free. Equation numbers (T1)...(T18) refer to README "Target motion analysis", which derives
-them from the text of seed 001 (its formulas did not survive in our copy).
+free. Equation numbers (T1)...(T18) refer to docs/tma.md, which derives
+them from the text of Lin et al. (its formulas did not survive in our copy).
 
-Conventions (DESIGN.md). ENU world frame, metres, seconds, radians. Azimuth θ is ENU
-(counter-clockwise from East), elevation ψ above the horizontal plane. Seed 001 measures its
+Conventions (docs/conventions.md). ENU world frame, metres, seconds, radians. Azimuth θ is ENU
+(counter-clockwise from East), elevation ψ above the horizontal plane. Lin et al. measure their
 azimuth θ' clockwise from North (the y axis): θ' = π/2 − θ, converted at the boundary
 (``conventions.compass_to_enu``; the CLI flag ``--compass``). Only one sign changes: the
 paper's azimuth row p_x cos θ' − p_y sin θ' = 0 is −h_θ·p = 0 below, the elevation row and the
 line-of-sight vector e = (cos φ sin θ', cos φ cos θ', sin φ) = u(θ, ψ) are the same.
 
-Model (seed 001 sec. 2, eq. (1)-(3)). Bearing k is taken at time t_k from observer position
+Model (Lin et al. sec. 2, eq. (1)-(3)). Bearing k is taken at time t_k from observer position
 o_k; τ_k = t_k − t_0 counts from the first bearing of the window.
 
 (T1)  target:            p_T(t) = o_0 + p0 + (v + v_o) (t − t_0)
@@ -21,11 +21,11 @@ o_k; τ_k = t_k − t_0 counts from the first bearing of the window.
 (T3)  relative position: p_k = p_T(t_k) − o_k = p0 + v τ_k − δ_k
 (T4)  θ_k = atan2(p_k,y, p_k,x) + n_k,  ψ_k = atan2(p_k,z, ρ_k) + m_k,  n ~ N(0, σ_θ²),
       m ~ N(0, σ_ψ²) independent.
-(T5)  speed prior: |v| = v_c ('relative', seed 001: the prior relative speed) or
+(T5)  speed prior: |v| = v_c ('relative', Lin et al.: the prior relative speed) or
       |v + v_o| = v_c ('ground': the target's own speed, what type recognition gives).
 
 So (p0, v) is the target state relative to the observer's fitted constant-velocity track,
-exactly the relative motion p = p_t − p_o, v = v_t − v_o of seed 001 when the observer does
+exactly the relative motion p = p_t − p_o, v = v_t − v_o of Lin et al. when the observer does
 not manoeuvre. ``ple`` and ``ctls`` use the paper's model (δ ≡ 0); ``mle`` and the CRLB use
 the given observer positions exactly (any δ).
 """
@@ -39,90 +39,42 @@ from scipy.special import chdtri
 from .bearings import _check_bearing_fields, BearingSet
 from .conventions import azimuth_elevation, los_vector, wrap_angle
 from .crlb import angle_jacobians, safe_inverse
-from .estimators import STATUS_DEGENERATE, STATUS_MAX_ITERATIONS, STATUS_OK
+from .estimator_spec import (BEARING_SIGMA, declare, MAX_ITERATIONS, Option, TMA)
+from .fix import (FixResult, STATUS_DEGENERATE, STATUS_MAX_ITERATIONS, STATUS_OK,
+                  STATUS_UNOBSERVABLE, TMA_STATUSES)
 
-STATUS_UNOBSERVABLE = 'unobservable'
-TMA_STATUSES = (STATUS_OK, STATUS_UNOBSERVABLE, STATUS_DEGENERATE, STATUS_MAX_ITERATIONS)
+__all__ = ['SPEED_REFERENCES', 'STATUS_UNOBSERVABLE', 'TMA_OPTIONS', 'TMA_STATUSES',
+           'TmaAccumulator', 'TmaSums', 'batch_sums', 'bearing_terms', 'constrained_crlb',
+           'constraint_gradient', 'estimate_from_sums', 'fisher_terms', 'observer_track',
+           'prefix_sums', 'simulate_tma', 'state_transform', 'tma', 'tma_crlb', 'tma_ctls',
+           'tma_ctls6', 'tma_mle', 'tma_ple']
+
 SPEED_REFERENCES = ('relative', 'ground')
 
-#: Default options shared by every TMA estimator (see :func:`tma`).
-DEFAULTS = {
-    'speed_reference': 'relative',
-    'min_bearings': 3,
-    'alpha': 1e-3,
-    'max_range_ratio': 1.0,
-    'covariance': True,
-}
+#: Options of every TMA estimator (one option set serves them all: the iteration options are
+#: accepted and ignored by the closed forms).
+TMA_OPTIONS = (
+    Option('speed_reference', 'relative', 'choice',
+           "speed prior on the relative ('relative') or the target's own ('ground') velocity",
+           choices=SPEED_REFERENCES),
+    Option('min_bearings', 3, 'count', 'fewer bearings (at least 3) give unobservable'),
+    Option('alpha', 1e-3, 'probability', 'level of the constant line-of-sight test (T18)'),
+    Option('max_range_ratio', 1.0, 'positive',
+           'unobservable when the CRLB range std exceeds this fraction of the range (inf: '
+           'never)', allow_inf=True),
+    Option('covariance', True, 'flag', 'compute the constrained CRLB (T15)-(T16)'),
+    Option('start', None, 'object', 'tma_mle: initial (p0, v), m and m/s'),
+    MAX_ITERATIONS,
+    Option('xtol', 1e-10, 'positive', 'tma_mle: relative step tolerance'),
+    Option('dtol', 1e-3, 'positive', 'tma_mle: step tolerance in standard deviations'),
+)
 
+#: Default options shared by every TMA estimator (see :data:`TMA_OPTIONS`).
+DEFAULTS = {o.name: o.default for o in TMA_OPTIONS[:5]}
 
-# --------------------------------------------------------------------------------------------
-# Results
-# --------------------------------------------------------------------------------------------
-
-@dataclass
-class TmaResult:
-    """TMA estimates for M problems; the target state at the last bearing time.
-
-    Attributes:
-        method: estimator name.
-        t: (M,) time of the last bearing, s (the epoch of ``position``).
-        position: (M, 3) target position at ``t`` (T1), m, ENU. NaN unless status is ok or
-            max_iterations.
-        velocity: (M, 3) target velocity v + v_o, m/s.
-        covariance: (M, 6, 6) covariance of (position, velocity) at ``t``: the constrained
-            CRLB (T15)-(T16) evaluated at the estimate, m², m²/s, m²/s²; inf when unknown.
-        t0: (M,) time of the first bearing, s.
-        position0: (M, 3) target position at ``t0``, m.
-        relative_position0: (M, 3) p0, m. relative_velocity: (M, 3) v, m/s (T3).
-        observer_velocity: (M, 3) v_o (T2), m/s.
-        range: (M,) target-observer distance at ``t``, m.
-        iterations: (M,) int (0 for the closed forms). converged: (M,) bool.
-        status: (M,) str, one of ``TMA_STATUSES``. reason: (M,) str, '' when ok.
-    """
-
-    method: str
-    t: np.ndarray
-    position: np.ndarray
-    velocity: np.ndarray
-    covariance: np.ndarray
-    t0: np.ndarray
-    position0: np.ndarray
-    relative_position0: np.ndarray
-    relative_velocity: np.ndarray
-    observer_velocity: np.ndarray
-    range: np.ndarray
-    iterations: np.ndarray
-    converged: np.ndarray
-    status: np.ndarray
-    reason: np.ndarray
-
-    @property
-    def M(self):
-        """Number of problems."""
-        return self.position.shape[0]
-
-    @property
-    def ok(self):
-        """(M,) bool: a usable estimate (status ok or max_iterations, finite position)."""
-        return (np.isin(self.status, (STATUS_OK, STATUS_MAX_ITERATIONS))
-                & np.all(np.isfinite(self.position), axis=-1))
-
-    def single(self, m=0):
-        """Problem ``m`` as a dict of plain Python values (NaN/inf left as floats)."""
-        return {
-            'method': self.method,
-            't': float(self.t[m]),
-            'position': self.position[m].tolist(),
-            'velocity': self.velocity[m].tolist(),
-            'covariance': self.covariance[m].tolist(),
-            't0': float(self.t0[m]),
-            'position0': self.position0[m].tolist(),
-            'range': float(self.range[m]),
-            'iterations': int(self.iterations[m]),
-            'converged': bool(self.converged[m]),
-            'status': str(self.status[m]),
-            'reason': str(self.reason[m]),
-        }
+#: Deprecated name of :class:`~bearing_loc_ros.core.fix.FixResult` (TMA results are
+#: FixResults with the velocity fields set).
+TmaResult = FixResult
 
 
 # --------------------------------------------------------------------------------------------
@@ -251,7 +203,7 @@ class TmaSums:
     Q = Σ Qh_k (see :func:`bearing_terms`); observer sums T1 = Σ τ_r, T2 = Σ τ_r²,
     O1 = Σ (o_k − o_ref), TO = Σ τ_r (o_k − o_ref); the first bearing of the window
     (t0, e0 = u(θ_0, ψ_0), o0, its Oh as ``B_first``) and the last (t_last, o_last).
-    Adding a bearing adds its terms (seed 001 sec. 3.2.1: P(k+1) = P(k) + ..., (T13)); the
+    Adding a bearing adds its terms (Lin et al. sec. 3.2.1: P(k+1) = P(k) + ..., (T13)); the
     paper's P, Ω follow in O(1) from :meth:`paper_matrices`.
     """
 
@@ -289,7 +241,7 @@ class TmaSums:
         return self.A0, A1, A2, self.B0, B1, B2
 
     def paper_matrices(self):
-        """The paper's P = AᵀWA and Ω (seed 001 sec. 3.2.1; (T10)-(T11)), shape (S, 4, 4).
+        """The paper's P = AᵀWA and Ω (Lin et al. sec. 3.2.1; (T10)-(T11)), shape (S, 4, 4).
 
         Rows of A: a_k = [τ_k h_kᵀ, h_k·e0] (T9), k ≥ 1 (bearing 0 defines e0 and is taken as
         exact, as in the paper), i.e. P = L P6 Lᵀ with L = [[I3, 0], [0, e0ᵀ]] and
@@ -371,7 +323,7 @@ def batch_sums(bearings, times):
 
 
 # --------------------------------------------------------------------------------------------
-# Closed forms: ple (seed 001 sec. 3.1) and ctls (sec. 3.2) from the sums
+# Closed forms: ple (Lin et al. sec. 3.1) and ctls (sec. 3.2) from the sums
 # --------------------------------------------------------------------------------------------
 
 def _smallest_generalized_eigvec(P, Om, rcond=1e-13):
@@ -401,7 +353,7 @@ def _smallest_generalized_eigvec(P, Om, rcond=1e-13):
 def _scale_from_speed(b, speed, v_o, speed_reference):
     """Initial range r0 from the speed prior (T8): |r0 b| = v_c or |r0 b + v_o| = v_c.
 
-    'relative': r0 = v_c / |b| (seed 001 sec. 3.1). 'ground': the positive root of
+    'relative': r0 = v_c / |b| (Lin et al. sec. 3.1). 'ground': the positive root of
     |b|² r0² + 2 (b·v_o) r0 + |v_o|² − v_c² = 0. NaN where no positive root exists.
     """
     bb = np.sum(b * b, axis=-1)
@@ -419,13 +371,13 @@ def estimate_from_sums(sums, method, speed, speed_reference='relative', min_bear
                        alpha=1e-3):
     """Closed-form ple/ctls/ctls6 relative state (p0, v) from :class:`TmaSums` of shape S.
 
-    ple (T7): b = −(HᵀWH)⁻¹ HᵀW y = −A2⁻¹ A1 e0 (seed 001 sec. 3.1).
+    ple (T7): b = −(HᵀWH)⁻¹ HᵀW y = −A2⁻¹ A1 e0 (Lin et al. sec. 3.1).
     ctls (T12): z = [b; ζ] the generalized eigenvector of (P, Ω) for the smallest generalized
-    eigenvalue, b ← b/ζ (seed 001 sec. 3.2.1). ctls6 (T12b): z = (v, p0)/r0 from (P6, Ω6),
+    eigenvalue, b ← b/ζ (Lin et al. sec. 3.2.1). ctls6 (T12b): z = (v, p0)/r0 from (P6, Ω6),
     e0 ← the direction of z's p0 part. Then r0 from the speed prior (T8), p0 = r0 e0,
     v = r0 b. Gates (T18): n < ``min_bearings`` or a constant line of sight (λ_min(Q) below
     the chi-square (2n − 2) quantile 1 − ``alpha``) -> 'unobservable'. ``speed`` (m/s)
-    broadcasts against S. The CRLB range gate needs the bearings: see :func:`ple`.
+    broadcasts against S. The CRLB range gate needs the bearings: see :func:`tma_ple`.
 
     Returns (p0 (S, 3) m, v (S, 3) m/s, status (S,) str, reason (S,) str); NaN unless ok.
     """
@@ -492,8 +444,8 @@ def fisher_terms(p0, v, tau, delta, sigma_az, sigma_el):
     """Per-bearing Fisher information (M, K, 6, 6) of x = (p0, v) (T14).
 
     F_k = G_kᵀ diag(σ_θ⁻², σ_ψ⁻²) G_k with G_k = [∇θ; ∇ψ](p_k) · [I3, τ_k I3], p_k from (T3),
-    ∇θ, ∇ψ from :func:`bearing_loc_ros.core.crlb.angle_jacobians` (seed 003 eq. (6)-(8),
-    seed 001 sec. 3.3). Units: x in m and m/s.
+    ∇θ, ∇ψ from :func:`bearing_loc_ros.core.crlb.angle_jacobians` (Zong & Cui 2015 eqs. (6)-(8),
+    Lin et al. sec. 3.3). Units: x in m and m/s.
     """
     p0 = np.asarray(p0, dtype=float)
     v = np.asarray(v, dtype=float)
@@ -603,22 +555,20 @@ def _finish(method, data, p0, v, status, reason, iterations, converged, opts):
     rng = np.where(good, rng, np.nan)
     cov[~good] = np.inf
     converged = np.asarray(converged, dtype=bool) & good
-    return TmaResult(method, data.t0 + tau_l, pos, vel, cov, data.t0.copy(), pos0, p0, v,
-                     data.v_o.copy(), rng, np.asarray(iterations, dtype=int), converged,
-                     status, reason)
+    return FixResult(pos, cov, np.asarray(iterations, dtype=int), converged,
+                     status.astype(str), 'tma_' + method, velocity=vel, t=data.t0 + tau_l,
+                     t0=data.t0.copy(), position0=pos0, relative_position0=p0,
+                     relative_velocity=v, observer_velocity=data.v_o.copy(), range=rng,
+                     reason=reason.astype(str))
 
 
-def _options(options):
-    unknown = set(options) - set(DEFAULTS) - {'start', 'max_iterations', 'xtol', 'dtol'}
-    if unknown:
-        raise ValueError(f'options: unknown TMA option(s) {sorted(unknown)}')
-    opts = dict(DEFAULTS)
-    opts.update(options)
-    return opts
+def _options(options, fn=None):
+    """Options merged over the defaults of :data:`TMA_OPTIONS`, each value validated."""
+    return (fn or tma_mle).spec.parse(options)
 
 
-def _closed_form(method, bearings, times, speed, options):
-    opts = _options(options)
+def _closed_form(method, bearings, times, speed, options, fn):
+    opts = _options(options, fn)
     data = _prepare(bearings, times, speed, opts['speed_reference'])
     sums = batch_sums(bearings, times)
     p0, v, status, reason = estimate_from_sums(sums, method, data.speed,
@@ -630,49 +580,52 @@ def _closed_form(method, bearings, times, speed, options):
         status == STATUS_OK, opts)
 
 
-def ple(bearings, times, speed, **options):
-    """Pseudo-linear least squares TMA (seed 001 sec. 3.1), (T6)-(T8).
+@declare('tma_ple', TMA, TMA_OPTIONS, BEARING_SIGMA, inputs=('times', 'speed'))
+def tma_ple(bearings, times, speed, **options):
+    """Pseudo-linear least squares TMA (Lin et al. sec. 3.1), (T6)-(T8).
 
     With p0 = r0 e0 (e0 the line of sight of the first bearing, taken as exact) and
     b = v / r0 (1/s), every later bearing gives two equations τ_k h·b = −h·e0 (h = h_θ, h_ψ
     at the measured angles, T6), H b = −y; b = −(HᵀWH)⁻¹HᵀWy with W = diag(σ⁻²) (T7; the
     paper's unweighted form for equal σ); r0 = v_c/|b|, p0 = r0 e0, v = r0 b (T8).
-    Biased: H holds the noisy angles (E{b̂ − b} ≠ 0, seed 001 sec. 3.1).
+    Biased: H holds the noisy angles (E{b̂ − b} ≠ 0, Lin et al. sec. 3.1).
 
     Args: ``bearings`` BearingSet (M, K) of observer positions and ENU angles (every bearing
     with elevation), ``times`` (K,) or (M, K) s, non-decreasing, ``speed`` v_c m/s (scalar or
     (M,)). Options: ``speed_reference`` ('relative' | 'ground', T5), ``min_bearings``,
     ``alpha`` (constant-LOS test level), ``max_range_ratio`` (CRLB range gate),
-    ``covariance`` (compute the CRLB). Returns :class:`TmaResult`.
+    ``covariance`` (compute the CRLB). Returns a FixResult with the velocity fields (core/fix.py).
     """
-    return _closed_form('ple', bearings, times, speed, options)[-1]
+    return _closed_form('ple', bearings, times, speed, options, tma_ple)[-1]
 
 
-def ctls(bearings, times, speed, **options):
-    """Constrained total least squares TMA (seed 001 sec. 3.2), (T9)-(T13).
+@declare('tma_ctls', TMA, TMA_OPTIONS, BEARING_SIGMA, inputs=('times', 'speed'))
+def tma_ctls(bearings, times, speed, **options):
+    """Constrained total least squares TMA (Lin et al. sec. 3.2), (T9)-(T13).
 
     Augmented matrix A = [H, y] (rows a_k = [τ_k hᵀ, h·e0], T9), P = AᵀWA (T10),
     Ω = E[ΔAᵀWΔA] to first order in the angle noise (T11; bearing 0 exact, as in the paper).
     min zᵀPz subject to zᵀΩz = 1 gives P z = λ Ω z: z is the generalized eigenvector for the
     smallest λ (T12), b = z[:3]/z[3]; then (T8). Asymptotically unbiased (sec. 3.2.2).
     P and Ω are sums over bearings: :class:`TmaAccumulator` updates them in O(1) (T13).
-    Same arguments and options as :func:`ple`.
+    Same arguments and options as :func:`tma_ple`.
     """
-    return _closed_form('ctls', bearings, times, speed, options)[-1]
+    return _closed_form('ctls', bearings, times, speed, options, tma_ctls)[-1]
 
 
-def ctls6(bearings, times, speed, **options):
+@declare('tma_ctls6', TMA, TMA_OPTIONS, BEARING_SIGMA, inputs=('times', 'speed'))
+def tma_ctls6(bearings, times, speed, **options):
     """CTLS on the full homogeneous system, without the initial-bearing anchor (T12b).
 
-    Not in seed 001: every bearing (the first one included) gives h·(p0 + v τ_k) = 0, rows
+    Not in Lin et al.: every bearing (the first one included) gives h·(p0 + v τ_k) = 0, rows
     g_k = [τ_k hᵀ, hᵀ] in z = (v, p0)/r0. P6 = Σ w g gᵀ = [[A2, A1], [A1, A0]] and
     Ω6 = [[B2, B1], [B1, B0]] (first-order noise of the rows, T11); z is the generalized
     eigenvector of (P6, Ω6) for the smallest eigenvalue, signed so that p0·e0 > 0 and scaled
     by the speed prior (T8). The paper's CTLS fixes p0 ∥ e0 from one noisy bearing, an error
     that no later bearing averages out; here every bearing counts alike (see the benchmark in
-    README "Target motion analysis"). Same recursive sums, arguments and options as :func:`ctls`.
+    docs/tma.md). Same recursive sums, arguments and options as :func:`tma_ctls`.
     """
-    return _closed_form('ctls6', bearings, times, speed, options)[-1]
+    return _closed_form('ctls6', bearings, times, speed, options, tma_ctls6)[-1]
 
 
 def _tangent_basis(s):
@@ -693,7 +646,7 @@ def _residuals(data, p0, v):
 
 
 def _mle_start(data, sums, opts, methods=('ctls', 'ctls6', 'ple')):
-    """Start of :func:`mle`: of the closed forms, the one with the lowest ML cost (T17).
+    """Start of :func:`tma_mle`: of the closed forms, the one with the lowest ML cost (T17).
 
     Returns (p0, v, status, reason); status/reason of the first method where none is ok.
     """
@@ -717,7 +670,8 @@ def _mle_start(data, sums, opts, methods=('ctls', 'ctls6', 'ple')):
     return tuple(best)
 
 
-def mle(bearings, times, speed, **options):
+@declare('tma_mle', TMA, TMA_OPTIONS, BEARING_SIGMA, inputs=('times', 'speed'))
+def tma_mle(bearings, times, speed, **options):
     """Maximum likelihood TMA with the speed constraint, Gauss-Newton/Levenberg-Marquardt (T17).
 
     Minimises Σ_k wrap(θ̂_k − θ_k)²/σ_θk² + (ψ̂_k − ψ_k)²/σ_ψk² over x = (p0, v) with the angles
@@ -729,12 +683,13 @@ def mle(bearings, times, speed, **options):
     never NaN. Converged when the step is shorter than ``dtol`` (1e-3) standard deviations
     (hᵀJᵀJh < dtol²: far below the statistical error) or ``xtol`` (1e-10) relative.
     Start: ``start`` = (p0, v) arrays,
-    else the closed form (:func:`ctls`, :func:`ctls6`, :func:`ple`) with the lowest cost.
+    else the closed form (:func:`tma_ctls`, :func:`tma_ctls6`, :func:`tma_ple`) with the lowest
+    cost.
     Efficient (reaches the CRLB (T15)) at small noise: the reference of the benchmark.
-    Options as :func:`ple` plus ``start``, ``max_iterations`` (50), ``dtol``, ``xtol``.
+    Options as :func:`tma_ple` plus ``start``, ``max_iterations`` (50), ``dtol``, ``xtol``.
     Status max_iterations: not converged, estimate kept (cost reduced).
     """
-    opts = _options(options)
+    opts = _options(options, tma_mle)
     start = opts.pop('start', None)
     max_it = int(opts.pop('max_iterations', 50))
     xtol = float(opts.pop('xtol', 1e-10))
@@ -829,22 +784,40 @@ def mle(bearings, times, speed, **options):
     return _finish('mle', data, p0, v, status, reason, iters, converged, opts)
 
 
+#: The TMA estimators by their registry names (core.registry, the fusion node and the CLI).
+TMA_FUNCTIONS = {
+    'tma_ple': tma_ple,
+    'tma_ctls': tma_ctls,
+    'tma_ctls6': tma_ctls6,
+    'tma_mle': tma_mle,
+}
+
+_CLOSED_FORMS = {tma_ple: 'ple', tma_ctls: 'ctls', tma_ctls6: 'ctls6'}
+
+#: Deprecated: the same functions by their former short names (accepted for one release).
 TMA_ESTIMATORS = {
-    'ple': ple,
-    'ctls': ctls,
-    'ctls6': ctls6,
-    'mle': mle,
+    'ple': tma_ple,
+    'ctls': tma_ctls,
+    'ctls6': tma_ctls6,
+    'mle': tma_mle,
 }
 
 
-def tma(method, bearings, times, speed, **options):
-    """Run TMA estimator ``method`` (a name in :data:`TMA_ESTIMATORS`); ValueError if unknown."""
-    try:
-        fn = TMA_ESTIMATORS[method]
-    except KeyError:
+def tma_function(method):
+    """The TMA estimator function called ``method`` (``tma_ple`` ..., or a former short name
+    ``ple`` ...); ValueError naming the choices if unknown."""
+    fn = TMA_FUNCTIONS.get(method) if isinstance(method, str) else None
+    if fn is None and isinstance(method, str):
+        fn = TMA_ESTIMATORS.get(method)
+    if fn is None:
         raise ValueError(f'method: unknown TMA estimator {method!r}; choose one of '
-                         f'{sorted(TMA_ESTIMATORS)}') from None
-    return fn(bearings, times, speed, **options)
+                         f'{sorted(TMA_FUNCTIONS)}')
+    return fn
+
+
+def tma(method, bearings, times, speed, **options):
+    """Run TMA estimator ``method`` (see :func:`tma_function`) -> FixResult with velocity."""
+    return tma_function(method)(bearings, times, speed, **options)
 
 
 # --------------------------------------------------------------------------------------------
@@ -852,7 +825,7 @@ def tma(method, bearings, times, speed, **options):
 # --------------------------------------------------------------------------------------------
 
 class TmaAccumulator:
-    """Recursive P, Ω (seed 001 sec. 3.2.1, Table 1; (T13)) over a sliding time window.
+    """Recursive P, Ω (Lin et al. sec. 3.2.1, Table 1; (T13)) over a sliding time window.
 
     ``add`` costs O(1): it adds the bearing's terms (:func:`bearing_terms`) to the moments of
     :class:`TmaSums` and, when ``window`` (s) is set, subtracts the terms of bearings older
@@ -863,8 +836,8 @@ class TmaAccumulator:
 
     Args:
         speed: prior speed v_c, m/s (T5). window: None (grow forever) or seconds (> 0).
-        speed_reference: 'relative' (seed 001) or 'ground'. Further keyword options are
-        passed to the estimators (see :func:`ple`).
+        speed_reference: 'relative' (Lin et al.) or 'ground'. Further keyword options are
+        passed to the estimators (see :func:`tma_ple`).
     """
 
     def __init__(self, speed, window=None, speed_reference='relative', **options):
@@ -981,7 +954,7 @@ class TmaAccumulator:
                           for k in TmaSums.__dataclass_fields__})
 
     def paper_matrices(self):
-        """The paper's P(k), Ω(k) (4, 4) for the current window (seed 001 sec. 3.2.1)."""
+        """The paper's P(k), Ω(k) (4, 4) for the current window (Lin et al. sec. 3.2.1)."""
         P, Om = self.sums().paper_matrices()
         return P[0], Om[0]
 
@@ -993,8 +966,11 @@ class TmaAccumulator:
                                     np.array([x[5] for x in e]), validate=False)
         return bs, np.array([[x[0] for x in e]])
 
-    def estimate(self, method='ctls', speed=None, **options):
-        """Estimate for the current window with ``method`` in ple, ctls, mle -> TmaResult (M=1).
+    def estimate(self, method='tma_ctls', speed=None, **options):
+        """Estimate for the current window with TMA estimator ``method`` -> FixResult (M = 1).
+
+        ``method``: ``tma_ple``, ``tma_ctls``, ``tma_ctls6`` or ``tma_mle`` (the former short
+        names ``ple`` ... are accepted too).
 
         ple/ctls come from the recursive sums in O(1) (the covariance, if requested, is an
         O(K) vectorised CRLB); mle starts from the recursive ctls (or ple) solution and
@@ -1007,18 +983,17 @@ class TmaAccumulator:
         opts['speed_reference'] = self.speed_reference
         vc = self.speed if speed is None else float(speed)
         bs, times = self.bearings()
-        if method not in TMA_ESTIMATORS:
-            raise ValueError(f'method: unknown TMA estimator {method!r}; choose one of '
-                             f'{sorted(TMA_ESTIMATORS)}')
-        fo = _options(opts)
+        fn = tma_function(method)
+        fo = _options(opts, fn)
         data = _prepare(bs, times, vc, self.speed_reference)
         sums = self.sums()
-        if method == 'mle':
+        if fn is tma_mle:
             p0, v, status, reason = _mle_start(data, sums, fo)
             if status[0] != STATUS_OK:
                 return _finish('mle', data, p0, v, status, reason, np.zeros(1, int),
                                np.zeros(1, bool), fo)
-            return mle(bs, times, vc, start=(p0, v), **opts)
+            return tma_mle(bs, times, vc, start=(p0, v), **opts)
+        method = _CLOSED_FORMS[fn]
         p0, v, status, reason = estimate_from_sums(sums, method, np.array([vc]),
                                                    self.speed_reference, fo['min_bearings'],
                                                    fo['alpha'])
@@ -1027,7 +1002,7 @@ class TmaAccumulator:
 
 
 # --------------------------------------------------------------------------------------------
-# Simulation helper (seed 001 sec. 4.2)
+# Simulation helper (Lin et al. sec. 4.2)
 # --------------------------------------------------------------------------------------------
 
 def simulate_tma(times, target_position, target_velocity, observer_positions, sigma_az,

@@ -1,0 +1,295 @@
+"""Constrained total least squares (CTLS) bearing localization (Wang, Zhang & Wu).
+
+Model (Wang, Zhang & Wu eqs. (6)-(9)): with measured angles θ_i = θ_i* + n_i, ψ_i = ψ_i* + m_i and
+E = [n_1, m_1, ..., n_N, m_N]ᵀ, the pseudo-linear system H X = Y of eq. (3) is perturbed as
+
+    H* = H + [F_1E  F_2E  F_3E],   Y* = Y + F_4E                                  (9)
+
+with block-diagonal F_j = diag(f_j1, ..., f_jN), one 2 × 2 block per station (rows: azimuth
+and elevation equation; columns: n_i and m_i):
+
+    f_1i = [[−cos θ, 0], [sin θ sin ψ, −cos θ cos ψ]]
+    f_2i = [[−sin θ, 0], [−cos θ sin ψ, −sin θ cos ψ]]
+    f_3i = [[0, 0], [0, −sin ψ]]
+    f_4i = [[−(cos θ x_i + sin θ y_i), 0],
+            [sin θ sin ψ x_i − cos θ sin ψ y_i, −(cos θ cos ψ x_i + sin θ cos ψ y_i + sin ψ z_i)]]
+
+Theorem 1 (eqs. (10)-(19)): with C = [H Y], H_X = Σ_j a_j F_j − F_4 (a_j = X_j),
+G = Σ_{j=1..4} F_jᵀF_j, the CTLS problem min EᵀGE s.t. C[X; −1] + H_X E = 0 becomes
+
+    f(X) = [X; −1]ᵀ Cᵀ (H_X G⁻¹ H_Xᵀ)⁻¹ C [X; −1] = Σ_i r_iᵀ S_i⁻¹ r_i,            (11)
+
+r_i = H_i X − Y_i, S_i = h_i g_i⁻¹ h_iᵀ (2 × 2). Everything is block diagonal, so f, its
+gradient T_n and Hessian H_n (appendix A) are sums of per-station 2 × 2 terms: O(N).
+
+Two weightings share this code:
+
+* ``'paper'`` (estimator ``ctls``): G as published. G contains F_4, i.e. the station
+  coordinates, so the estimate depends on the coordinate origin and units.
+* ``'am'`` (estimator ``ctls_am``): the Abatzoglou-Mendel form min EᵀP_E⁻¹E, i.e. G⁻¹ is
+  replaced by P_E = diag(σ_θi², σ_ψi²). Invariant to origin and units; its eq. (30)
+  covariance equals the CRLB (to first order it is the maximum likelihood estimator).
+
+1D (azimuth-only) stations: the elevation equation and the m_i column do not exist. We keep
+2 × 2 blocks but zero the elevation row and the m_i column of every f_ji (so f_ji reduces to
+its [0, 0] entry), and set the otherwise-zero [1, 1] entry of g_i and S_i to 1. With the
+elevation residual r_i[1] = 0 this is exactly the 1 × 1 reduced problem (the regularising 1 never
+meets a non-zero entry). For ``'am'``, P_E[1, 1] = 0 for 1D stations.
+"""
+
+import numpy as np
+
+from .bearings import BearingSet
+from .conventions import azimuth_elevation
+from .crlb import safe_inverse
+from .estimator_spec import BEARING_SIGMA, declare, ITERATIVE_OPTIONS, MULTISTATION, STEP_DECAY
+from .fix import iterative_result
+from .pseudo_linear import pseudo_linear_system, start
+from .solvers import inv2, solve3
+
+WEIGHTINGS = ('paper', 'am')
+
+
+def _blocks(theta, psi, has_el, positions):
+    """F_1..F_4 of Wang, Zhang & Wu eq. (9) as (M, N, 4, 2, 2) blocks (1D rows/columns zeroed)."""
+    c, s = np.cos(theta), np.sin(theta)
+    cp, sp = np.cos(psi), np.sin(psi)
+    x, y, z = positions[..., 0], positions[..., 1], positions[..., 2]
+    F = np.zeros(theta.shape + (4, 2, 2))
+    F[..., 0, 0, 0] = -c                                  # f_1i
+    F[..., 0, 1, 0] = s * sp
+    F[..., 0, 1, 1] = -c * cp
+    F[..., 1, 0, 0] = -s                                  # f_2i
+    F[..., 1, 1, 0] = -c * sp
+    F[..., 1, 1, 1] = -s * cp
+    F[..., 2, 1, 1] = -sp                                 # f_3i
+    F[..., 3, 0, 0] = -(c * x + s * y)                    # f_4i
+    F[..., 3, 1, 0] = s * sp * x - c * sp * y
+    F[..., 3, 1, 1] = -(c * cp * x + s * cp * y + sp * z)
+    one_d = ~has_el
+    F[one_d, :, 1, :] = 0.0
+    F[one_d, :, :, 1] = 0.0
+    return F
+
+
+class _CTLSProblem:
+    """Blocks of Wang, Zhang & Wu eq. (11) for a batch, with the measured angles (fixed over X)."""
+
+    def __init__(self, bearings, weighting):
+        if weighting not in WEIGHTINGS:
+            raise ValueError(f'weighting: must be one of {WEIGHTINGS}, got {weighting!r}')
+        self.weighting = weighting
+        self.has_el = bearings.has_elevation
+        self.one_d = ~self.has_el
+        psi = np.where(self.has_el, bearings.elevation, 0.0)
+        self.F = _blocks(bearings.azimuth, psi, self.has_el, bearings.positions)
+        self.H, self.Y, _ = pseudo_linear_system(bearings)
+        self.PE = np.zeros(bearings.azimuth.shape + (2, 2))
+        self.PE[..., 0, 0] = bearings.sigma_az ** 2
+        self.PE[..., 1, 1] = np.where(self.has_el, bearings.sigma_el, 0.0) ** 2
+        self.Ginv = self._ginv(self.F)
+        self.positions = bearings.positions
+
+    def _ginv(self, F):
+        if self.weighting == 'am':
+            return self.PE                                # G⁻¹ = P_E (Abatzoglou-Mendel)
+        G = np.einsum('mnjki,mnjkl->mnil', F, F)          # G = Σ_j F_jᵀ F_j (Theorem 1)
+        G[self.one_d, 1, 1] = 1.0
+        return inv2(G)
+
+    def _hx(self, X, F):
+        # H_X = Σ_j a_j F_j − F_4 (Theorem 1)
+        return np.einsum('mj,mnjkl->mnkl', X, F[:, :, :3]) - F[:, :, 3]
+
+    def _s(self, Hx, Ginv):
+        S = Hx @ Ginv @ np.swapaxes(Hx, -1, -2)           # S = H_X G⁻¹ H_Xᵀ, per station
+        S[self.one_d, 1, 1] = 1.0
+        return S
+
+    def take(self, idx):
+        out = object.__new__(_CTLSProblem)
+        out.weighting = self.weighting
+        for name in ('has_el', 'one_d', 'F', 'H', 'Y', 'PE', 'Ginv', 'positions'):
+            setattr(out, name, getattr(self, name)[idx])
+        return out
+
+    def cost(self, X):
+        """f(X) of Wang, Zhang & Wu eq. (11), (M,); NaN where S is singular."""
+        Sinv = inv2(self._s(self._hx(X, self.F), self.Ginv))
+        r = np.einsum('mnki,mi->mnk', self.H, X) - self.Y    # C [X; −1] = H X − Y
+        return np.einsum('mnk,mnkl,mnl->m', r, Sinv, r)
+
+    def derivatives(self, X):
+        """f, gradient T_n (M, 3), Hessian H_n (M, 3, 3) and its first (PSD) part.
+
+        Seed 000 eq. (20) and appendix A:
+            U  = (H_X G⁻¹ H_Xᵀ)⁻¹ C [X; −1]
+            B1 = [H_X G⁻¹ F_1ᵀU  H_X G⁻¹ F_2ᵀU  H_X G⁻¹ F_3ᵀU]
+            B2 = [F_1 G⁻¹ H_XᵀU  F_2 G⁻¹ H_XᵀU  F_3 G⁻¹ H_XᵀU]
+            B3 = [F_1ᵀU  F_2ᵀU  F_3ᵀU]
+            T_n = 2 (UᵀH − UᵀB1)ᵀ
+            H_n = 2 (H − B1 − B2)ᵀ (H_X G⁻¹ H_Xᵀ)⁻¹ (H − B1 − B2) − 2 B3ᵀ G⁻¹ B3
+        (the appendix's last line drops the factor 2 of T_n, and its intermediate second
+        derivative prints (F_jG⁻¹H_Xᵀ + H_XG⁻¹F_jᵀ)⁻¹ where no inverse belongs; the final H_n
+        above is the correct derivative, checked by finite differences in the tests).
+        """
+        F, Ginv = self.F, self.Ginv
+        Hx = self._hx(X, F)
+        Sinv = inv2(self._s(Hx, Ginv))
+        r = np.einsum('mnki,mi->mnk', self.H, X) - self.Y
+        U = np.einsum('mnkl,mnl->mnk', Sinv, r)
+        f = np.einsum('mnk,mnk->m', r, U)
+        HxG = Hx @ Ginv                                   # H_X G⁻¹ (M, N, 2, 2)
+        B3 = np.einsum('mnjlk,mnl->mnkj', F[:, :, :3], U)   # column j: F_jᵀ U
+        B1 = np.einsum('mnkl,mnlj->mnkj', HxG, B3)        # column j: H_X G⁻¹ F_jᵀ U
+        K = np.einsum('mnlk,mnl->mnk', HxG, U)            # G⁻¹ H_Xᵀ U (G⁻¹ symmetric)
+        B2 = np.einsum('mnjkl,mnl->mnkj', F[:, :, :3], K)   # column j: F_j G⁻¹ H_Xᵀ U
+        D = self.H - B1 - B2
+        T = 2.0 * np.einsum('mnk,mnkj->mj', U, self.H - B1)
+        H_gn = 2.0 * np.einsum('mnki,mnkl,mnlj->mij', D, Sinv, D)
+        H_n = H_gn - 2.0 * np.einsum('mnki,mnkl,mnlj->mij', B3, Ginv, B3)
+        return f, T, H_n, H_gn
+
+    def covariance(self, X, sigma_az, sigma_el):
+        """P_ΔX of Wang, Zhang & Wu eq. (30) at X (M, 3), m²; everything evaluated at X.
+
+        P = A⁻¹ H*ᵀ S⁻¹ (H_X P_E H_Xᵀ) S⁻¹ H* A⁻¹, A = H*ᵀ S⁻¹ H*, S = H_X G⁻¹ H_Xᵀ, where
+        H*, F_j, G and H_X use the angles predicted from X (the noise-free angles of eq. (3),
+        which is how eq. (30) is evaluated for the true target in eq. (32)); P_E =
+        diag(σ_θi², σ_ψi²) from the bearings (1D: the elevation variance is 0).
+        """
+        th, ps = azimuth_elevation(X[:, None, :] - self.positions)
+        ps = np.where(self.has_el, ps, 0.0)
+        pred = BearingSet(self.positions, th, np.where(self.has_el, ps, np.nan), sigma_az,
+                          sigma_el)
+        Hs, _, _ = pseudo_linear_system(pred)
+        F = _blocks(th, ps, self.has_el, self.positions)
+        Ginv = self._ginv(F)
+        Hx = self._hx(X, F)
+        Sinv = inv2(self._s(Hx, Ginv))
+        Q = Hx @ self.PE @ np.swapaxes(Hx, -1, -2)       # H_X P_E H_Xᵀ (eq. (29))
+        A = np.einsum('mnki,mnkl,mnlj->mij', Hs, Sinv, Hs)
+        B = np.einsum('mnki,mnkl,mnlp,mnpq,mnqj->mij', Hs, Sinv, Q, Sinv, Hs)
+        Ainv = safe_inverse(A)
+        ok = np.all(np.isfinite(Ainv), axis=(1, 2)) & np.all(np.isfinite(B), axis=(1, 2))
+        P = np.full(A.shape, np.inf)
+        P[ok] = Ainv[ok] @ B[ok] @ Ainv[ok]
+        return P
+
+
+def ctls_cost(X, bearings, weighting='paper'):
+    """f(X) of Wang, Zhang & Wu eq. (11) for X (M, 3) m and the measured bearings; (M,)."""
+    return _CTLSProblem(bearings, weighting).cost(np.atleast_2d(np.asarray(X, dtype=float)))
+
+
+def ctls_derivatives(X, bearings, weighting='paper'):
+    """(f, T_n, H_n, GN part) of Wang, Zhang & Wu eq. (20)/appendix A at X (M, 3); for checks."""
+    return _CTLSProblem(bearings, weighting).derivatives(
+        np.atleast_2d(np.asarray(X, dtype=float)))
+
+
+def ctls_covariance(X, bearings, weighting='paper'):
+    """Predicted covariance P_ΔX (M, 3, 3), m², of Wang, Zhang & Wu eq. (30) at X (M, 3).
+
+    With X the true target this is the paper's error model; sqrt(trace) is ε of eq. (32).
+    ``weighting='am'`` gives the Abatzoglou-Mendel CTLS, whose P equals the CRLB.
+    """
+    p = _CTLSProblem(bearings, weighting)
+    return p.covariance(np.atleast_2d(np.asarray(X, dtype=float)), bearings.sigma_az,
+                        bearings.sigma_el)
+
+
+def constrained_tls(bearings, weighting='paper', **options):
+    """CTLS by the Newton iteration of Wang, Zhang & Wu eq. (20), batch over M problems.
+
+    X_{n+1} = X_n − μ_n H_n⁻¹ T_n (eq. (20)), started from X_LS (eq. (4), as the paper
+    suggests) or option ``initial``. μ_n = μ^n with μ = option ``step_decay`` (default 1:
+    the paper requires μ < 1 but leaves its value open, section 5). Safeguards (ours): when
+    H_n is not positive definite the positive semi-definite first term of H_n is used instead
+    (a Gauss-Newton direction), and the step is halved (up to 40 times) until f does not
+    increase, so the cost never increases; a problem with no descent step is ``diverged``.
+    Converged when the full Newton step H_n⁻¹T_n is shorter than ``tolerance`` × rms range.
+    Covariance: eq. (30) at the estimate (:meth:`_CTLSProblem.covariance`).
+
+    ``weighting``: ``'paper'`` (estimator ``ctls``) or ``'am'`` (``ctls_am``), see module doc.
+    Options: ``step_decay``, ``max_iterations``, ``tolerance``, ``initial``.
+    """
+    if weighting not in WEIGHTINGS:
+        raise ValueError(f'weighting: must be one of {WEIGHTINGS}, got {weighting!r}')
+    spec = (ctls if weighting == 'paper' else ctls_am).spec
+    name = spec.name
+    opts, x0 = start(spec, bearings, options)
+    problem = _CTLSProblem(bearings, weighting)
+    M = bearings.M
+    X = x0.copy()
+    iterations = np.zeros(M, dtype=int)
+    converged = np.zeros(M, dtype=bool)
+    diverged = np.zeros(M, dtype=bool)
+    finite0 = np.all(np.isfinite(X), axis=1)
+    X[~finite0] = 0.0
+    diverged |= ~finite0
+    active = np.flatnonzero(finite0)
+    mu, tol = opts['step_decay'], opts['tolerance']
+    for n in range(opts['max_iterations']):
+        if active.size == 0:
+            break
+        sub = problem.take(active)
+        Xa = X[active]
+        f, T, Hn, Hgn = sub.derivatives(Xa)
+        scale = np.sqrt(np.mean(np.sum((Xa[:, None, :] - sub.positions) ** 2, axis=-1),
+                                axis=1))
+        w = np.linalg.eigvalsh(np.where(np.isfinite(Hn), Hn, 0.0))
+        pd = np.all(np.isfinite(Hn), axis=(1, 2)) & (w[:, 0] > 1e-12 * np.abs(w[:, -1]))
+        step = -solve3(np.where(pd[:, None, None], Hn, Hgn), T)   # −H_n⁻¹ T_n
+        iterations[active] += 1
+        small = np.linalg.norm(step, axis=1) <= tol * scale
+        usable = np.all(np.isfinite(step), axis=1) & np.isfinite(f)
+        # Backtracking on μ_n = μ^n (eq. (20)): never accept a cost increase.
+        t = np.full(active.size, mu ** n)
+        found = ~usable
+        accepted = np.zeros(active.size, dtype=bool)
+        for _ in range(41):
+            todo = np.flatnonzero(~found)
+            if todo.size == 0:
+                break
+            Xt = Xa[todo] + t[todo, None] * step[todo]
+            ft = sub.take(todo).cost(Xt)
+            ok = np.isfinite(ft) & (ft <= f[todo])
+            Xa[todo[ok]] = Xt[ok]
+            accepted[todo[ok]] = True
+            found[todo[ok]] = True
+            t[todo[~ok]] *= 0.5
+        X[active] = Xa
+        newly = small & usable
+        converged[active[newly]] = True
+        stalled = ~newly & ~accepted
+        diverged[active[stalled]] = True
+        active = active[~(newly | stalled)]
+    X[~finite0] = np.nan
+    P = problem.covariance(np.where(np.isfinite(X), X, 0.0), bearings.sigma_az,
+                           bearings.sigma_el)
+    return iterative_result(name, X, P, iterations, converged, diverged)
+
+
+CTLS_OPTIONS = ITERATIVE_OPTIONS + (STEP_DECAY,)
+
+
+@declare('ctls', MULTISTATION, CTLS_OPTIONS, BEARING_SIGMA)
+def ctls(bearings, **options):
+    """Constrained TLS exactly as Wang, Zhang & Wu publish it (eqs. (9)-(20), appendix A, (30)).
+
+    See :func:`constrained_tls` (weighting ``'paper'``). Options: ``step_decay`` (μ of
+    eq. (20)), ``max_iterations``, ``tolerance``, ``initial``.
+    """
+    return constrained_tls(bearings, weighting='paper', **options)
+
+
+@declare('ctls_am', MULTISTATION, CTLS_OPTIONS, BEARING_SIGMA)
+def ctls_am(bearings, **options):
+    """Abatzoglou-Mendel constrained TLS: Wang, Zhang & Wu eq. (11) with G replaced by P_E⁻¹.
+
+    f(X) = [X; −1]ᵀCᵀ(H_X P_E H_Xᵀ)⁻¹C[X; −1]; invariant to origin and units and efficient
+    (its eq. (30) covariance is the CRLB). See :func:`constrained_tls` (weighting ``'am'``).
+    Same options as :func:`ctls`.
+    """
+    return constrained_tls(bearings, weighting='am', **options)
