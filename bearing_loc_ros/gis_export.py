@@ -16,6 +16,7 @@ serialisers:
 """
 
 import csv
+import json
 import math
 import os
 
@@ -26,20 +27,28 @@ from .core import gis
 #: Colours (KML aabbggrr) per feature kind.
 KML_COLOURS = {'station': 'ff0000ff', 'bearing': 'c000a5ff', 'ellipse': 'ffffff00',
                'fix': 'ff00ff00', 'track': 'ff00ff00'}
-KINDS = ('station', 'bearing', 'ellipse', 'fix')
+#: KML folder names per feature kind.
+FOLDERS = {'station': 'stations', 'bearing': 'bearing rays', 'track': 'track',
+           'ellipse': 'error ellipses', 'fix': 'fixes'}
 UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
 def geojson_text(fc):
-    """Checked RFC 7946 text of a FeatureCollection dict (geojson.GeoJSON.is_valid).
+    """Checked RFC 7946 text of a FeatureCollection dict.
 
-    ValueError naming the first problem the ``geojson`` package finds.
+    The ``geojson`` package checks the collection (``GeoJSON.to_instance(strict=True)`` and
+    ``is_valid``: ValueError naming the first problem); the dict is then written as strict
+    JSON (no NaN) with the coordinates as given (core.gis rounds degrees to 1e-9, about
+    0.1 mm; the package's own writer would round them to 1e-6 deg, about 0.1 m).
     """
     import geojson
-    obj = geojson.GeoJSON.to_instance(fc, strict=True)
+    try:
+        obj = geojson.GeoJSON.to_instance(fc, strict=True)
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise ValueError(f'geojson: invalid collection: {exc}') from None
     if not obj.is_valid:
         raise ValueError(f'geojson: invalid collection: {obj.errors()}')
-    return geojson.dumps(obj, allow_nan=False, indent=None)
+    return json.dumps(fc, allow_nan=False, separators=(',', ':'))
 
 
 def _open_out(path):
@@ -134,7 +143,7 @@ def kml_document(fc, name='bearing_loc_ros', overlays=()):
         props = ft.get('properties') or {}
         kind = props.get('kind', 'feature')
         if kind not in folders:
-            folders[kind] = kml.newfolder(name=f'{kind}s')
+            folders[kind] = kml.newfolder(name=FOLDERS.get(kind, kind))
         for obj in _add_geometry(folders[kind], ft['geometry'], _name(props)):
             if 'time' in props and kind == 'fix':
                 obj.timestamp.when = props['time']

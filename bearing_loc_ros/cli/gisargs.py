@@ -168,7 +168,9 @@ def export_locate(args, results, sets):
             continue
         cov = np.array([[np.nan if v is None else v for v in row] for row in res['covariance']])
         p = np.asarray(pos, dtype=float)
-        fixes.append(gis.GeoFix(0, p, cov, res['status'], res['method'], list(bs.stations)))
+        fixes.append(gis.GeoFix(0, p, cov, res['status'],
+                                res.get('estimator') or res.get('method', ''),
+                                list(bs.stations)))
         for i, name in enumerate(bs.stations):
             b = Bearing(name, 0, bs.positions[0, i], float(bs.azimuth[0, i]),
                         float(bs.elevation[0, i]), float(bs.sigma_az[0, i]))

@@ -512,6 +512,6 @@ class LivePicture:
                                 probability=self.probability)
         if len(self.track) >= 2:
             lon, lat, _ = enu_to_lonlat(np.array(self.track), self.origin)
-            fc['features'].insert(len(self.bearings), _feature(
+            fc['features'].insert(2 * len(self.bearings), _feature(
                 line_geometry(lon, lat), {'kind': 'track', 'fixes': len(self.track)}))
         return fc

@@ -1,0 +1,174 @@
+"""core.gis without files: ellipse probability, geodesic rays, antimeridian and polar origins."""
+import math
+
+from matplotlib.path import Path
+import numpy as np
+import pytest
+from scipy.stats import chi2
+
+from bearing_loc_ros.core import geodesy, gis
+from bearing_loc_ros.core.bearings import Bearing
+from bearing_loc_ros.gis_export import geojson_text
+
+MUNICH = (48.137, 11.575, 520.0)
+
+
+def inside(geometry, lon, lat):
+    """Points (lon, lat) inside a GeoJSON Polygon/MultiPolygon (exterior rings)."""
+    polys = ([geometry['coordinates']] if geometry['type'] == 'Polygon'
+             else geometry['coordinates'])
+    hit = np.zeros(len(lon), dtype=bool)
+    for poly in polys:
+        hit |= Path(np.array(poly[0])).contains_points(np.column_stack([lon, lat]))
+    return hit
+
+
+def coverage_bound(p, n, points=gis.ELLIPSE_POINTS):
+    """Accepted |fraction − p| for n Monte Carlo samples: 4.5 binomial σ plus the probability
+    the inscribed n-gon loses (area ratio (n/2π) sin(2π/n) → radius factor r; the lost mass
+    is exp(−k² r²/2) − exp(−k²/2))."""
+    k2 = chi2.ppf(p, 2)
+    r2 = points / (2 * math.pi) * math.sin(2 * math.pi / points)
+    return 4.5 * math.sqrt(p * (1 - p) / n) + math.exp(-k2 * r2 / 2) - math.exp(-k2 / 2)
+
+
+@pytest.mark.parametrize('p', [0.5, 0.9, 0.95, 0.99])
+def test_ellipse_scale_is_the_two_dof_chi_square_quantile(p):
+    assert gis.ellipse_scale(p) ** 2 == pytest.approx(chi2.ppf(p, 2), rel=1e-12)
+
+
+@pytest.mark.parametrize('bad', [0.0, 1.0, -0.1, float('nan'), 2.0])
+def test_ellipse_scale_refuses_impossible_probabilities(bad):
+    with pytest.raises(ValueError, match='probability'):
+        gis.ellipse_scale(bad)
+
+
+def test_horizontal_ellipse_axes_and_orientation():
+    rot = np.array([[math.cos(0.4), -math.sin(0.4)], [math.sin(0.4), math.cos(0.4)]])
+    c = np.zeros((3, 3))
+    c[:2, :2] = rot @ np.diag([900.0, 100.0]) @ rot.T
+    c[2, 2] = 50.0
+    a, b, ang = gis.horizontal_ellipse(c, 0.95)
+    k = math.sqrt(chi2.ppf(0.95, 2))
+    assert a == pytest.approx(30 * k) and b == pytest.approx(10 * k)
+    assert ang == pytest.approx(0.4)
+
+
+@pytest.mark.parametrize('cov', [np.full((3, 3), np.inf), np.diag([-4.0, 1.0, 1.0]),
+                                 np.array([[1.0, 5.0, 0], [0.0, 1.0, 0], [0, 0, 1.0]])])
+def test_bad_covariance_gives_no_ellipse_but_keeps_the_fix(cov):
+    with pytest.raises(ValueError, match='covariance'):
+        gis.horizontal_ellipse(cov)
+    feats = gis.fix_features(gis.GeoFix(0, np.array([10.0, 20.0, 0.0]), cov), MUNICH)
+    assert len(feats) == 1 and 'covariance' in feats[0]['properties']['ellipse_error']
+
+
+@pytest.mark.parametrize('p', [0.5, 0.95])
+def test_lonlat_ellipse_polygon_encloses_the_stated_probability(p):
+    """Monte Carlo (fixed seed): Gaussian fixes around x̂ with covariance C, converted to
+    lon/lat, fall inside the exported lon/lat polygon with probability p."""
+    rng = np.random.default_rng(11)
+    c = np.array([[4.0e4, 1.5e4, 2.0e3], [1.5e4, 1.6e4, 1.0e3], [2.0e3, 1.0e3, 9.0e3]])
+    x = np.array([35_000.0, -12_000.0, 3_000.0])
+    feats = gis.fix_features(gis.GeoFix(0, x, c), MUNICH, p)
+    assert feats[1]['properties']['kind'] == 'ellipse'
+    n = 20_000
+    samples = rng.multivariate_normal(x, c, size=n)
+    lon, lat, _ = gis.enu_to_lonlat(samples, MUNICH)
+    frac = inside(feats[1]['geometry'], lon, lat).mean()
+    assert abs(frac - p) < coverage_bound(p, n), frac
+
+
+def test_compass_azimuth_at_the_origin_and_meridian_convergence():
+    assert gis.compass_at(0.0, [0.0, 0.0, 0.0], MUNICH) == pytest.approx(90.0)
+    assert gis.compass_at(math.pi / 2, [0.0, 0.0, 0.0], MUNICH) == pytest.approx(0.0, abs=1e-9)
+    # 50 km east of the origin (northern hemisphere) true north leans west towards the pole,
+    # so grid north (the origin's) is (λ − λ0) sin φ east of it.
+    east = np.array([50_000.0, 0.0, 0.0])
+    lat, lon, _ = geodesy.enu_to_geodetic(east, MUNICH)
+    conv = (float(lon) - MUNICH[1]) * math.sin(math.radians(float(lat)))
+    assert gis.compass_at(math.pi / 2, east, MUNICH) == pytest.approx(conv, abs=2e-3)
+    assert conv > 0.4
+
+
+def test_geodesic_ray_passes_through_the_target_it_points_at():
+    station = np.array([-20_000.0, 5_000.0, 100.0])
+    target = np.array([25_000.0, 30_000.0, 100.0])
+    az = math.atan2(target[1] - station[1], target[0] - station[0])
+    length = gis.ray_length_for(station, target)
+    assert length == pytest.approx(gis.RAY_OVERSHOOT * math.dist(station[:2], target[:2]))
+    lon, lat = gis.ray_lonlat(station, az, length, MUNICH, points=2001)
+    tlat, tlon, _ = geodesy.enu_to_geodetic(target, MUNICH)
+    # Closest ray vertex to the target, in metres on the ground (vertices every ~32 m).
+    d = [geodesy.geodetic_to_enu(la, lo, target[2], MUNICH) for la, lo in zip(lat, lon)]
+    miss = min(math.dist(p[:2], target[:2]) for p in d)
+    assert miss < 20.0
+    from pymap3d.vincenty import vdist
+    dist, _ = vdist(lat[0], lon[0], lat[-1], lon[-1])
+    assert float(dist) == pytest.approx(length, rel=1e-9)
+
+
+def _ring_ok(ring):
+    assert ring[0] == ring[-1] and len(ring) >= 4
+    assert all(-180.0 <= x <= 180.0 and -90.0 <= y <= 90.0 for x, y in ring)
+
+
+def test_antimeridian_lines_and_ellipses_are_split_per_rfc7946():
+    origin = (-16.5, 179.98, 0.0)       # Fiji: the antimeridian is 2 km east
+    fix = gis.GeoFix(10**18, np.array([2_000.0, 0.0, 0.0]), np.diag([4.0e6, 1.0e6, 1.0]))
+    ray = Bearing('s1', 10**18, np.array([-8_000.0, 0.0, 0.0]), 0.0, sigma_azimuth=0.01)
+    fc = gis.feature_collection(origin, [fix], [(ray, fix.position)])
+    json_text = geojson_text(fc)       # the geojson package accepts it
+    assert json_text
+    by = {f['properties']['kind']: f['geometry'] for f in fc['features']}
+    line = by['bearing']
+    assert line['type'] == 'MultiLineString' and len(line['coordinates']) == 2
+    a, b = line['coordinates']
+    assert a[-1][0] == 180.0 and b[0][0] == -180.0 and a[-1][1] == b[0][1]
+    for part in (a, b):
+        assert all(abs(q[0] - p[0]) < 180.0 for p, q in zip(part, part[1:]))
+    ell = by['ellipse']
+    assert ell['type'] == 'MultiPolygon' and len(ell['coordinates']) == 2
+    for poly in ell['coordinates']:
+        _ring_ok(poly[0])
+    # The split polygon still holds 95 % of the mass (samples wrapped to [-180, 180)).
+    rng = np.random.default_rng(5)
+    s = rng.multivariate_normal(fix.position, fix.covariance, size=20_000)
+    lon, lat, _ = gis.enu_to_lonlat(s, origin)
+    lon = (lon + 180.0) % 360.0 - 180.0
+    assert np.any(lon < 0) and np.any(lon > 0)
+    frac = inside(ell, lon, lat).mean()
+    assert abs(frac - 0.95) < coverage_bound(0.95, 20_000), frac
+
+
+@pytest.mark.parametrize('origin', [(89.5, 0.0, 0.0), (-86.0, 120.0, 10.0)])
+def test_polar_origins_are_refused_with_one_line(origin):
+    with pytest.raises(ValueError) as exc:
+        gis.feature_collection(origin, [gis.GeoFix(0, np.zeros(3), np.eye(3))])
+    assert 'polar' in str(exc.value) and '\n' not in str(exc.value)
+
+
+def test_huge_ellipse_is_reported_not_drawn_wrong():
+    f = gis.GeoFix(0, np.zeros(3), np.diag([1e14, 1e14, 1.0]))
+    feats = gis.fix_features(f, MUNICH)
+    assert len(feats) == 1
+    assert 'too large' in feats[0]['properties']['ellipse_error']
+
+
+def test_live_picture_keeps_the_newest_and_draws_rays_past_the_fix():
+    pic = gis.LivePicture(MUNICH, trail=3)
+    for k in range(5):
+        pic.update_fix(gis.GeoFix(k, np.array([100.0 * k, 0.0, 0.0]), np.eye(3)))
+    pic.update_fix(gis.GeoFix(1, np.array([9e3, 0.0, 0.0]), np.eye(3)))   # older: ignored
+    pic.update_bearing(Bearing('a', 5, np.array([0.0, -3000.0, 0.0]), math.atan2(3000, 400)))
+    pic.update_bearing(Bearing('a', 2, np.array([0.0, -1.0, 0.0]), 0.0))  # older: ignored
+    assert pic.changed
+    fc = pic.collection()
+    assert not pic.changed
+    kinds = [f['properties']['kind'] for f in fc['features']]
+    assert kinds == ['station', 'bearing', 'track', 'ellipse', 'fix']
+    fix = fc['features'][-1]['properties']
+    assert fix['stamp_ns'] == 4 and fix['position_enu_m'] == [400.0, 0.0, 0.0]
+    assert fc['features'][2]['properties']['fixes'] == 3
+    ray = fc['features'][1]['properties']
+    assert ray['length_m'] == pytest.approx(gis.RAY_OVERSHOOT * math.hypot(400.0, 3000.0))
