@@ -1,0 +1,249 @@
+"""Horizontal localization and the ``dimension`` selection (``auto | 3d | horizontal``).
+
+Conventions (DESIGN.md): ENU metres, azimuth θ CCW from East, elevation ψ above the horizontal,
+radians; an azimuth-only (1D) bearing has elevation NaN.
+
+Most direction-finding networks measure azimuth only, and azimuths never fix the height. The
+horizontal solve estimates (x, y) with the target altitude stated by the user: z₀ (m, world
+frame) with standard deviation σ_z (m, 0 = exactly known), a Gaussian prior N(z₀, σ_z²) on z
+(:mod:`.horizontal_crlb` derives the bound, :mod:`.horizontal_estimators` and
+:mod:`.horizontal_ctls` the estimators). Elevations present are still used: with the altitude
+known, a 2D station's elevation gives the horizontal range ρ_i = (z₀ − z_i)/tan ψ_i. The fix
+carries z = z₀ (``mle``/``wmle`` with σ_z > 0 and elevations: the posterior z), variance σ_z²
+for an azimuth-only set (otherwise the posterior variance) and no x-y/z correlation unless
+elevations create one.
+
+Dimension selection, per problem (:func:`select_dimension`):
+
+* ``3d``: the 3D estimators of core/estimators.py (they need at least one elevation).
+* ``horizontal``: always the horizontal solve (``target_altitude`` required), for example for
+  ground emitters whose elevations are spoiled by multipath (option ``use_elevations=False``
+  then ignores them).
+* ``auto``: 3D when the set observes the height (:func:`height_observed`), else horizontal.
+
+Height observed: at least one elevation, a 3D pseudo-linear solution (Wang, Zhang & Wu
+eq. (4)) exists, and the 3D Fisher information J (Zong & Cui 2015 eq. (7), core/crlb.py)
+evaluated there has eigenvalue ratio λ_min/λ_max ≥ :data:`HEIGHT_RCOND` = 1e-6, i.e. the
+worst-determined direction's CRLB standard deviation is at most 1000 times the best one's.
+One elevation is not always enough: with every station and the target on one vertical
+plane, a single elevation constrains only a combination of the along-line position and the
+height (J has rank 2); two elevations from that plane triangulate it.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import horizontal_estimators as _h
+from .bearings import BearingSet
+from .conventions import azimuth_elevation, wrap_angle
+from .crlb import fisher_information
+from .estimators import DEFAULT_ESTIMATOR, FixResult, locate as locate_3d, ls as ls_3d
+
+DIMENSIONS = ('auto', '3d', 'horizontal')
+SOLVE_3D = '3d'
+SOLVE_HORIZONTAL = 'horizontal'
+#: Minimum eigenvalue ratio of the 3D Fisher information for ``auto`` to solve in 3D.
+HEIGHT_RCOND = 1e-6
+
+
+@dataclass
+class SolvedFix(FixResult):
+    """A :class:`~bearing_loc_ros.core.estimators.FixResult` that says which solve produced it.
+
+    Extra attributes: ``solve`` (M,) str, ``'3d'`` or ``'horizontal'`` per problem;
+    ``target_altitude`` and ``target_altitude_sigma`` (M,), m, the stated altitude and its σ
+    (NaN where the problem was solved in 3D).
+    """
+
+    solve: np.ndarray = None
+    target_altitude: np.ndarray = None
+    target_altitude_sigma: np.ndarray = None
+
+    def single(self, m=0):
+        """Problem ``m`` as plain Python values, with ``solve`` (and the stated altitude)."""
+        out = super().single(m)
+        out['solve'] = str(self.solve[m])
+        if out['solve'] == SOLVE_HORIZONTAL:
+            out['target_altitude'] = float(self.target_altitude[m])
+            out['target_altitude_sigma'] = float(self.target_altitude_sigma[m])
+        return out
+
+
+def _constrained_tls(weighting):
+    def run(p, **options):
+        from .horizontal_ctls import constrained_tls
+        return constrained_tls(p, weighting, **options)
+    return run
+
+
+#: Horizontal estimators by name (the same names as the 3D ones).
+ESTIMATORS = {
+    'ls': _h.ls,
+    'tls': _h.tls,
+    'ctls': _constrained_tls('paper'),
+    'ctls_am': _constrained_tls('am'),
+    'mle': _h.mle,
+    'wmle': _h.wmle,
+}
+OPTION_DEFAULTS = _h.OPTION_DEFAULTS
+
+
+def _wrap(result, solve, z0, sz):
+    M = result.position.shape[0]
+    return SolvedFix(position=result.position, covariance=result.covariance,
+                     iterations=result.iterations, converged=result.converged,
+                     status=result.status, method=result.method,
+                     solve=np.full(M, solve, dtype=object).astype(str),
+                     target_altitude=np.broadcast_to(np.asarray(z0, dtype=float), (M,)).copy(),
+                     target_altitude_sigma=np.broadcast_to(np.asarray(sz, dtype=float),
+                                                           (M,)).copy())
+
+
+def _method(method):
+    if method is None:
+        return DEFAULT_ESTIMATOR
+    if not isinstance(method, str) or method not in ESTIMATORS:
+        raise ValueError(f'method: unknown estimator {method!r}; choose one of '
+                         f'{sorted(ESTIMATORS)}')
+    return method
+
+
+def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0.0,
+                      use_elevations=True, **options):
+    """Horizontal fix of M problems with estimator ``method`` (None = ``mle``).
+
+    Args:
+        method: ``ls``, ``tls``, ``ctls``, ``ctls_am``, ``mle`` or ``wmle``.
+        bearings: BearingSet (M, N), any mix of 1D/2D bearings, N ≥ 2.
+        target_altitude: z₀, m, world frame (scalar or (M,)), finite.
+        target_altitude_sigma: σ_z, m (scalar or (M,)), finite ≥ 0; 0 = exactly known.
+        use_elevations: use the measured elevations (range information given z₀).
+        options: estimator options (see :mod:`.horizontal_estimators`).
+
+    Returns a :class:`SolvedFix` with ``solve`` = ``'horizontal'``: position (M, 3) with z = z₀
+    (or its posterior), covariance (M, 3, 3) (z block σ_z² for azimuth-only sets). Raises
+    ``ValueError`` naming the field for bad input (:func:`.horizontal_estimators.prepare`).
+    """
+    method = _method(method)
+    p = _h.prepare(bearings, target_altitude, target_altitude_sigma, use_elevations)
+    return _wrap(ESTIMATORS[method](p, **options), SOLVE_HORIZONTAL, p.z0, p.sz)
+
+
+def _subset(bearings, idx):
+    """Problems ``idx`` of a BearingSet (no validation)."""
+    return BearingSet(bearings.positions[idx], bearings.azimuth[idx], bearings.elevation[idx],
+                      bearings.sigma_az[idx], bearings.sigma_el[idx], bearings.stations)
+
+
+def height_observed(bearings):
+    """(M,) bool: does each problem observe the target height? (module docstring criterion)."""
+    if not isinstance(bearings, BearingSet):
+        raise ValueError(f'bearings: expected a BearingSet, got {type(bearings).__name__}')
+    n_el = np.count_nonzero(bearings.has_elevation, axis=1)
+    out = np.zeros(bearings.M, dtype=bool)
+    idx = np.flatnonzero((n_el >= 1) & (bearings.N + n_el >= 3) & (bearings.N >= 2))
+    if idx.size == 0:
+        return out
+    sub = _subset(bearings, idx)
+    x = ls_3d(sub).position
+    finite = np.all(np.isfinite(x), axis=1)
+    J = fisher_information(np.where(finite[:, None], x, 0.0), sub.positions, sub.sigma_az,
+                           sub.sigma_el, sub.has_elevation)
+    good = finite & np.all(np.isfinite(J), axis=(1, 2))
+    w = np.linalg.eigvalsh(np.where(good[:, None, None], J, np.eye(3)))
+    out[idx] = good & (w[:, -1] > 0) & (w[:, 0] >= HEIGHT_RCOND * w[:, -1])
+    return out
+
+
+def select_dimension(bearings, dimension='auto'):
+    """The solve (``'3d'`` or ``'horizontal'``) of each problem, (M,) str array.
+
+    ``dimension``: ``auto`` (3D where :func:`height_observed`, else horizontal), ``3d`` or
+    ``horizontal`` (forced). ValueError naming ``dimension`` for another value.
+    """
+    if dimension not in DIMENSIONS:
+        raise ValueError(f'dimension: must be one of {", ".join(DIMENSIONS)}, got {dimension!r}')
+    if dimension == 'auto':
+        return np.where(height_observed(bearings), SOLVE_3D, SOLVE_HORIZONTAL)
+    return np.full(bearings.M, dimension, dtype=object).astype(str)
+
+
+def locate(method, bearings, dimension='auto', target_altitude=None, target_altitude_sigma=0.0,
+           use_elevations=True, **options):
+    """Fix of M problems in the selected dimension; returns a :class:`SolvedFix`.
+
+    3D problems go to core/estimators.py ``locate`` (``target_altitude`` is not used there);
+    horizontal ones to :func:`locate_horizontal`. With ``auto``, a problem that does not
+    observe the height and has no ``target_altitude`` raises ``ValueError('target_altitude:
+    ...')``. A batch whose problems select different solves is split and merged.
+    """
+    method = _method(method)
+    if not isinstance(bearings, BearingSet):
+        raise ValueError(f'bearings: expected a BearingSet, got {type(bearings).__name__}')
+    solves = select_dimension(bearings, dimension)
+    horiz = solves == SOLVE_HORIZONTAL
+    if np.any(horiz) and target_altitude is None:
+        why = ('dimension is horizontal' if dimension == SOLVE_HORIZONTAL else
+               'the bearings do not observe the height (no usable elevation geometry)')
+        raise ValueError(f'target_altitude: required because {why}; state the target altitude '
+                         '(m, world frame) and its standard deviation')
+    if np.all(horiz):
+        return locate_horizontal(method, bearings, target_altitude, target_altitude_sigma,
+                                 use_elevations, **options)
+    if not np.any(horiz):
+        res = locate_3d(method, bearings, **options)
+        return _wrap(res, SOLVE_3D, np.nan, np.nan)
+    M = bearings.M
+    i_h, i_3 = np.flatnonzero(horiz), np.flatnonzero(~horiz)
+    z0 = np.broadcast_to(np.asarray(target_altitude, dtype=float), (M,))
+    sz = np.broadcast_to(np.asarray(target_altitude_sigma, dtype=float), (M,))
+    opt_h, opt_3 = dict(options), dict(options)
+    if options.get('initial') is not None:
+        x0 = np.asarray(options['initial'], dtype=float)
+        if x0.ndim == 2 and x0.shape[0] == M:
+            opt_h['initial'], opt_3['initial'] = x0[i_h], x0[i_3]
+    rh = locate_horizontal(method, _subset(bearings, i_h), z0[i_h], sz[i_h], use_elevations,
+                           **opt_h)
+    r3 = locate_3d(method, _subset(bearings, i_3), **opt_3)
+    out = _wrap(r3, SOLVE_3D, np.nan, np.nan)
+    fields = ('position', 'covariance', 'iterations', 'converged', 'status', 'solve',
+              'target_altitude', 'target_altitude_sigma')
+    merged = {}
+    for name in fields:
+        a3 = getattr(out, name)
+        ah = getattr(rh, name)
+        arr = np.empty((M,) + a3.shape[1:], dtype=np.result_type(a3, ah))
+        arr[i_3], arr[i_h] = a3, ah
+        merged[name] = arr
+    return SolvedFix(method=method, **merged)
+
+
+def simulate_bearings(target, positions, sigma_az, sigma_el=None, has_elevation=False, rng=None):
+    """Noisy bearings of any 1D/2D mix, azimuth-only sets included, as a BearingSet.
+
+    Same model as core/bearings.py ``simulate_bearings`` (Wang, Zhang & Wu eq. (1) with the
+    additive Gaussian noise of eq. (6)): θ_i = θ_i* + n_i, ψ_i = ψ_i* + m_i, for targets
+    ``target`` (M, 3) or (3,) and stations ``positions`` (N, 3) or (M, N, 3), m; σ (rad)
+    scalars or broadcastable to (M, N); ``has_elevation`` a bool or (N,) mask (default:
+    azimuth only); ``rng`` a numpy Generator (None: noise-free). The set is checked with the
+    horizontal solve's field rules (:func:`.horizontal_estimators.prepare`), not with the 3D
+    demand for an elevation.
+    """
+    tgt = np.atleast_2d(np.asarray(target, dtype=float))
+    pos = np.asarray(positions, dtype=float)
+    M = tgt.shape[0]
+    pos = np.broadcast_to(pos if pos.ndim == 3 else pos[None], (M,) + pos.shape[-2:])
+    N = pos.shape[1]
+    az, el = azimuth_elevation(tgt[:, None, :] - pos)
+    saz = np.broadcast_to(np.asarray(sigma_az, dtype=float), (M, N))
+    sel = np.broadcast_to(np.asarray(saz if sigma_el is None else sigma_el, dtype=float),
+                          (M, N))
+    if rng is not None:
+        az = az + saz * rng.standard_normal((M, N))
+        el = el + sel * rng.standard_normal((M, N))
+    mask = np.broadcast_to(np.asarray(has_elevation, dtype=bool), (N,))
+    out = BearingSet.from_arrays(pos, wrap_angle(az), np.where(mask, el, np.nan), saz, sel,
+                                 validate=False)
+    _h.prepare(out, 0.0)
+    return out

@@ -1,0 +1,269 @@
+"""Constrained TLS of the horizontal solve: Wang, Zhang & Wu eqs. (9)-(20) reduced to the plane.
+
+Conventions (DESIGN.md): ENU metres, azimuth θ CCW from East, elevation ψ above the horizontal,
+radians. The target altitude z₀ is stated (see :mod:`.horizontal_estimators`); Δz_i = z₀ − z_i.
+
+Derivation. The plane-reduced pseudo-linear system H X = Y, X = (x, y), has per station i the
+rows (azimuth, elevation)
+
+    h_i = [[sin θ, −cos θ], [cos θ sin ψ, sin θ sin ψ]],
+    Y_i = [sin θ x_i − cos θ y_i,  cos θ sin ψ x_i + sin θ sin ψ y_i + cos ψ Δz_i].
+
+With measured angles θ = θ* + n_i, ψ = ψ* + m_i and E = [n_1, m_1, ..., n_N, m_N]ᵀ, a first-order
+expansion of the true rows gives the analogue of eq. (9), H* = H + [F_1E  F_2E],
+Y* = Y + F_4E, with 2 × 2 blocks (rows: azimuth, elevation equation; columns: n_i, m_i)
+
+    f_1i = [[−cos θ, 0], [sin θ sin ψ, −cos θ cos ψ]]
+    f_2i = [[−sin θ, 0], [−cos θ sin ψ, −sin θ cos ψ]]
+    f_4i = [[−(cos θ x_i + sin θ y_i), 0],
+            [sin θ sin ψ x_i − cos θ sin ψ y_i, −(cos θ cos ψ x_i + sin θ cos ψ y_i − sin ψ Δz_i)]]
+
+f_1i, f_2i are the 3D blocks of the paper; the 3D f_3i (the z column, [[0, 0], [0, −sin ψ]])
+multiplies the now-known z₀ and joins f_4i: f_4i(2D) = f_4i(3D) − z₀ f_3i. Theorem 1
+(eqs. (10)-(19)) then holds with two unknowns: C = [H Y] (2N × 3), perturbation
+[F_1E F_2E F_4E], H_X = x F_1 + y F_2 − F_4 and G = F_1ᵀF_1 + F_2ᵀF_2 + F_4ᵀF_4 (per station
+2 × 2: the Frobenius norm of the perturbation of the reduced C), so the CTLS problem
+min EᵀGE s.t. C[X; −1] + H_X E = 0 becomes (eq. (11))
+
+    f(X) = Σ_i r_iᵀ S_i⁻¹ r_i,  r_i = h_i X − Y_i,  S_i = h_Xi G_i⁻¹ h_Xiᵀ.
+
+Its gradient T_n and Hessian H_n (appendix A) are those of the 3D code with the z column
+dropped: U_i = S_i⁻¹ r_i; for j ∈ {1, 2}: B3 column j = F_jᵀU, B1 column j = H_X G⁻¹ F_jᵀU,
+B2 column j = F_j G⁻¹ H_XᵀU;
+
+    T_n = 2 Σ (h − B1)ᵀ U,   H_n = 2 Σ (h − B1 − B2)ᵀ S⁻¹ (h − B1 − B2) − 2 Σ B3ᵀ G⁻¹ B3,
+
+and the Newton iteration X_{n+1} = X_n − μ_n H_n⁻¹ T_n of eq. (20). 1D stations: the
+elevation row and the m_i column are zeroed and the [1, 1] entries of G and S set to 1 (the
+1 × 1 reduced problem, as in the 3D code). ``ctls_am`` (Abatzoglou-Mendel) replaces G⁻¹ by
+P_E = diag(σ_θi², σ_ψi²): origin- and unit-independent, efficient to first order.
+
+Covariance (eq. (30) reduced, everything at the estimate with predicted angles): with
+A = Σ h*ᵀS⁻¹h*, P_h = A⁻¹ [Σ h*ᵀS⁻¹ (H_X P_E H_Xᵀ) S⁻¹h* + σ_z² g gᵀ] A⁻¹, g = Σ h*ᵀS⁻¹c_i,
+c_i = (0, cos ψ_i) the sensitivity of Y_i to z₀; P_hz = σ_z² A⁻¹ g; P_zz = σ_z². The fit itself
+treats z₀ as exact.
+"""
+
+import numpy as np
+
+from .horizontal_crlb import inverse2
+from .horizontal_estimators import (fix_result, parse_horizontal_options, plane_system, start,
+                                    STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_MAX_ITERATIONS,
+                                    STATUS_OK)
+
+WEIGHTINGS = ('paper', 'am')
+_COST_RTOL = 1e-12
+
+
+def _inv2(A):
+    """Closed-form inverse of (..., 2, 2) matrices; NaN where singular."""
+    a, b, c, d = A[..., 0, 0], A[..., 0, 1], A[..., 1, 0], A[..., 1, 1]
+    det = a * d - b * c
+    with np.errstate(divide='ignore', invalid='ignore'):
+        inv_det = np.where(det != 0, 1.0 / det, np.nan)
+    out = np.empty_like(A)
+    out[..., 0, 0] = d * inv_det
+    out[..., 0, 1] = -b * inv_det
+    out[..., 1, 0] = -c * inv_det
+    out[..., 1, 1] = a * inv_det
+    return out
+
+
+def blocks(theta, psi, use_el, px, py, dz):
+    """F_1, F_2, F_4 of the module docstring as (M, N, 3, 2, 2); 1D rows/columns zeroed."""
+    c, s = np.cos(theta), np.sin(theta)
+    cp, sp = np.cos(psi), np.sin(psi)
+    F = np.zeros(theta.shape + (3, 2, 2))
+    F[..., 0, 0, 0] = -c
+    F[..., 0, 1, 0] = s * sp
+    F[..., 0, 1, 1] = -c * cp
+    F[..., 1, 0, 0] = -s
+    F[..., 1, 1, 0] = -c * sp
+    F[..., 1, 1, 1] = -s * cp
+    F[..., 2, 0, 0] = -(c * px + s * py)
+    F[..., 2, 1, 0] = s * sp * px - c * sp * py
+    F[..., 2, 1, 1] = -(c * cp * px + s * cp * py - sp * dz)
+    one_d = ~use_el
+    F[one_d, :, 1, :] = 0.0
+    F[one_d, :, :, 1] = 0.0
+    return F
+
+
+class PlaneCTLS:
+    """Blocks of the plane-reduced eq. (11) for a batch (measured angles, fixed over X)."""
+
+    def __init__(self, p, weighting):
+        if weighting not in WEIGHTINGS:
+            raise ValueError(f'weighting: must be one of {WEIGHTINGS}, got {weighting!r}')
+        self.p = p
+        self.weighting = weighting
+        self.one_d = ~p.use_el
+        self.dz = p.z0[:, None] - p.pz
+        self.F = blocks(p.az, p.el, p.use_el, p.px, p.py, self.dz)
+        self.H, self.Y, _ = plane_system(p)
+        self.PE = np.zeros(p.az.shape + (2, 2))
+        self.PE[..., 0, 0] = p.saz ** 2
+        self.PE[..., 1, 1] = np.where(p.use_el, np.nan_to_num(p.sel), 0.0) ** 2
+        self.Ginv = self._ginv(self.F)
+
+    def _ginv(self, F):
+        if self.weighting == 'am':
+            return self.PE
+        G = np.einsum('mnjki,mnjkl->mnil', F, F)            # G = Σ_j F_jᵀ F_j
+        G[self.one_d, 1, 1] = 1.0
+        return _inv2(G)
+
+    def _hx(self, X, F):
+        return np.einsum('mj,mnjkl->mnkl', X, F[:, :, :2]) - F[:, :, 2]
+
+    def _s(self, Hx, Ginv):
+        S = Hx @ Ginv @ np.swapaxes(Hx, -1, -2)
+        S[self.one_d, 1, 1] = 1.0
+        return S
+
+    def take(self, idx):
+        """The problems ``idx`` only."""
+        out = object.__new__(PlaneCTLS)
+        out.p = self.p.take(idx)
+        out.weighting = self.weighting
+        for name in ('one_d', 'dz', 'F', 'H', 'Y', 'PE', 'Ginv'):
+            setattr(out, name, getattr(self, name)[idx])
+        return out
+
+    def cost(self, X):
+        """f(X) (M,) of the reduced eq. (11); NaN where some S_i is singular."""
+        Sinv = _inv2(self._s(self._hx(X, self.F), self.Ginv))
+        r = np.einsum('mnki,mi->mnk', self.H, X) - self.Y
+        return np.einsum('mnk,mnkl,mnl->m', r, Sinv, r)
+
+    def derivatives(self, X):
+        """f (M,), gradient T_n (M, 2), Hessian H_n and its Gauss-Newton part (M, 2, 2)."""
+        F, Ginv = self.F, self.Ginv
+        Hx = self._hx(X, F)
+        Sinv = _inv2(self._s(Hx, Ginv))
+        r = np.einsum('mnki,mi->mnk', self.H, X) - self.Y
+        U = np.einsum('mnkl,mnl->mnk', Sinv, r)
+        f = np.einsum('mnk,mnk->m', r, U)
+        HxG = Hx @ Ginv
+        B3 = np.einsum('mnjlk,mnl->mnkj', F[:, :, :2], U)
+        B1 = np.einsum('mnkl,mnlj->mnkj', HxG, B3)
+        K = np.einsum('mnlk,mnl->mnk', HxG, U)
+        B2 = np.einsum('mnjkl,mnl->mnkj', F[:, :, :2], K)
+        D = self.H - B1 - B2
+        T = 2.0 * np.einsum('mnk,mnkj->mj', U, self.H - B1)
+        H_gn = 2.0 * np.einsum('mnki,mnkl,mnlj->mij', D, Sinv, D)
+        H_n = H_gn - 2.0 * np.einsum('mnki,mnkl,mnlj->mij', B3, Ginv, B3)
+        return f, T, H_n, H_gn
+
+    def covariance(self, X):
+        """Reduced eq. (30) with the σ_z term (module docstring): (M, 3, 3), m²."""
+        p = self.p
+        dx, dy = X[:, 0:1] - p.px, X[:, 1:2] - p.py
+        th = np.arctan2(dy, dx)
+        ps = np.where(p.use_el, np.arctan2(self.dz, np.hypot(dx, dy)), 0.0)
+        pred = p.take(slice(None))
+        pred.az, pred.el = th, ps
+        Hs, _, _ = plane_system(pred)
+        F = blocks(th, ps, p.use_el, p.px, p.py, self.dz)
+        Ginv = self._ginv(F)
+        Hx = self._hx(X, F)
+        Sinv = _inv2(self._s(Hx, Ginv))
+        Q = Hx @ self.PE @ np.swapaxes(Hx, -1, -2)
+        A = np.einsum('mnki,mnkl,mnlj->mij', Hs, Sinv, Hs)
+        B = np.einsum('mnki,mnkl,mnlp,mnpq,mnqj->mij', Hs, Sinv, Q, Sinv, Hs)
+        c = np.zeros(p.az.shape + (2,))
+        c[..., 1] = np.where(p.use_el, np.cos(ps), 0.0)
+        g = np.einsum('mnki,mnkl,mnl->mi', Hs, Sinv, c)
+        Ainv, ok = inverse2(A)
+        ok &= np.all(np.isfinite(B), axis=(1, 2)) & np.all(np.isfinite(g), axis=1)
+        sz2 = p.sz ** 2
+        P = np.full((p.M, 3, 3), np.inf)
+        if np.any(ok):
+            Ai, go = Ainv[ok], g[ok]
+            Bo = B[ok] + sz2[ok, None, None] * go[:, :, None] * go[:, None, :]
+            P[ok, :2, :2] = Ai @ Bo @ Ai
+            P[ok, :2, 2] = P[ok, 2, :2] = sz2[ok, None] * np.einsum('mij,mj->mi', Ai, go)
+            P[ok, 2, 2] = sz2[ok]
+        return P, ok
+
+
+def _solve2(A, b):
+    """Solve (M, 2, 2) systems by cofactors; NaN where the determinant is not positive."""
+    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        inv = np.where(det > 0, 1.0 / det, np.nan)
+        return np.stack([(A[:, 1, 1] * b[:, 0] - A[:, 0, 1] * b[:, 1]) * inv,
+                         (A[:, 0, 0] * b[:, 1] - A[:, 1, 0] * b[:, 0]) * inv], axis=1)
+
+
+def constrained_tls(p, weighting='paper', **options):
+    """Plane-reduced CTLS by the Newton iteration of Wang, Zhang & Wu eq. (20), M problems.
+
+    ``p`` a :class:`.horizontal_estimators.HorizontalProblem`. X_{n+1} = X_n − μ^n H_n⁻¹T_n
+    from the plane ``ls`` (or option ``initial``), with the safeguards of the 3D code: the
+    Gauss-Newton part of H_n where H_n is not positive definite, step halving (up to 40
+    times) so f never increases, ``diverged`` where no descent step exists; converged when
+    the full Newton step is shorter than ``tolerance`` × rms horizontal station range or its
+    predicted decrease |T_nᵀΔ|/2 is below 1e-12 f (the cost's rounding level).
+    ``weighting``: ``'paper'`` (``ctls``) or ``'am'`` (``ctls_am``). Covariance: reduced eq.
+    (30) with σ_z (module docstring), m². Options: ``step_decay``, ``max_iterations``,
+    ``tolerance``, ``initial``.
+    """
+    name = 'ctls' if weighting == 'paper' else 'ctls_am'
+    opts, initial = parse_horizontal_options(name, options, p.M)
+    problem = PlaneCTLS(p, weighting)
+    X = start(p, initial)[:, :2].copy()
+    M = p.M
+    iterations = np.zeros(M, dtype=int)
+    converged = np.zeros(M, dtype=bool)
+    diverged = np.zeros(M, dtype=bool)
+    finite0 = np.all(np.isfinite(X), axis=1)
+    X[~finite0] = 0.0
+    diverged |= ~finite0
+    active = np.flatnonzero(finite0)
+    mu, tol = opts['step_decay'], opts['tolerance']
+    for n in range(opts['max_iterations']):
+        if active.size == 0:
+            break
+        sub = problem.take(active)
+        Xa = X[active]
+        f, T, Hn, Hgn = sub.derivatives(Xa)
+        scale = np.sqrt(np.mean((Xa[:, 0:1] - sub.p.px) ** 2 + (Xa[:, 1:2] - sub.p.py) ** 2,
+                                axis=1))
+        w = np.linalg.eigvalsh(np.where(np.isfinite(Hn), Hn, 0.0))
+        pd = np.all(np.isfinite(Hn), axis=(1, 2)) & (w[:, 0] > 1e-12 * np.abs(w[:, -1]))
+        step = -_solve2(np.where(pd[:, None, None], Hn, Hgn), T)
+        iterations[active] += 1
+        # Converged: a full step below tolerance × rms range, or a predicted decrease
+        # |T_nᵀ step| / 2 below the cost's rounding level (1e-12 f): such a step cannot be
+        # resolved in floating point, however long it is.
+        small = ((np.linalg.norm(step, axis=1) <= tol * scale)
+                 | (0.5 * np.abs(np.einsum('mi,mi->m', T, step)) <= _COST_RTOL * np.abs(f)))
+        usable = np.all(np.isfinite(step), axis=1) & np.isfinite(f)
+        t = np.full(active.size, mu ** n)
+        found = ~usable | small
+        accepted = np.zeros(active.size, dtype=bool)
+        for _ in range(41):
+            todo = np.flatnonzero(~found)
+            if todo.size == 0:
+                break
+            Xt = Xa[todo] + t[todo, None] * step[todo]
+            ft = sub.take(todo).cost(Xt)
+            ok = np.isfinite(ft) & (ft <= f[todo])
+            Xa[todo[ok]] = Xt[ok]
+            accepted[todo[ok]] = True
+            found[todo[ok]] = True
+            t[todo[~ok]] *= 0.5
+        X[active] = Xa
+        newly = small & usable
+        converged[active[newly]] = True
+        stalled = ~newly & ~accepted
+        diverged[active[stalled]] = True
+        active = active[~(newly | stalled)]
+    X[~finite0] = np.nan
+    P, ok = problem.covariance(np.where(np.isfinite(X), X, 0.0))
+    ok &= finite0
+    status = np.where(converged, STATUS_OK,
+                      np.where(diverged, STATUS_DIVERGED, STATUS_MAX_ITERATIONS)).astype(object)
+    status[~ok] = STATUS_DEGENERATE
+    return fix_result(p, X, P, iterations, converged, status.astype(str), name)

@@ -1,0 +1,564 @@
+"""Estimators of the horizontal solve: (x, y) from azimuths, the target altitude stated.
+
+Conventions (DESIGN.md): ENU metres, azimuth θ CCW from East, elevation ψ above the horizontal,
+radians; an azimuth-only (1D) bearing has elevation NaN. The user states the target altitude
+z₀ (m, world frame) and its standard deviation σ_z (m, 0 = exactly known); the model, the
+Gaussian prior z ~ N(z₀, σ_z²) and the bound are in :mod:`.horizontal_crlb`.
+
+Estimators (batch-first like the 3D ones: M problems of N bearings, vectorised over M, O(N)
+per problem and iteration, no dense 2N × 2N matrix):
+
+* ``ls``: Wang, Zhang & Wu eq. (4) on the plane-reduced pseudo-linear system (below), rows
+  whitened by the angle σ (exactly eq. (4) when all σ are equal).
+* ``tls``: Wang, Zhang & Wu eq. (5) on the same (whitened) system.
+* ``ctls``/``ctls_am``: Wang, Zhang & Wu eqs. (9)-(20) reduced to the plane
+  (:mod:`.horizontal_ctls`).
+* ``mle``: Zong & Cui 2015 eqs. (3)-(8) with the z prior, Gauss-Newton with
+  Levenberg-Marquardt damping.
+* ``wmle``: Zong & Cui 2015 eqs. (9)-(11), σ grown with range, same iteration.
+
+Plane-reduced pseudo-linear system. Substituting the stated z = z₀ into the rows of Wang,
+Zhang & Wu eq. (2) and moving it to the right-hand side gives, per station i (Δz_i = z₀ − z_i):
+
+    azimuth row:    [sin θ_i, −cos θ_i] · (x, y) = sin θ_i x_i − cos θ_i y_i
+    elevation row:  [cos θ_i sin ψ_i, sin θ_i sin ψ_i] · (x, y)
+                    = cos θ_i sin ψ_i x_i + sin θ_i sin ψ_i y_i + cos ψ_i Δz_i.
+
+Dividing the elevation row by sin ψ_i gives cos θ_i x + sin θ_i y = cos θ_i x_i + sin θ_i y_i
++ Δz_i / tan ψ_i: the horizontal range ρ_i = Δz_i / tan ψ_i along the line of sight, which is
+how a 2D station's elevation carries range information once the altitude is known. The
+form above (not divided) stays finite when ψ_i → 0 and has the noise scale of eq. (2): to
+first order the azimuth row's error is ρ_i n_i and the elevation row's is r_i m_i − cos ψ_i δz₀
+(ρ, r horizontal and slant range, δz₀ the error of the stated altitude). Rows are whitened by
+1/σ_θi and 1/σ_ψi. The pseudo-linear estimators fit with z = z₀ and carry σ_z into their
+covariance (first order): with K = A⁻¹HᵀW the gain of the solution X = K Y,
+
+    P_h = A⁻¹ (Hᵀ W Σ W H + σ_z² g gᵀ) A⁻¹,  P_hz = σ_z² A⁻¹ g,  P_zz = σ_z²,
+    Σ = diag(ρ_i² σ_θi², r_i² σ_ψi²),  g = Σ_{2D} h_ei w_ei cos ψ_i,
+
+so g = 0 (no x-y/z correlation) without elevations.
+
+Options (keyword arguments; an unknown one raises ``ValueError('options.<name>: ...')``):
+``max_iterations`` (default 50), ``tolerance`` (1e-9, relative to the rms station range),
+``initial`` ((2,), (3,), (M, 2) or (M, 3) m; only x, y are used unless σ_z > 0),
+``reference_range`` (``wmle``, m, default 1000), ``step_decay`` (``ctls``/``ctls_am``).
+Statuses as in core/estimators.py: ``ok``, ``max_iterations``, ``diverged``,
+``degenerate_geometry`` (horizontal information singular at the estimate, e.g. all stations
+and the target on one line with no usable elevation; position NaN, covariance inf).
+"""
+
+import numbers
+
+import numpy as np
+
+from .bearings import BearingSet, SIGMA_MAX, SIGMA_MIN
+from .estimator_spec import (BEARING_SIGMA, EstimatorSpec, MAX_ITERATIONS, MULTISTATION, Option,
+                             RANGE_GROWN_SIGMA, REFERENCE_RANGE, STEP_DECAY, TOLERANCE)
+from .estimators import (FixResult, STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_MAX_ITERATIONS,
+                         STATUS_OK)
+from .horizontal_crlb import _as_problem_vector, inverse2, prior_covariance
+
+HALF_PI = np.pi / 2.0
+#: Starting point of the iterative horizontal estimators (checked by
+#: :func:`parse_horizontal_options`).
+INITIAL = Option('initial', None, 'object',
+                 'starting point (2,), (3,), (M, 2) or (M, 3), m (default: ls)')
+_COMMON = (MAX_ITERATIONS, TOLERANCE)
+_ITERATIVE = _COMMON + (INITIAL,)
+#: Option declarations of the horizontal estimators (same names and meaning as the 3D ones).
+SPECS = {name: EstimatorSpec(name, MULTISTATION, options, noise, FixResult)
+         for name, options, noise in (
+             ('ls', _COMMON, BEARING_SIGMA),
+             ('tls', _COMMON, BEARING_SIGMA),
+             ('ctls', _ITERATIVE + (STEP_DECAY,), BEARING_SIGMA),
+             ('ctls_am', _ITERATIVE + (STEP_DECAY,), BEARING_SIGMA),
+             ('mle', _ITERATIVE, BEARING_SIGMA),
+             ('wmle', _ITERATIVE + (REFERENCE_RANGE,), RANGE_GROWN_SIGMA))}
+#: Accepted options and defaults per horizontal estimator.
+OPTION_DEFAULTS = {name: spec.defaults() for name, spec in SPECS.items()}
+_CHI2_STEP_TOL = 1e-10
+#: Tail probability of the χ² test of :func:`on_station_line` (bearings consistent with a
+#: target on the stations' line at this level are declared degenerate; small, so that a
+#: target truly on the line is practically never given a fix).
+LINE_CHI2_TAIL = 1e-6
+_COST_RTOL = 1e-12
+
+
+class HorizontalProblem:
+    """Validated arrays of a horizontal solve, (M, N) per bearing and (M,) per problem.
+
+    Attributes: px, py, pz station coordinates (m); az θ and el ψ (rad; el 0 where unused);
+    saz, sel σ (rad; sel NaN where unused); use_el (bool, elevation used); z0, sz the stated
+    altitude and its σ (m).
+    """
+
+    _FIELDS = ('px', 'py', 'pz', 'az', 'el', 'saz', 'sel', 'use_el', 'z0', 'sz')
+
+    @property
+    def M(self):
+        """Number of problems."""
+        return self.az.shape[0]
+
+    @property
+    def N(self):
+        """Number of bearings per problem."""
+        return self.az.shape[1]
+
+    def take(self, idx):
+        """The problems ``idx`` only."""
+        out = object.__new__(HorizontalProblem)
+        for name in self._FIELDS:
+            setattr(out, name, getattr(self, name)[idx])
+        return out
+
+
+def prepare(bearings, target_altitude, target_altitude_sigma=0.0, use_elevations=True):
+    """Validate a horizontal solve's input; return a :class:`HorizontalProblem`.
+
+    Raises ``ValueError`` naming the field: ``bearings`` (not a BearingSet, fewer than two
+    azimuths), ``position``/``azimuth``/``elevation``/``sigma_azimuth``/``sigma_elevation``
+    (the rules of BearingSet.validate without its demand for an elevation),
+    ``target_altitude`` (missing, not a number, NaN or infinite), ``target_altitude_sigma``
+    (negative, NaN or infinite), ``use_elevations`` (not a bool).
+    """
+    if not isinstance(bearings, BearingSet):
+        raise ValueError(f'bearings: expected a BearingSet, got {type(bearings).__name__}')
+    pos, az, el = bearings.positions, bearings.azimuth, bearings.elevation
+    saz, sel = bearings.sigma_az, bearings.sigma_el
+    if not np.all(np.isfinite(pos)):
+        raise ValueError('position: non-finite station coordinate')
+    if not np.all(np.isfinite(az)):
+        raise ValueError('azimuth: non-finite value')
+    if np.any(np.isinf(el)):
+        raise ValueError('elevation: infinite value (use NaN/null for azimuth-only bearings)')
+    has_el = np.isfinite(el)
+    if np.any(np.abs(el[has_el]) >= HALF_PI):
+        raise ValueError('elevation: |elevation| must be < pi/2')
+    if not np.all((saz >= SIGMA_MIN) & (saz <= SIGMA_MAX)):
+        raise ValueError(f'sigma_azimuth: must be finite and in [{SIGMA_MIN:g}, {SIGMA_MAX:g}] '
+                         'rad')
+    if not np.all((sel[has_el] >= SIGMA_MIN) & (sel[has_el] <= SIGMA_MAX)):
+        raise ValueError(f'sigma_elevation: must be finite and in [{SIGMA_MIN:g}, '
+                         f'{SIGMA_MAX:g}] rad where elevation is measured')
+    if bearings.N < 2:
+        raise ValueError(f'bearings: {bearings.N} azimuth(s); a horizontal fix needs at least '
+                         'two stations')
+    if target_altitude is None:
+        raise ValueError('target_altitude: required for a horizontal solve (m, world frame); '
+                         'the bearings do not fix the height')
+    if isinstance(target_altitude, bool):
+        raise ValueError('target_altitude: expected a number (m), got a bool')
+    z0 = _as_problem_vector(target_altitude, bearings.M, 'target_altitude')
+    if not np.all(np.isfinite(z0)):
+        raise ValueError('target_altitude: must be finite (m, world frame), got NaN or inf')
+    if isinstance(target_altitude_sigma, bool):
+        raise ValueError('target_altitude_sigma: expected a number (m), got a bool')
+    sz = _as_problem_vector(target_altitude_sigma, bearings.M, 'target_altitude_sigma')
+    if not np.all(np.isfinite(sz) & (sz >= 0)):
+        raise ValueError('target_altitude_sigma: must be finite and >= 0 (m; 0 = altitude '
+                         'exactly known)')
+    use_elevations = check_bool(use_elevations, 'use_elevations')
+    p = object.__new__(HorizontalProblem)
+    p.px, p.py, p.pz = pos[..., 0], pos[..., 1], pos[..., 2]
+    p.use_el = has_el & use_elevations
+    p.az = az
+    p.el = np.where(p.use_el, el, 0.0)
+    p.saz = saz
+    p.sel = np.where(p.use_el, sel, np.nan)
+    p.z0, p.sz = z0, sz
+    return p
+
+
+def parse_horizontal_options(method, options, M):
+    """Validate ``options`` for horizontal estimator ``method``; returns (options, initial).
+
+    ``initial`` ((2,), (3,), (M, 2) or (M, 3), m, finite) comes back as (M, 3) (z NaN when
+    only x, y were given) or None. The other options are checked by their declarations
+    (core/estimator_spec.py); ValueError('options.<name>: ...').
+    """
+    opts = SPECS[method].parse(options, M)
+    x0 = opts.get('initial')
+    if x0 is None:
+        return opts, None
+    a = np.asarray(x0, dtype=float)
+    a = a[None] if a.ndim == 1 else a
+    if a.ndim != 2 or a.shape[1] not in (2, 3) or a.shape[0] not in (1, M):
+        raise ValueError(f'options.initial: expected shape (2,), (3,), ({M}, 2) or ({M}, 3), '
+                         f'got {np.shape(x0)}')
+    if not np.all(np.isfinite(a)):
+        raise ValueError('options.initial: non-finite coordinate')
+    out = np.full((M, 3), np.nan)
+    out[:, :a.shape[1]] = a
+    return opts, out
+
+
+# ----------------------------------------------------------------------------------------------
+# Pseudo-linear estimators (Wang, Zhang & Wu eqs. (2)-(5) reduced to the plane)
+
+
+def plane_system(p):
+    """Rows of the plane-reduced system (module docstring): H (M, N, 2, 2), Y (M, N, 2).
+
+    Row 0 of each station is the azimuth row, row 1 the elevation row (zero where the
+    elevation is not used). Also returns the whitening weights w = (1/σ_θ², 1/σ_ψ²) (M, N, 2),
+    0 for unused elevation rows.
+    """
+    st, ct = np.sin(p.az), np.cos(p.az)
+    sp, cp = np.sin(p.el), np.cos(p.el)
+    m = p.use_el.astype(float)
+    H = np.empty(p.az.shape + (2, 2))
+    H[..., 0, 0], H[..., 0, 1] = st, -ct
+    H[..., 1, 0], H[..., 1, 1] = m * ct * sp, m * st * sp
+    Y = np.empty(p.az.shape + (2,))
+    Y[..., 0] = st * p.px - ct * p.py
+    Y[..., 1] = m * (ct * sp * p.px + st * sp * p.py + cp * (p.z0[:, None] - p.pz))
+    w = np.stack([1.0 / p.saz ** 2, np.where(p.use_el, 1.0 / np.where(p.use_el, p.sel, 1.0) ** 2,
+                                             0.0)], axis=-1)
+    return H, Y, w
+
+
+def _solve2(A, b):
+    """x = A⁻¹ b for (M, 2, 2) systems; (x, ok), x NaN where A is singular (horizontal RCOND)."""
+    Ainv, ok = inverse2(A)
+    x = np.full(b.shape, np.nan)
+    if np.any(ok):
+        x[ok] = np.einsum('mij,mj->mi', Ainv[ok], b[ok])
+    return x, Ainv, ok
+
+
+def linear_covariance(p, xy, ok, H, w, Ainv):
+    """First-order covariance (M, 3, 3), m², of X = A⁻¹HᵀWY including σ_z (module docstring)."""
+    dx = np.where(ok[:, None], xy[:, 0:1], 0.0) - p.px
+    dy = np.where(ok[:, None], xy[:, 1:2], 0.0) - p.py
+    rho2 = dx * dx + dy * dy
+    r2 = rho2 + (p.z0[:, None] - p.pz) ** 2
+    var = np.stack([rho2 * p.saz ** 2, np.where(p.use_el, r2 * np.nan_to_num(p.sel) ** 2, 0.0)],
+                   axis=-1)
+    B = np.einsum('mnki,mnk,mnkj->mij', H, w * w * var, H)
+    g = np.einsum('mni,mn->mi', H[..., 1, :], w[..., 1] * np.cos(p.el))
+    sz2 = p.sz ** 2
+    P = np.full((p.M, 3, 3), np.inf)
+    if np.any(ok):
+        Ai, Bo, go = Ainv[ok], B[ok], g[ok]
+        Bo = Bo + sz2[ok, None, None] * go[:, :, None] * go[:, None, :]
+        P[ok, :2, :2] = Ai @ Bo @ Ai
+        P[ok, :2, 2] = P[ok, 2, :2] = sz2[ok, None] * np.einsum('mij,mj->mi', Ai, go)
+        P[ok, 2, 2] = sz2[ok]
+    return P
+
+
+def on_station_line(p):
+    """(M,) bool: azimuth-only problems whose data place the target on the stations' line.
+
+    When every station lies on one horizontal line and the target is on it too, azimuths
+    say nothing about the along-line position (the information is singular there). With
+    noise the lines cross somewhere far along it, and a first-order covariance at that
+    crossing is meaningless. Test: the stations are collinear (the 2 × 2 scatter of their
+    horizontal positions has λ_min ≤ 1e-6 λ_max, i.e. a perpendicular spread below 1e-3 of
+    the along-line spread) and χ² = Σ δ_i²/σ_θi² ≤ :data:`LINE_CHI2_TAIL`'s χ²_N quantile,
+    δ_i the angle between azimuth θ_i and the line (mod π): the bearings are consistent with
+    a target on the line. Problems with a usable elevation are never flagged (with the
+    altitude known an elevation measures the range).
+    """
+    from scipy.stats import chi2
+    d = np.stack([p.px - p.px.mean(axis=1, keepdims=True),
+                  p.py - p.py.mean(axis=1, keepdims=True)], axis=-1)
+    C = np.einsum('mni,mnj->mij', d, d)
+    w, v = np.linalg.eigh(C)
+    collinear = (w[:, 1] > 0) & (w[:, 0] <= 1e-6 * w[:, 1])
+    phi = np.arctan2(v[:, 1, 1], v[:, 0, 1])
+    delta = np.mod(p.az - phi[:, None] + HALF_PI, np.pi) - HALF_PI
+    stat = np.sum((delta / p.saz) ** 2, axis=1)
+    return collinear & ~np.any(p.use_el, axis=1) & (stat <= chi2.isf(LINE_CHI2_TAIL, p.N))
+
+
+def fix_result(p, xy, cov, iterations, converged, status, method, z=None):
+    """FixResult with position (M, 3) = (x, y, z) (z = z₀ unless given); NaN where degenerate.
+
+    Problems flagged by :func:`on_station_line` are degenerate_geometry too.
+    """
+    status = np.where(on_station_line(p), STATUS_DEGENERATE, status)
+    bad = status == STATUS_DEGENERATE
+    pos = np.empty((p.M, 3))
+    pos[:, :2] = np.where(bad[:, None], np.nan, xy)
+    pos[:, 2] = np.where(bad, np.nan, p.z0 if z is None else z)
+    cov = np.array(cov, dtype=float)
+    cov[bad] = np.inf
+    return FixResult(pos, cov, np.asarray(iterations, dtype=int), converged & ~bad,
+                     status.astype(str), method)
+
+
+def _closed_form(p, xy, ok, H, w, Ainv, method):
+    """Result of a pseudo-linear solution; degenerate where singular or on a station.
+
+    A solution within 1e-9 × (1 m + largest |station coordinate| + largest station range) of
+    a station (horizontally) is the answer of co-located stations, where the bearing model is
+    undefined (see estimators._closed_form_result): degenerate_geometry.
+    """
+    with np.errstate(invalid='ignore'):
+        dist = np.hypot(xy[:, 0:1] - p.px, xy[:, 1:2] - p.py)
+        scale = 1.0 + np.max(np.abs(np.stack([p.px, p.py])), axis=(0, 2)) + np.max(dist, axis=1)
+        ok = ok & np.all(np.isfinite(xy), axis=1) & ~np.any(dist <= 1e-9 * scale[:, None],
+                                                            axis=1)
+    cov = linear_covariance(p, xy, ok, H, w, Ainv)
+    status = np.where(ok, STATUS_OK, STATUS_DEGENERATE)
+    return fix_result(p, xy, cov, np.zeros(p.M, dtype=int), ok.copy(), status, method)
+
+
+def solve_ls(p):
+    """Whitened pseudo-linear LS (x, y) (M, 2), with (ok, H, w, A⁻¹); NaN where singular."""
+    H, Y, w = plane_system(p)
+    A = np.einsum('mnki,mnk,mnkj->mij', H, w, H)
+    b = np.einsum('mnki,mnk,mnk->mi', H, w, Y)
+    xy, Ainv, ok = _solve2(A, b)
+    return xy, ok, H, w, Ainv
+
+
+def ls(p, **options):
+    """Pseudo-linear least squares, Wang, Zhang & Wu eq. (4) reduced to the plane.
+
+    X = (HᵀWH)⁻¹HᵀWY with the plane-reduced rows (module docstring) and W = diag(1/σ_θi²,
+    1/σ_ψi²) (eq. (4) itself when every σ is equal); sums over stations, O(N). z = z₀.
+    Covariance: the first-order sandwich with σ_z of the module docstring, m². Status
+    degenerate_geometry where HᵀWH is singular (e.g. parallel bearings). ``p`` is a
+    :class:`HorizontalProblem` (see :func:`prepare`).
+    """
+    parse_horizontal_options('ls', options, p.M)
+    xy, ok, H, w, Ainv = solve_ls(p)
+    return _closed_form(p, xy, ok, H, w, Ainv, 'ls')
+
+
+def tls(p, **options):
+    """Total least squares, Wang, Zhang & Wu eq. (5) on the whitened plane-reduced system.
+
+    X = (HᵀWH − λI)⁻¹HᵀWY with λ the smallest eigenvalue of the 3 × 3 normal matrix of
+    W^½[−Y H] (the squared smallest singular value σ₃² of eq. (5)), refined by three
+    Rayleigh-quotient steps λ ← ‖W^½(HX − Y)‖² / (1 + ‖X‖²) as the 3D ``tls`` does. Origin-
+    and unit-dependent, like eq. (5). First-order covariance: the LS sandwich (the TLS
+    correction is second order), m².
+    """
+    parse_horizontal_options('tls', options, p.M)
+    H, Y, w = plane_system(p)
+    A = np.einsum('mnki,mnk,mnkj->mij', H, w, H)
+    b = np.einsum('mnki,mnk,mnk->mi', H, w, Y)
+    yy = np.einsum('mnk,mnk,mnk->m', Y, w, Y)
+    C3 = np.empty((p.M, 3, 3))
+    C3[:, 0, 0] = yy
+    C3[:, 0, 1:] = C3[:, 1:, 0] = -b
+    C3[:, 1:, 1:] = A
+    C3[~np.all(np.isfinite(C3), axis=(1, 2))] = 0.0
+    lam = np.linalg.eigvalsh(C3)[:, 0]
+    eye = np.eye(2)
+    for _ in range(3):
+        xy, _, _ = _solve2(A - lam[:, None, None] * eye, b)
+        r = np.einsum('mnki,mi->mnk', H, xy) - Y
+        lam_new = np.einsum('mnk,mnk,mnk->m', r, w, r) / (1.0 + np.einsum('mi,mi->m', xy, xy))
+        lam = np.where(np.isfinite(lam_new), lam_new, lam)
+    xy, _, ok = _solve2(A - lam[:, None, None] * eye, b)
+    Ainv, ok_ls = inverse2(A)
+    return _closed_form(p, xy, ok & ok_ls, H, w, Ainv, 'tls')
+
+
+# ----------------------------------------------------------------------------------------------
+# Maximum likelihood with the z prior (Zong & Cui 2015)
+
+
+def ml_terms(p, X, factor=None, d_ref=None):
+    """Measurement information A (M, 3, 3), gradient term b (M, 3), cost (M,) at X (M, 3).
+
+    Zong & Cui 2015 eqs. (3)-(8): e = measured − predicted angles (azimuth wrapped to
+    (−π, π]), cost Σ e²/σ², A = Σ ∇∇ᵀ/σ², b = Σ ∇ e/σ² (so the Gauss-Newton step of eq. (8)
+    is X + A⁻¹b), ∇θ, ∇ψ as in core/crlb.py. With ``d_ref`` (``wmle``, eqs. (9)-(11)) every
+    1/σ² is multiplied by ``factor`` (M, N) = d_ref²/d² of the iterate the weights belong to
+    (that of X itself when ``factor`` is None). Also returns the rms station range (M,) and
+    X's own factor (None without ``d_ref``). The z prior is not included.
+    """
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        dx = X[:, 0:1] - p.px
+        dy = X[:, 1:2] - p.py
+        dz = X[:, 2:3] - p.pz
+        rho2 = dx * dx + dy * dy
+        r2 = rho2 + dz * dz
+        rho = np.sqrt(rho2)
+        e_az = p.az - np.arctan2(dy, dx)
+        e_az -= 2.0 * np.pi * np.ceil((e_az - np.pi) / (2.0 * np.pi))
+        e_el = np.where(p.use_el, p.el - np.arctan2(dz, rho), 0.0)
+        wa = 1.0 / p.saz ** 2
+        we = np.where(p.use_el, 1.0 / np.where(p.use_el, p.sel, 1.0) ** 2, 0.0)
+        own = None
+        if d_ref is not None:
+            own = d_ref * d_ref / r2
+            f = own if factor is None else factor
+            wa, we = wa * f, we * f
+        ga = np.stack([-dy / rho2, dx / rho2, np.zeros_like(dx)], axis=-1)
+        ge = np.stack([-dx * dz / (rho * r2), -dy * dz / (rho * r2), rho / r2], axis=-1)
+        ge = np.where(p.use_el[..., None], ge, 0.0)
+        A = (np.einsum('mn,mni,mnj->mij', wa, ga, ga)
+             + np.einsum('mn,mni,mnj->mij', we, ge, ge))
+        b = (np.einsum('mn,mni,mn->mi', wa, ga, e_az)
+             + np.einsum('mn,mni,mn->mi', we, ge, e_el))
+        cost = np.sum(wa * e_az * e_az + we * e_el * e_el, axis=1)
+        scale = np.sqrt(np.mean(r2, axis=1))
+    return A, b, cost, scale, own
+
+
+def prior_step(A, b, fixed):
+    """Solve A Δ = b (M, 3, 3) by the Schur complement on z; Δz = 0 where ``fixed``.
+
+    Where the altitude is fixed (σ_z = 0) the z row is dropped (a 2 × 2 system); otherwise
+    Δ_h = (A_h − q qᵀ/s)⁻¹ (b_h − q b_z/s), Δz = (b_z − qᵀΔ_h)/s, which stays well
+    conditioned for a tiny σ_z (huge s). NaN where the horizontal block is singular.
+    """
+    s = np.where(fixed, 1.0, A[:, 2, 2])
+    q = np.where(fixed[:, None], 0.0, A[:, :2, 2])
+    bz = np.where(fixed, 0.0, b[:, 2])
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        S = A[:, :2, :2] - q[:, :, None] * q[:, None, :] / s[:, None, None]
+        d_h, _, _ = _solve2(S, b[:, :2] - q * (bz / s)[:, None])
+        dz = (bz - np.einsum('mi,mi->m', q, d_h)) / s
+    return np.concatenate([d_h, dz[:, None]], axis=1)
+
+
+def levenberg_marquardt(p, x0, max_iterations, tolerance, d_ref=None):
+    """Gauss-Newton (Zong & Cui 2015 eq. (8)) with Levenberg-Marquardt damping, M problems.
+
+    Parameters (x, y, z); the cost is the ML cost of :func:`ml_terms` plus the prior term
+    (z − z₀)²/σ_z² (σ_z > 0) or z held at z₀ (σ_z = 0). The damping and stopping rules are
+    those of core/estimators.py ``_levenberg_marquardt``: step (A + λ diag A) Δ = b, accepted
+    when the cost does not increase (for ``wmle`` under the previous iterate's weights), λ
+    from 0 (pure Gauss-Newton), ×10 (at least 1e-3) on rejection, ÷10 (0 below 1e-6) on
+    acceptance; converged when the undamped step is shorter than ``tolerance`` × rms range or
+    its predicted decrease bᵀΔ is below max(1e-10/dof, 1e-12) × cost; the sub-tolerance step is
+    not taken; diverged when λ > 1e12 or the rms range grows 1e8-fold. Returns (X, information
+    at X without the prior, iterations, converged, diverged).
+    """
+    M = p.M
+    fixed = p.sz == 0.0
+    wz = np.where(fixed, 0.0, 1.0 / np.where(fixed, 1.0, p.sz) ** 2)
+    finite0 = np.all(np.isfinite(x0), axis=1)
+    X = np.where(finite0[:, None], x0, 0.0)
+    X[:, 2] = np.where(fixed | ~np.isfinite(x0[:, 2]), p.z0, X[:, 2])
+
+    def terms(X, factor=None):
+        A, b, cost, scale, own = ml_terms(p, X, factor, d_ref)
+        dz = X[:, 2] - p.z0
+        A = A.copy()
+        A[:, 2, 2] += wz
+        b = b.copy()
+        b[:, 2] -= wz * dz
+        return A, b, cost + wz * dz * dz, scale, own
+
+    A, b, cost, scale, factor = terms(X)
+    scale0 = scale.copy()
+    n_meas = p.N + np.count_nonzero(p.use_el, axis=1)
+    rel_tol = np.maximum(_CHI2_STEP_TOL / np.maximum(n_meas - 2, 1), _COST_RTOL)
+    lam = np.zeros(M)
+    it = np.zeros(M, dtype=int)
+    conv = np.zeros(M, dtype=bool)
+    div = ~finite0
+    done = div.copy()
+    diag = np.eye(3, dtype=bool)
+    for _ in range(max_iterations):
+        if done.all():
+            break
+        run = ~done
+        g = prior_step(A, b, fixed)
+        damped = lam > 0
+        step = g
+        if np.any(damped):
+            Ad = A.copy()
+            Ad[:, diag] *= (1.0 + lam)[:, None]
+            step = np.where(damped[:, None], prior_step(Ad, b, fixed), g)
+        gn = np.linalg.norm(g, axis=1)
+        decrease = np.abs(np.einsum('mi,mi->m', b, g))
+        small = run & ((gn <= tolerance * scale) | (decrease <= rel_tol * cost))
+        step_ok = np.all(np.isfinite(step), axis=1)
+        trying = run & ~small & step_ok
+        it += run
+        conv |= small
+        if np.any(trying):
+            Xt = np.where(trying[:, None], X + np.where(step_ok[:, None], step, 0.0), X)
+            if d_ref is None:
+                At, bt, ct, st, ft = terms(Xt)
+                ok = trying & (ct <= cost)
+            else:
+                _, _, c_old, _, _ = terms(Xt, factor)
+                ok = trying & (c_old <= cost)
+                At, bt, ct, st, ft = terms(Xt)
+            X = np.where(ok[:, None], Xt, X)
+            A = np.where(ok[:, None, None], At, A)
+            b = np.where(ok[:, None], bt, b)
+            cost = np.where(ok, ct, cost)
+            scale = np.where(ok, st, scale)
+            if d_ref is not None:
+                factor = np.where(ok[:, None], ft, factor)
+            lam = np.where(ok, np.where(lam < 1e-6, 0.0, 0.1 * lam),
+                           np.where(trying, np.maximum(10.0 * lam, 1e-3), lam))
+        runaway = run & ~small & ((lam > 1e12) | ~step_ok | (scale > 1e8 * scale0))
+        div |= runaway
+        done |= small | runaway
+    info, _, _, _, _ = ml_terms(p, X, None, d_ref)
+    X[~finite0] = np.nan
+    return X, info, it, conv & finite0, div
+
+
+def iterative_result(p, method, X, info, iterations, converged, diverged):
+    """FixResult of an ML iteration: covariance from the prior-combined information."""
+    cov, ok = prior_covariance(info, p.sz)
+    ok &= np.all(np.isfinite(X), axis=1)
+    status = np.where(converged, STATUS_OK,
+                      np.where(diverged, STATUS_DIVERGED, STATUS_MAX_ITERATIONS)).astype(object)
+    status[~ok] = STATUS_DEGENERATE
+    return fix_result(p, X[:, :2], cov, iterations, converged, status.astype(str), method,
+                      z=X[:, 2])
+
+
+def start(p, initial):
+    """Initial (M, 3): ``initial`` (x, y; z when given and σ_z > 0) or else ``ls`` at z₀."""
+    if initial is None:
+        xy, ok, _, _, _ = solve_ls(p)
+        x0 = np.concatenate([xy, p.z0[:, None]], axis=1)
+        x0[~ok] = np.nan
+        return x0
+    x0 = initial.copy()
+    x0[:, 2] = np.where(np.isfinite(x0[:, 2]) & (p.sz > 0), x0[:, 2], p.z0)
+    return x0
+
+
+def mle(p, **options):
+    """Maximum likelihood (maximum a posteriori for σ_z > 0), Zong & Cui 2015 eqs. (3)-(8).
+
+    X̂ = argmin Σ e_θ²/σ_θ² + Σ_{2D} e_ψ²/σ_ψ² + (z − z₀)²/σ_z² over (x, y, z) (z = z₀ fixed
+    when σ_z = 0), by :func:`levenberg_marquardt` from ``ls``. With azimuths only the z
+    terms decouple and ẑ = z₀ exactly. Covariance: the inverse of the prior-combined
+    information at X̂ (:func:`.horizontal_crlb.prior_covariance`), m². Options:
+    ``max_iterations``, ``tolerance``, ``initial``.
+    """
+    opts, initial = parse_horizontal_options('mle', options, p.M)
+    X, info, it, conv, div = levenberg_marquardt(p, start(p, initial), opts['max_iterations'],
+                                                 opts['tolerance'])
+    return iterative_result(p, 'mle', X, info, it, conv, div)
+
+
+def wmle(p, **options):
+    """Range-weighted ML, Zong & Cui 2015 eqs. (9)-(11), with the z prior.
+
+    σ_k = σ_ref,k · d_k / d_ref (eqs. (9)-(10)), d_k = |X_i − S_k| the slant range to the
+    current iterate (z of the iterate: z₀ when σ_z = 0), held fixed within a step (eq. (11),
+    iteratively reweighted, as in the 3D ``wmle``); the prior term is not range-scaled.
+    Covariance: inverse prior-combined information with σ(d̂), m². Options:
+    ``reference_range`` (d_ref, m), ``max_iterations``, ``tolerance``, ``initial``.
+    """
+    opts, initial = parse_horizontal_options('wmle', options, p.M)
+    X, info, it, conv, div = levenberg_marquardt(p, start(p, initial), opts['max_iterations'],
+                                                 opts['tolerance'], opts['reference_range'])
+    return iterative_result(p, 'wmle', X, info, it, conv, div)
+
+
+def check_bool(value, name):
+    """``value`` as a bool; ValueError naming ``name`` for anything but a bool."""
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, numbers.Number):
+        raise ValueError(f'{name}: expected true or false, got {value!r}')
+    raise ValueError(f'{name}: expected true or false')
