@@ -35,7 +35,9 @@ def parse_args(argv):
     ap.add_argument('--time-scale', type=float, default=8.0,
                     help='simulated seconds per wall second (8)')
     ap.add_argument('--seed', type=int, default=0, help='simulation seed (0)')
-    ap.add_argument('--estimator', default='mle', help='fusion estimator (mle)')
+    from .core.registry import default_estimator
+    ap.add_argument('--estimator', default=default_estimator(),
+                    help=f'fusion estimator (default {default_estimator()})')
     ap.add_argument('--out', default='demo_out', help='output directory (demo_out)')
     ap.add_argument('--domain-id', type=int, default=None,
                     help='ROS_DOMAIN_ID (default: $ROS_DOMAIN_ID, else derived from the pid)')

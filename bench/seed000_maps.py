@@ -14,6 +14,7 @@ import argparse
 import contextlib
 import io
 import json
+import math
 import os
 import shlex
 
@@ -38,6 +39,11 @@ def run(argv):
     return json.loads(buf.getvalue())
 
 
+def _deg(mrad):
+    """The --sigma-deg value of a σ given in mrad (the figures are labelled in mrad)."""
+    return repr(math.degrees(float(mrad) * 1e-3))
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--out', default='docs/img', help='output directory (default docs/img)')
@@ -54,18 +60,18 @@ def main():
             name = f'seed000_ctls_{sigma.replace(".", "p")}mrad_{alt_km}km'
             png = os.path.join(args.out, name + '.png')
             out = run(['plan', 'map', *common, '--altitude', str(int(alt_km) * 1000),
-                       '--sigma-mrad', sigma, '--model', 'ctls', '--png', png,
+                       '--sigma-deg', _deg(sigma), '--model', 'ctls', '--png', png,
                        '--csv', os.path.join(args.csv_out, name + '.csv'),
                        '--title', f'CTLS error (seed 000 eq. 32), sigma {sigma} mrad, '
                                   f'altitude {alt_km} km'])
             summary.append((name, out['stats']))
     png = os.path.join(args.out, 'seed000_crlb_1p5mrad_5km.png')
-    out = run(['plan', 'map', *common, '--altitude', '5000', '--sigma-mrad', '1.5',
+    out = run(['plan', 'map', *common, '--altitude', '5000', '--sigma-deg', _deg('1.5'),
                '--model', 'crlb', '--png', png,
                '--csv', os.path.join(args.csv_out, 'seed000_crlb_1p5mrad_5km.csv'),
                '--title', 'CRLB sqrt(trace), sigma 1.5 mrad, altitude 5 km'])
     summary.append(('seed000_crlb_1p5mrad_5km', out['stats']))
-    out = run(['plan', 'place', '--scenario', SCENARIO, '--sigma-mrad', '1.5', '--altitude',
+    out = run(['plan', 'place', '--scenario', SCENARIO, '--sigma-deg', _deg('1.5'), '--altitude',
                '5000', '--area-km=-20,40,-20,30', '--region-km=-60,60,-60,60', '--height',
                '150', '--levels', LEVELS, '--vmin', '40', '--vmax', '2000',
                '--resolution', str(2 * float(args.resolution)),

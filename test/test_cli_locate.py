@@ -41,13 +41,13 @@ def run_main(tmp_path, doc, *extra, capsys):
 
 
 def test_single_problem_in_process(tmp_path, capsys):
-    doc = {'method': 'mle', 'bearings': bearings_json(one_d=(1,))}
+    doc = {'estimator': 'mle', 'bearings': bearings_json(one_d=(1,))}
     code, out, err = run_main(tmp_path, doc, capsys=capsys)
     assert code == 0 and err == ''
     res = json.loads(out)
-    assert set(res) == {'method', 'position', 'covariance', 'crlb', 'converged', 'iterations',
-                        'status'}
-    assert res['method'] == 'mle' and res['status'] == 'ok' and res['converged'] is True
+    assert set(res) == {'estimator', 'method', 'position', 'covariance', 'crlb', 'converged',
+                        'iterations', 'status'}
+    assert res['estimator'] == 'mle' and res['status'] == 'ok' and res['converged'] is True
     np.testing.assert_allclose(res['position'], TARGET, atol=1e-3)
     assert np.array(res['covariance']).shape == (3, 3) and np.array(res['crlb']).shape == (3, 3)
     # mle's covariance is the CRLB at the estimate, which is the "crlb" field.
@@ -59,7 +59,7 @@ def test_every_method_matches_the_core(tmp_path, capsys, method):
     rng = np.random.default_rng(1)
     items = bearings_json(rng=rng)
     opts = {'reference_range': 5000.0} if method == 'wmle' else {}
-    code, out, _ = run_main(tmp_path, {'method': method, 'options': opts, 'bearings': items},
+    code, out, _ = run_main(tmp_path, {'estimator': method, 'options': opts, 'bearings': items},
                             capsys=capsys)
     assert code == 0
     res = json.loads(out)
@@ -72,10 +72,10 @@ def test_every_method_matches_the_core(tmp_path, capsys, method):
 
 def test_default_method_and_override(tmp_path, capsys):
     code, out, _ = run_main(tmp_path, {'bearings': bearings_json()}, capsys=capsys)
-    assert code == 0 and json.loads(out)['method'] == DEFAULT_ESTIMATOR
-    code, out, _ = run_main(tmp_path, {'method': 'mle', 'bearings': bearings_json()},
-                            '--method', 'ls', capsys=capsys)
-    assert code == 0 and json.loads(out)['method'] == 'ls'
+    assert code == 0 and json.loads(out)['estimator'] == DEFAULT_ESTIMATOR
+    code, out, _ = run_main(tmp_path, {'estimator': 'mle', 'bearings': bearings_json()},
+                            '--estimator', 'ls', capsys=capsys)
+    assert code == 0 and json.loads(out)['estimator'] == 'ls'
 
 
 def test_batch_mixed_sizes_keeps_order(tmp_path, capsys):
@@ -86,7 +86,7 @@ def test_batch_mixed_sizes_keeps_order(tmp_path, capsys):
              {'bearings': bearings_json(targets[1], four, rng=rng, one_d=(3,))},
              {'bearings': bearings_json(targets[2], rng=rng)},
              {'bearings': bearings_json(targets[3], four, rng=rng)}]
-    code, out, _ = run_main(tmp_path, {'method': 'mle', 'problems': probs}, capsys=capsys)
+    code, out, _ = run_main(tmp_path, {'estimator': 'mle', 'problems': probs}, capsys=capsys)
     assert code == 0
     res = json.loads(out)['results']
     assert len(res) == 4
@@ -99,7 +99,7 @@ def test_batch_mixed_sizes_keeps_order(tmp_path, capsys):
 
 def test_degenerate_fix_gives_strict_json_with_nulls(tmp_path, capsys):
     st = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0]])
-    doc = {'method': 'mle', 'bearings': bearings_json(np.array([3000.0, 0.0, 0.0]), st)}
+    doc = {'estimator': 'mle', 'bearings': bearings_json(np.array([3000.0, 0.0, 0.0]), st)}
     code, out, _ = run_main(tmp_path, doc, capsys=capsys)
     assert code == 0
     assert 'NaN' not in out and 'Infinity' not in out
@@ -111,7 +111,7 @@ def test_degenerate_fix_gives_strict_json_with_nulls(tmp_path, capsys):
 
 def test_crlb_field_is_the_crlb_at_the_estimate(tmp_path, capsys):
     items = bearings_json(rng=np.random.default_rng(3))
-    code, out, _ = run_main(tmp_path, {'method': 'ls', 'bearings': items}, capsys=capsys)
+    code, out, _ = run_main(tmp_path, {'estimator': 'ls', 'bearings': items}, capsys=capsys)
     res = json.loads(out)
     from bearing_loc_ros.cli.locate import parse_bearings
     expect = crlb_for(np.array([res['position']]), parse_bearings(items))[0]
@@ -126,7 +126,7 @@ def _bad(**change):
             del items[int(idx[1:])][field]
         else:
             items[int(idx[1:])][field] = val
-    return {'method': 'mle', 'bearings': items}
+    return {'estimator': 'mle', 'bearings': items}
 
 
 BAD_CASES = [
@@ -141,22 +141,22 @@ BAD_CASES = [
     (_bad(b1__colour='red'), 'bearings[1].colour: unknown field'),
     ('{"bearings": [1, 2', 'input: invalid JSON'),
     ('[1, 2]', 'input: must be a JSON object'),
-    ('{"method": "mle", "bearings": [{"position": [0, 0, 0], "azimuth": NaN, '
+    ('{"estimator": "mle", "bearings": [{"position": [0, 0, 0], "azimuth": NaN, '
      '"sigma_azimuth": 0.01}, {"position": [1, 0, 0], "azimuth": 1, "sigma_azimuth": 0.01}]}',
      'bearings[0].azimuth: must be a finite number'),
-    ({'method': 'best', 'bearings': bearings_json()}, 'method: unknown estimator'),
-    ({'method': 'mle', 'bearings': bearings_json(), 'options': {'bogus': 1}},
+    ({'estimator': 'best', 'bearings': bearings_json()}, 'estimator: unknown estimator'),
+    ({'estimator': 'mle', 'bearings': bearings_json(), 'options': {'bogus': 1}},
      'options.bogus: unknown option'),
-    ({'method': 'mle', 'bearings': bearings_json(), 'options': {'max_iterations': 0}},
+    ({'estimator': 'mle', 'bearings': bearings_json(), 'options': {'max_iterations': 0}},
      'options.max_iterations: must be an integer >= 1'),
-    ({'method': 'mle', 'bearings': bearings_json()[:1]}, 'bearings: 1 bearing(s)'),
-    ({'method': 'mle', 'bearings': bearings_json(one_d=(0, 1, 2))},
+    ({'estimator': 'mle', 'bearings': bearings_json()[:1]}, 'bearings: 1 bearing(s)'),
+    ({'estimator': 'mle', 'bearings': bearings_json(one_d=(0, 1, 2))},
      'bearings: elevation: no bearing measures elevation'),
-    ({'method': 'mle', 'problems': [{'bearings': bearings_json()},
-                                    {'bearings': _bad(b1__sigma_azimuth=0.0)['bearings']}]},
+    ({'estimator': 'mle', 'problems': [{'bearings': bearings_json()},
+                                       {'bearings': _bad(b1__sigma_azimuth=0.0)['bearings']}]},
      'problems[1].bearings[1].sigma_azimuth: must be > 0'),
-    ({'method': 'mle', 'bearings': bearings_json(), 'problems': []}, 'input: give exactly one'),
-    ({'method': 'mle', 'bearing': bearings_json()}, 'bearing: unknown field'),
+    ({'estimator': 'mle', 'bearings': bearings_json(), 'problems': []}, 'input: give exactly one'),
+    ({'estimator': 'mle', 'bearing': bearings_json()}, 'bearing: unknown field'),
 ]
 
 
@@ -178,7 +178,7 @@ def test_missing_file_is_exit_2(tmp_path, capsys):
 @pytest.mark.skipif(not os.path.exists(EXE), reason='bearing_loc console script not installed')
 def test_subprocess_stdin_and_exit_codes():
     env = dict(os.environ)
-    doc = json.dumps({'method': 'mle', 'bearings': bearings_json(one_d=(2,))})
+    doc = json.dumps({'estimator': 'mle', 'bearings': bearings_json(one_d=(2,))})
     p = subprocess.run([EXE, 'locate'], input=doc, capture_output=True, text=True, env=env,
                        timeout=60)
     assert p.returncode == 0, p.stderr

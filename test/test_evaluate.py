@@ -149,7 +149,7 @@ def test_deterministic_for_a_seed_and_independent_of_the_estimator_set():
 def seed003_csv(tmp_path_factory):
     """`bearing_loc evaluate` on seed 003's scenario, 300 trials (the docs use 1000)."""
     out = tmp_path_factory.mktemp('eval')
-    argv = ['evaluate', '--scenario', SEED003, '--estimators', 'ls,mle,wmle',
+    argv = ['evaluate', '--scenario', SEED003, '--estimator', 'ls,mle,wmle',
             '--sigma-deg', '0.5,1,3', '--trials', '300', '--seed', '0', '--out', str(out),
             '--quiet']
     assert cli_main(argv) == 0
@@ -249,7 +249,7 @@ def test_progress_bar_plain_text_and_silent_when_disabled():
 
 def test_evaluate_cli_bad_input_names_the_field(capsys, tmp_path):
     base = ['evaluate', '--scenario', SEED003, '--trials', '5', '--quiet']
-    for extra, field in [(['--estimators', 'ls,nope'], 'estimators'),
+    for extra, field in [(['--estimator', 'ls,nope'], 'estimator'),
                          (['--sigma-deg', '1,-2'], 'sigma_deg'),
                          (['--sigma-deg', 'a,b'], 'sigma_deg'),
                          (['--trials', '0'], 'trials'),
@@ -262,7 +262,7 @@ def test_evaluate_cli_bad_input_names_the_field(capsys, tmp_path):
     assert cli_main(['evaluate', '--scenario', str(tmp_path / 'no.yaml')]) == 2
     assert 'scenario' in capsys.readouterr().err
     # no progress bar when stderr is not a TTY (pytest captures it)
-    assert cli_main(['evaluate', '--scenario', SEED003, '--trials', '5', '--estimators', 'ls',
+    assert cli_main(['evaluate', '--scenario', SEED003, '--trials', '5', '--estimator', 'ls',
                      '--sigma-deg', '1', '--sweep', 'none']) == 0
     cap = capsys.readouterr()
     assert cap.err == '' and 'joint' in cap.out and 'RMSE/CRLB' in cap.out

@@ -1,5 +1,6 @@
 """``bearing_loc plan`` (cli/plan.py): cut-angle, map, place; bad input exits 2."""
 import json
+import math
 import os
 import subprocess
 import sys
@@ -50,18 +51,18 @@ def test_cut_angle_table(capsys):
     (['cut-angle', '--k1', '1', '--k2', '-1'], '--k2'),
     (['cut-angle', '--elevation-deg', '95'], '--elevation-deg'),
     (['cut-angle', '--table', '--k1-values', '1:x:2'], '--k1-values'),
-    (['map', '--stations', '1,2;3,4,5', '--altitude', '5000', '--sigma-mrad', '1'],
+    (['map', '--stations', '1,2;3,4,5', '--altitude', '5000', '--sigma-deg', '0.06'],
      '--stations'),
-    (['map', '--stations', STATIONS, '--altitude', '5000'], '--sigma-mrad'),
-    (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-mrad', '-1'],
-     '--sigma-mrad'),
-    (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-mrad', '1',
+    (['map', '--stations', STATIONS, '--altitude', '5000'], '--sigma-deg'),
+    (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-deg', '-1'],
+     '--sigma-deg'),
+    (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-deg', '0.06',
       '--extent-km', '10,5,0,1'], '--extent-km'),
-    (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-mrad', '1',
+    (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-deg', '0.06',
       '--resolution', '0'], '--resolution'),
-    (['place', '--stations', STATIONS, '--altitude', '5000', '--sigma-mrad', '1',
+    (['place', '--stations', STATIONS, '--altitude', '5000', '--sigma-deg', '0.06',
       '--area-km', '0,1'], '--area-km'),
-    (['place', '--stations', STATIONS, '--altitude', '5000', '--sigma-mrad', '1',
+    (['place', '--stations', STATIONS, '--altitude', '5000', '--sigma-deg', '0.06',
       '--area-km=-5,5,-5,5', '--candidates', '1'], '--candidates'),
 ])
 def test_bad_input_exits_2_naming_the_flag(capsys, argv, flag):
@@ -73,7 +74,7 @@ def test_bad_input_exits_2_naming_the_flag(capsys, argv, flag):
 def test_map_png_and_csv_from_stations(capsys, tmp_path):
     png = tmp_path / 'map.png'
     rc, out, _ = _run(capsys, 'map', '--stations', STATIONS + ';0,-40,0,1d', '--altitude',
-                      '5000', '--sigma-mrad', '1.5', '--model', 'ctls', '--extent-km', '50',
+                      '5000', '--sigma-deg', '0.09', '--model', 'ctls', '--extent-km', '50',
                       '--resolution', '2500', '--png', str(png))
     assert rc == 0
     d = json.loads(out)
@@ -87,7 +88,7 @@ def test_map_png_and_csv_from_stations(capsys, tmp_path):
 
 
 def test_map_from_scenario_uses_the_scenario_loader(capsys, tmp_path):
-    # seed000.yaml: 3 mrad stations at the seed 000 positions; --sigma-mrad overrides σ.
+    # seed000.yaml: 3 mrad stations at the seed 000 positions; --sigma-deg overrides σ.
     rc, out, _ = _run(capsys, 'map', '--scenario', SCENARIO, '--altitude', '5000',
                       '--extent-km', '60', '--resolution', '6000', '--csv',
                       str(tmp_path / 'g.csv'))
@@ -96,7 +97,8 @@ def test_map_from_scenario_uses_the_scenario_loader(capsys, tmp_path):
     assert [s['position_m'] for s in d['stations']][0] == [30000.0, -10000.0, 100.0]
     assert d['stations'][0]['sigma_az_mrad'] == pytest.approx(3.0)
     rc, out2, _ = _run(capsys, 'map', '--scenario', SCENARIO, '--altitude', '5000',
-                       '--extent-km', '60', '--resolution', '6000', '--sigma-mrad', '1.5')
+                       '--extent-km', '60', '--resolution', '6000',
+                       '--sigma-deg', repr(math.degrees(1.5e-3)))
     d2 = json.loads(out2)
     assert d2['stats']['mean_m'] == pytest.approx(d['stats']['mean_m'] / 2, rel=1e-9)
     rc, _, err = _run(capsys, 'map', '--scenario', str(tmp_path / 'missing.yaml'),
@@ -106,7 +108,7 @@ def test_map_from_scenario_uses_the_scenario_loader(capsys, tmp_path):
 
 def test_place_json_and_maps(capsys, tmp_path):
     rc, out, _ = _run(capsys, 'place', '--stations', '20,0,0;-20,0,0;0,20,0;0,-20,0',
-                      '--sigma-mrad', '2', '--altitude', '3000', '--area-km=-10,10,-10,10',
+                      '--sigma-deg', '0.11', '--altitude', '3000', '--area-km=-10,10,-10,10',
                       '--region-km=-30,30,-30,30', '--height', '0', '--area-cells', '10',
                       '--candidates', '10', '--png-before', str(tmp_path / 'b.png'),
                       '--png-after', str(tmp_path / 'a.png'), '--resolution', '2000')
@@ -132,13 +134,18 @@ def test_console_script_subprocess(tmp_path):
     assert res.returncode == 2 and '--k1' in res.stderr
 
 
-def test_readme_figures_exist_and_are_small():
-    # The README shows the seed 000 maps (and other figures); each PNG must exist, < 300 kB.
+def test_documented_figures_exist_and_are_small():
+    # The manual (README and docs/) shows the seed 000 maps (and other figures); each PNG
+    # must exist and be < 300 kB.
+    import glob
     import re
-    with open(os.path.join(ROOT, 'README.md'), encoding='utf-8') as f:
-        refs = set(re.findall(r'\((docs/img/[^)]+\.png)\)', f.read()))
+    refs = set()
+    for page in [os.path.join(ROOT, 'README.md')] + glob.glob(os.path.join(ROOT, 'docs',
+                                                                           '*.md')):
+        with open(page, encoding='utf-8') as f:
+            for ref in re.findall(r'\(([^)\s]*img/[^)\s]+\.png)\)', f.read()):
+                refs.add(os.path.normpath(os.path.join(os.path.dirname(page), ref)))
     assert len([r for r in refs if 'seed000_' in r]) >= 5
-    for ref in refs:
-        path = os.path.join(ROOT, ref)
-        assert os.path.exists(path), ref
-        assert os.path.getsize(path) < 300_000, ref
+    for path in refs:
+        assert os.path.exists(path), path
+        assert os.path.getsize(path) < 300_000, path

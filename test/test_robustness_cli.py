@@ -58,8 +58,8 @@ def test_locate_bad_input(capsys, monkeypatch, text, field):
 
 def test_locate_colocated_stations_is_not_a_confident_fix(capsys, monkeypatch):
     # Bug: co-located stations gave status ok at the station with ~1e-13 m² covariance (ls).
-    doc = {'method': 'ls', 'bearings': [dict(B, position=[5, 5, 5]),
-                                        dict(B, position=[5, 5, 5], azimuth=1.0)]}
+    doc = {'estimator': 'ls', 'bearings': [dict(B, position=[5, 5, 5]),
+                                           dict(B, position=[5, 5, 5], azimuth=1.0)]}
     rc, out, err = run(capsys, ['locate', '-'], json.dumps(doc), monkeypatch)
     res = json.loads(out)
     assert rc == 0 and res['status'] == 'degenerate_geometry' and not res['converged']
@@ -78,7 +78,7 @@ def tma_doc(**kw):
     (tma_doc(speed=-1), 'speed'), (tma_doc(observations=[]), 'observations'),
     (tma_doc(observations=[dict(OBS, elevation=None)]), 'elevation'),
     (tma_doc(options={'alpha': 'x'}), 'alpha'), (tma_doc(options={'zz': 1}), 'zz'),
-    (tma_doc(method=5), 'method'), (tma_doc(speed_reference='x'), 'speed_reference'),
+    (tma_doc(estimator=5), 'estimator'), (tma_doc(speed_reference='x'), 'speed_reference'),
 ])
 def test_tma_bad_input(capsys, monkeypatch, doc, field):
     assert_bad(*run(capsys, ['tma', '-'], json.dumps(doc), monkeypatch), field)
@@ -117,9 +117,9 @@ def test_bad_scenario_files(capsys, bad_files, tmp_path, kind, field, verb):
     assert_bad(*run(capsys, argv), field)
 
 
-EVAL = ['evaluate', '--scenario', SCENARIO, '--estimators', 'ls', '--sigma-deg', '1',
+EVAL = ['evaluate', '--scenario', SCENARIO, '--estimator', 'ls', '--sigma-deg', '1',
         '--sweep', 'none', '--quiet', '--no-plots']
-STD = ['--stations', '0,0,0;1,0,0', '--altitude', '1000', '--sigma-mrad', '1',
+STD = ['--stations', '0,0,0;1,0,0', '--altitude', '1000', '--sigma-deg', '0.06',
        '--extent-km', '2']
 
 
@@ -133,7 +133,7 @@ STD = ['--stations', '0,0,0;1,0,0', '--altitude', '1000', '--sigma-mrad', '1',
     (['plan', 'cut-angle', '--table', '--k1-values', '0.1:1e9:1e-9'], '--k1-values'),
     (['plan', 'cut-angle', '--table', '--k1-values', '0:inf:1'], '--k1-values'),
     (['plan', 'map'] + STD + ['--altitude', '1e308'], '--altitude'),
-    (['plan', 'map'] + STD + ['--sigma-mrad', '1e-300'], '--sigma-mrad'),
+    (['plan', 'map'] + STD + ['--sigma-deg', '1e-300'], '--sigma-deg'),
     (['plan', 'map'] + STD + ['--extent-km', '1e-300'], '--resolution'),
 ])
 def test_bad_flags(capsys, argv, field):

@@ -39,15 +39,15 @@ def _strict(text):
     return json.loads(text, parse_constant=bad)
 
 
-@pytest.mark.parametrize('method', ['ple', 'ctls', 'ctls6', 'mle'])
+@pytest.mark.parametrize('method', ['tma_ple', 'tma_ctls', 'tma_ctls6', 'tma_mle'])
 def test_single_problem_noise_free(capsys, monkeypatch, method):
     obs = _observations()
     obs.reverse()                                   # unordered input is sorted by time
-    doc = {'method': method, 'speed': VC, 'observations': obs}
+    doc = {'estimator': method, 'speed': VC, 'observations': obs}
     rc, out, err = _run(capsys, monkeypatch, doc)
     assert rc == 0 and err == ''
     res = _strict(out)
-    assert res['method'] == method and res['status'] == 'ok' and res['t'] == 100.0
+    assert res['estimator'] == method and res['status'] == 'ok' and res['t'] == 100.0
     assert np.allclose(res['position'], P_T + 100 * V_T, rtol=0, atol=1e-6 * 1.3e5)
     assert np.allclose(res['velocity'], V_T, rtol=0, atol=1e-6 * VC)
     cov = np.array(res['covariance'])
@@ -58,7 +58,7 @@ def test_batch_keeps_order_and_writes_null_for_no_fix(tmp_path, capsys, monkeypa
     start = np.array([50e3, 40e3, 3e3])
     collision = [0.0, 250.0, 0.0] - 380.0 * start / np.linalg.norm(start)
     rng = np.random.default_rng(2)
-    doc = {'method': 'ctls6', 'speed': 380.0,
+    doc = {'estimator': 'tma_ctls6', 'speed': 380.0,
            'problems': [{'observations': _observations(rng=rng)},
                         {'observations': _observations(start, collision, rng=rng)},
                         {'observations': _observations(rng=rng)[:50], 'speed': 390.0}]}
@@ -93,20 +93,20 @@ def test_defaults_and_overrides(capsys, monkeypatch):
     obs = [{k: v for k, v in o.items() if not k.startswith('sigma')} for o in _observations()]
     doc = {'speed': 1.0, 'sigma_azimuth': SIG, 'sigma_elevation': SIG, 'observations': obs,
            'speed_reference': 'relative', 'options': {'alpha': 1e-4}}
-    rc, out, _ = _run(capsys, monkeypatch, doc, '--speed', str(VC), '--method', 'ple')
+    rc, out, _ = _run(capsys, monkeypatch, doc, '--speed', str(VC), '--estimator', 'tma_ple')
     res = _strict(out)
-    assert rc == 0 and res['method'] == 'ple' and res['status'] == 'ok'
+    assert rc == 0 and res['estimator'] == 'tma_ple' and res['status'] == 'ok'
     assert np.allclose(res['velocity'], V_T, atol=1e-6 * VC)
 
 
 def _good():
-    return {'method': 'ctls', 'speed': 380.0, 'observations': _observations()[:5]}
+    return {'estimator': 'tma_ctls', 'speed': 380.0, 'observations': _observations()[:5]}
 
 
 @pytest.mark.parametrize('mutate, field', [
     (lambda d: d.pop('speed'), 'speed: missing'),
     (lambda d: d.update(speed=-3), 'speed: must be > 0'),
-    (lambda d: d.update(method='ekf'), 'method: unknown TMA estimator'),
+    (lambda d: d.update(estimator='ekf'), 'estimator: unknown TMA estimator'),
     (lambda d: d.update(colour='red'), 'colour: unknown field'),
     (lambda d: d.update(speed_reference='north'), 'speed_reference'),
     (lambda d: d.update(options={'alpha': 'x'}), 'options.alpha'),

@@ -21,6 +21,7 @@ import sys
 import time
 
 from . import InputError
+from .deprecation import DeprecatedOption
 
 DEFAULT_ESTIMATORS = 'ls,tls,ctls,mle,wmle'
 DEFAULT_SIGMAS = '0.5,1,1.5,2,2.5,3'
@@ -36,8 +37,10 @@ def add_arguments(parser):
     parser.add_argument('--scenario', required=True,
                         help='scenario YAML: stations, targets (random_static: a new draw '
                              'per trial), σ growth (README "Simulator")')
-    parser.add_argument('--estimators', default=DEFAULT_ESTIMATORS,
+    parser.add_argument('--estimator', default=DEFAULT_ESTIMATORS,
                         help=f'comma-separated estimator names (default {DEFAULT_ESTIMATORS})')
+    parser.add_argument('--estimators', dest='estimator', action=DeprecatedOption,
+                        replacement='--estimator')
     parser.add_argument('--sigma-deg', default=DEFAULT_SIGMAS,
                         help=f'comma-separated σ values, degrees (default {DEFAULT_SIGMAS})')
     parser.add_argument('--trials', type=int, default=1000,
@@ -98,16 +101,17 @@ class Progress:
 def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='both',
                    fixed_sigma_deg=0.5, progress=None, range_ref=None):
     """Run the study; returns (rows: list of Stats, meta: dict)."""
-    from ..core import estimators as est
     from ..core import evaluation as ev
+    from ..core import registry
     from ..core.simulation import load_scenario
     from ..scenarios import resolve_scenario
-    unknown = [e for e in estimators if e not in est.ESTIMATORS]
+    known = registry.names(registry.MODE_MULTISTATION)
+    unknown = [e for e in estimators if e not in known]
     if unknown:
-        raise InputError(f'estimators: unknown {", ".join(unknown)}; choose from '
-                         f'{", ".join(sorted(est.ESTIMATORS))}')
+        raise InputError(f'estimator: unknown {", ".join(unknown)}; choose from '
+                         f'{", ".join(known)}')
     if len(set(estimators)) != len(estimators):
-        raise InputError('estimators: a name is repeated')
+        raise InputError('estimator: a name is repeated')
     if not 1 <= trials <= MAX_TRIALS:
         raise InputError(f'trials: must be in 1..{MAX_TRIALS} (got {trials})')
     if not 0 <= seed <= 2 ** 63 - 1 - trials:
@@ -122,8 +126,11 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
                            'both': ('azimuth', 'elevation')}[sweep]
     options = {}
     ref = tr.reference_range()
-    if ref is not None and 'wmle' in estimators:
-        options['wmle'] = {'reference_range': ref}     # d_ref of seed 003 eqs. (9)-(10)
+    if ref is not None:     # d_ref of Zong & Cui 2015 eqs. (9)-(10), for who models it
+        for e in estimators:
+            scoped = registry.check(e, {'reference_range': ref})
+            if scoped:
+                options[e] = scoped
     t0 = time.perf_counter()
     rows = ev.evaluate(estimators, tr, sigmas, sweeps, seed, fixed_sigma_deg, options,
                        progress)
@@ -247,7 +254,7 @@ def _decorate(ax, title, meta, ncol=1, fontsize=8):
 
 def run(args):
     """``bearing_loc evaluate``."""
-    estimators = _csv_list(args.estimators, 'estimators', str)
+    estimators = _csv_list(args.estimator, 'estimator', str)
     sigmas = _csv_list(args.sigma_deg, 'sigma_deg', float)
     if any(not math.isfinite(s) or s <= 0 for s in sigmas):
         raise InputError(f'sigma_deg: every value must be > 0 (got {args.sigma_deg})')

@@ -11,6 +11,7 @@ import numbers
 import sys
 
 from . import InputError
+from .deprecation import json_key
 
 
 def add_io_arguments(parser):
@@ -36,27 +37,35 @@ def number(value, field, positive=False):
     return value
 
 
-def request_header(doc, top_fields, problem_key, methods, default_method, method_override,
-                   kind='estimator'):
-    """Check a request's top level; return (method, options dict).
+def request_header(doc, top_fields, problem_key, names, default, override, kind='estimator',
+                   canonical=None):
+    """Check a request's top level; return (estimator name, options dict).
 
-    ``doc`` must be an object whose keys are all in ``top_fields``; the method is the
-    override, else ``doc["method"]``, else ``default_method`` and must be a key of
-    ``methods``; ``options`` (default {}) must be an object.
+    ``doc`` must be an object whose keys are all in ``top_fields`` (the former key
+    ``method`` is read as ``estimator``, with a deprecation warning). The estimator is
+    ``override``, else ``doc["estimator"]``, else ``default``, mapped through ``canonical``
+    (former names to current ones) when given, and must be one of ``names``; ``options``
+    (default {}) must be an object.
     """
     if not isinstance(doc, dict):
         raise InputError(f'input: must be a JSON object with "{problem_key}" or "problems"')
+    try:
+        json_key(doc, 'method', 'estimator')
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     for key in doc:
         if key not in top_fields:
             raise InputError(f'{key}: unknown field (expected one of {", ".join(top_fields)})')
-    method = method_override or doc.get('method') or default_method
-    if not isinstance(method, str) or method not in methods:
-        raise InputError(f'method: unknown {kind} {method!r}; choose one of '
-                         f'{", ".join(sorted(methods))}')
+    name = override or doc.get('estimator') or default
+    if canonical is not None:
+        name = canonical(name)
+    if not isinstance(name, str) or name not in names:
+        raise InputError(f'estimator: unknown {kind} {name!r}; choose one of '
+                         f'{", ".join(sorted(names))}')
     options = doc.get('options', {})
     if not isinstance(options, dict):
         raise InputError('options: must be an object')
-    return method, options
+    return name, options
 
 
 def check_object(obj, where, fields):

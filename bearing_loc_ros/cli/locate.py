@@ -2,7 +2,7 @@
 
 Input (a file argument, or stdin when the argument is ``-`` or absent), one problem::
 
-    {"method": "mle",                              # optional, default DEFAULT_ESTIMATOR
+    {"estimator": "mle",                           # optional, default mle
      "options": {"max_iterations": 50},            # optional, estimator options
      "bearings": [{"station": "s1",                # optional id
                    "position": [x, y, z],          # m, ENU world frame
@@ -12,12 +12,14 @@ Input (a file argument, or stdin when the argument is ``-`` or absent), one prob
                    "sigma_elevation": 0.002},      # rad, > 0 (required with elevation)
                   ...]}
 
-or a batch ``{"method": ..., "options": ..., "problems": [{"bearings": [...]}, ...]}``.
-Output (stdout): ``{"method", "position", "covariance", "crlb", "converged", "iterations",
-"status"}`` for one problem, ``{"results": [...]}`` (same order) for a batch. Non-finite
-numbers (the inf covariance of a degenerate fix, its NaN position) are written as ``null``,
-so the output is always strict JSON. Exit 0 when every problem was processed (check each
-``status``), 2 with one line on stderr naming the bad field (nothing on stdout) for bad input.
+or a batch ``{"estimator": ..., "options": ..., "problems": [{"bearings": [...]}]}``.
+The former key ``method`` is accepted with a deprecation warning.
+Output (stdout): ``{"estimator", "method" (the same, deprecated), "position", "covariance",
+"crlb", "converged", "iterations", "status"}`` for one problem, ``{"results": [...]}``
+(same order) for a batch. Non-finite numbers (the inf covariance of a degenerate fix, its NaN
+position) are written as ``null``, so the output is always strict JSON. Exit 0 when every
+problem was processed (check each ``status``), 2 with one line on stderr naming the bad
+field (nothing on stdout) for bad input.
 Problems with the same number of bearings are solved in one vectorised call.
 """
 
@@ -26,14 +28,15 @@ import math
 import numpy as np
 
 from ..core.bearings import BearingSet
-from ..core.estimators import DEFAULT_ESTIMATOR, ESTIMATORS, locate, noise_model_crlb
+from ..core import registry
 from . import InputError
+from .deprecation import DeprecatedOption
 from .jsonio import (add_io_arguments, check_object, finite_or_none, number, read_json,
                      request_header, write_results)
 
 BEARING_FIELDS = ('station', 'position', 'azimuth', 'elevation', 'sigma_azimuth',
                   'sigma_elevation')
-TOP_FIELDS = ('method', 'options', 'bearings', 'problems')
+TOP_FIELDS = ('estimator', 'options', 'bearings', 'problems')
 
 
 def add_arguments(parser):
@@ -41,9 +44,13 @@ def add_arguments(parser):
     parser.description = ('Localize emitters from bearings: JSON in (file or stdin), JSON out '
                           '(stdout). Format: README "Estimation".')
     add_io_arguments(parser)
-    parser.add_argument('--method', choices=sorted(ESTIMATORS), default=None,
-                        help=f'estimator, overrides the input\'s "method" '
-                             f'(default: input, else {DEFAULT_ESTIMATOR})')
+    parser.add_argument('--estimator', choices=registry.names(registry.MODE_MULTISTATION),
+                        default=None,
+                        help='estimator, overrides the input\'s "estimator" (default: the '
+                             f'input\'s, else {registry.default_estimator()})')
+    parser.add_argument('--method', dest='estimator', action=DeprecatedOption,
+                        replacement='--estimator',
+                        choices=registry.names(registry.MODE_MULTISTATION))
 
 
 def parse_bearings(items, where='bearings'):
@@ -91,8 +98,9 @@ def parse_bearings(items, where='bearings'):
 
 def parse_request(doc, method_override=None):
     """Validate a request document; return (method, options, [BearingSet], is_batch)."""
-    method, options = request_header(doc, TOP_FIELDS, 'bearings', ESTIMATORS,
-                                     DEFAULT_ESTIMATOR, method_override)
+    method, options = request_header(doc, TOP_FIELDS, 'bearings',
+                                     registry.names(registry.MODE_MULTISTATION),
+                                     registry.default_estimator(), method_override)
     if ('bearings' in doc) == ('problems' in doc):
         raise InputError('input: give exactly one of "bearings" (one problem) or "problems" '
                          '(a batch)')
@@ -128,13 +136,13 @@ def solve(method, options, sets):
                            np.concatenate([sets[k].sigma_az for k in idx]),
                            np.concatenate([sets[k].sigma_el for k in idx]))
         try:
-            res = locate(method, batch, **options)
+            res = registry.solve(method, batch, **options)
         except ValueError as exc:
             raise InputError(str(exc)) from None
-        bound = noise_model_crlb(method, res.position, batch, **{
-            k: v for k, v in options.items() if k == 'reference_range'})
+        bound = registry.noise_crlb(method, res.position, batch, **options)
         for j, k in enumerate(idx):
             out[k] = {
+                'estimator': method,
                 'method': method,
                 'position': finite_or_none(res.position[j].tolist()),
                 'covariance': finite_or_none(res.covariance[j].tolist()),
@@ -149,6 +157,6 @@ def solve(method, options, sets):
 def run(args):
     """Entry point of the verb: read, validate, solve, print. Returns the exit code."""
     doc = read_json(args.input)
-    method, options, sets, batch = parse_request(doc, args.method)
+    method, options, sets, batch = parse_request(doc, args.estimator)
     results = solve(method, options, sets)
     return write_results(results, batch, args.indent)

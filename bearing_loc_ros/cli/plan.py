@@ -24,6 +24,7 @@ import sys
 import numpy as np
 
 from . import InputError
+from .deprecation import DeprecatedOption
 
 KM = 1000.0
 #: Most values a --k1-values/--k2-values/--levels list may expand to (start:stop:step).
@@ -65,11 +66,19 @@ def add_arguments(parser):
                        help='unit of --stations coordinates (default km)')
         p.add_argument('--altitude', type=float, required=True,
                        help='target altitude (ENU z), m')
-        p.add_argument('--sigma-mrad', type=float, default=None,
-                       help="azimuth (and elevation) sigma of every station, mrad "
-                            "(default: the scenario's; required with --stations)")
-        p.add_argument('--sigma-el-mrad', type=float, default=None,
-                       help='elevation sigma, mrad (default: --sigma-mrad)')
+        p.add_argument('--sigma-deg', type=float, default=None,
+                       help="azimuth and elevation sigma of every station, degrees (default: "
+                            "the scenario's; with --stations this or --sigma-azimuth-deg is "
+                            'required)')
+        p.add_argument('--sigma-azimuth-deg', type=float, default=None,
+                       help='azimuth sigma of every station, degrees (default: --sigma-deg)')
+        p.add_argument('--sigma-elevation-deg', type=float, default=None,
+                       help='elevation sigma of every station, degrees (default: '
+                            '--sigma-deg, else the azimuth sigma with --stations)')
+        p.add_argument('--sigma-mrad', type=float, action=DeprecatedOption,
+                       replacement='--sigma-deg')
+        p.add_argument('--sigma-el-mrad', type=float, action=DeprecatedOption,
+                       replacement='--sigma-elevation-deg')
         p.add_argument('--model', choices=('crlb', 'ctls'), default='crlb',
                        help='error model: crlb (default) or ctls (seed 000 eq. (30)-(32))')
         p.add_argument('--ctls-unit', choices=('m', 'km'), default='m',
@@ -207,25 +216,52 @@ def parse_stations(text, unit='km'):
     return np.array(pos), np.array(dims)
 
 
+#: The σ flags: (flag, argparse dest, radians per unit, unit name); the mrad ones are the
+#: deprecated former spellings of --sigma-deg and --sigma-elevation-deg.
+SIGMA_FLAGS = (('--sigma-deg', 'sigma_deg', math.pi / 180.0, 'deg'),
+               ('--sigma-azimuth-deg', 'sigma_azimuth_deg', math.pi / 180.0, 'deg'),
+               ('--sigma-elevation-deg', 'sigma_elevation_deg', math.pi / 180.0, 'deg'),
+               ('--sigma-mrad', 'sigma_mrad', 1e-3, 'mrad'),
+               ('--sigma-el-mrad', 'sigma_el_mrad', 1e-3, 'mrad'))
+
+
+def sigma_overrides(args):
+    """(σ_θ, σ_ψ) in rad from the σ flags, each None when not given.
+
+    σ_θ: --sigma-azimuth-deg, else --sigma-deg (or --sigma-mrad); σ_ψ: --sigma-elevation-deg
+    (or --sigma-el-mrad), else --sigma-deg (or --sigma-mrad). InputError names the flag.
+    """
+    from ..core.bearings import SIGMA_MAX, SIGMA_MIN
+    v = {}
+    for flag, dest, scale, unit in SIGMA_FLAGS:
+        value = getattr(args, dest, None)
+        if value is None:
+            continue
+        rad = _finite(value, flag, True) * scale
+        if not SIGMA_MIN <= rad <= SIGMA_MAX:
+            raise InputError(f'{flag}: must be in [{SIGMA_MIN / scale:g}, '
+                             f'{SIGMA_MAX / scale:g}] {unit}, got {value:g}')
+        v[dest] = rad
+    both = v.get('sigma_deg', v.get('sigma_mrad'))
+    return (v.get('sigma_azimuth_deg', both),
+            v.get('sigma_elevation_deg', v.get('sigma_el_mrad', both)))
+
+
 def load_stations(args):
     """The :class:`~bearing_loc_ros.core.planning.Stations` of --scenario or --stations."""
     from ..core.planning import Stations
-    saz = None if args.sigma_mrad is None else _finite(args.sigma_mrad, '--sigma-mrad',
-                                                       True) * 1e-3
-    sel = None if args.sigma_el_mrad is None else _finite(args.sigma_el_mrad,
-                                                          '--sigma-el-mrad', True) * 1e-3
-    from ..core.bearings import SIGMA_MAX, SIGMA_MIN
-    for flag, v in (('--sigma-mrad', saz), ('--sigma-el-mrad', sel)):
-        if v is not None and not SIGMA_MIN <= v <= SIGMA_MAX:
-            raise InputError(f'{flag}: must be in [{SIGMA_MIN * 1e3:g}, {SIGMA_MAX * 1e3:g}] '
-                             f'mrad, got {v * 1e3:g}')
+    saz, sel = sigma_overrides(args)
     if args.scenario:
         from ..core.simulation import load_scenario
         from ..scenarios import resolve_scenario
-        return Stations.from_scenario(load_scenario(resolve_scenario(args.scenario)), 0.0,
-                                      saz, sel)
+        st = Stations.from_scenario(load_scenario(resolve_scenario(args.scenario)), 0.0)
+        if saz is None and sel is None:
+            return st
+        return Stations.from_arrays(st.positions, st.sigma_az if saz is None else saz,
+                                    st.sigma_el if sel is None else sel, st.has_elevation,
+                                    st.names)
     if saz is None:
-        raise InputError('--sigma-mrad: required with --stations')
+        raise InputError('--sigma-deg: required with --stations (or --sigma-azimuth-deg)')
     pos, has_el = parse_stations(args.stations, args.stations_unit)
     return Stations.from_arrays(pos, saz, saz if sel is None else sel, has_el)
 

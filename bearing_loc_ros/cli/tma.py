@@ -2,7 +2,7 @@
 
 Input (a file argument, or stdin when the argument is ``-`` or absent), one problem::
 
-    {"method": "ctls",                 # optional: ple | ctls | ctls6 | mle (default ctls)
+    {"estimator": "tma_ctls",          # optional: tma_ple | tma_ctls | tma_ctls6 | tma_mle
      "speed": 380.0,                   # prior speed v_c, m/s (> 0)
      "speed_reference": "relative",    # optional: relative (seed 001) | ground
      "options": {"alpha": 1e-3},       # optional estimator options (core.tma.DEFAULTS)
@@ -17,13 +17,15 @@ Input (a file argument, or stdin when the argument is ``-`` or absent), one prob
                        "sigma_elevation": 0.0017},
                       ...]}
 
-or a batch ``{"method": ..., "speed": ..., "problems": [{"observations": [...]}, ...]}``
-(a problem may override ``speed``). Observations are sorted by time. Output (stdout), the
-target at the last observation time: ``{"method", "t", "position", "velocity",
-"covariance" (6x6 of position and velocity, the constrained CRLB at the estimate), "status",
-"reason", "t0", "position0", "range", "iterations", "converged"}`` for one problem,
-``{"results": [...]}`` in input order for a batch. Non-finite numbers (no fix: status
-``unobservable``) are ``null``. Exit 0 when every problem was processed (check each
+or a batch ``{"estimator": ..., "speed": ..., "problems": [{"observations": [...]}, ...]}``
+(a problem may override ``speed``). The default estimator is ``tma_ctls``. The former key
+``method`` and the former names ``ple``, ``ctls``, ``ctls6``, ``mle`` are accepted with a
+deprecation warning. Observations are sorted by time. Output (stdout), the target at the
+last observation time: ``{"estimator", "method" (the same, deprecated), "t", "position",
+"velocity", "covariance" (6x6 of position and velocity, the constrained CRLB at the
+estimate), "status", "reason", "t0", "position0", "range", "iterations", "converged"}``
+for one problem, ``{"results": [...]}`` in input order for a batch. Non-finite numbers
+(no fix: status ``unobservable``) are ``null``. Exit 0 when every problem was processed (check each
 ``status``), 2 with one line on stderr naming the bad field (nothing on stdout).
 """
 
@@ -33,13 +35,15 @@ import numpy as np
 
 from ..core.bearings import BearingSet
 from ..core.conventions import compass_to_enu
-from ..core.tma import SPEED_REFERENCES, tma, TMA_ESTIMATORS
+from ..core import registry
+from ..core.tma import SPEED_REFERENCES, tma
 from . import InputError
+from .deprecation import DeprecatedOption, tma_estimator
 from .jsonio import (add_io_arguments, check_object, finite_or_none, number, read_json,
                      request_header, write_results)
 
-DEFAULT_METHOD = 'ctls'
-TOP_FIELDS = ('method', 'speed', 'speed_reference', 'options', 'sigma_azimuth',
+DEFAULT_METHOD = 'tma_ctls'
+TOP_FIELDS = ('estimator', 'speed', 'speed_reference', 'options', 'sigma_azimuth',
               'sigma_elevation', 'observations', 'problems')
 OBS_FIELDS = ('t', 'observer', 'azimuth', 'elevation', 'sigma_azimuth', 'sigma_elevation')
 
@@ -50,9 +54,12 @@ def add_arguments(parser):
                           '(seed 001): JSON in (file or stdin), JSON out. Format: '
                           'README "Target motion analysis".')
     add_io_arguments(parser)
-    parser.add_argument('--method', choices=sorted(TMA_ESTIMATORS), default=None,
-                        help=f'estimator, overrides the input\'s "method" (default: input, '
+    parser.add_argument('--estimator', default=None, metavar='NAME',
+                        help=f'TMA estimator: {", ".join(registry.names(registry.MODE_TMA))}; '
+                             f'overrides the input\'s "estimator" (default: the input\'s, '
                              f'else {DEFAULT_METHOD})')
+    parser.add_argument('--method', dest='estimator', action=DeprecatedOption,
+                        replacement='--estimator')
     parser.add_argument('--speed', type=float, default=None,
                         help='prior speed v_c in m/s, overrides the input\'s "speed"')
     parser.add_argument('--compass', action='store_true',
@@ -94,8 +101,10 @@ def parse_observations(items, where, defaults, compass=False):
 
 def parse_request(doc, method_override=None, speed_override=None, compass=False):
     """Validate a request; return (method, options, [(BearingSet, times, speed)], is_batch)."""
-    method, options = request_header(doc, TOP_FIELDS, 'observations', TMA_ESTIMATORS,
-                                     DEFAULT_METHOD, method_override, kind='TMA estimator')
+    method, options = request_header(doc, TOP_FIELDS, 'observations',
+                                     registry.names(registry.MODE_TMA), DEFAULT_METHOD,
+                                     method_override, kind='TMA estimator',
+                                     canonical=tma_estimator)
     options = dict(options)
     for key, value in options.items():
         if key in ('alpha', 'max_range_ratio', 'dtol', 'xtol', 'min_bearings',
@@ -159,6 +168,7 @@ def solve(method, options, problems):
             raise InputError(str(exc)) from None
         d = res.single(0)
         out.append({
+            'estimator': method,
             'method': method,
             't': d['t'],
             'position': finite_or_none(d['position']),
@@ -178,7 +188,7 @@ def solve(method, options, problems):
 def run(args):
     """Entry point of the verb: read, validate, solve, print. Returns the exit code."""
     doc = read_json(args.input)
-    method, options, problems, batch = parse_request(doc, args.method, args.speed,
+    method, options, problems, batch = parse_request(doc, args.estimator, args.speed,
                                                      args.compass)
     results = solve(method, options, problems)
     return write_results(results, batch, args.indent)
