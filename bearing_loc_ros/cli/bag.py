@@ -76,9 +76,16 @@ def add_arguments(parser):
     p = sub.add_parser('info', help='print a summary of a bag')
     p.add_argument('bag', help='bag directory')
 
+    p = sub.add_parser('import', help='recorded KrakenSDR CSV logs -> a bag of bearings')
+    from ..bag_import import add_import_arguments
+    add_import_arguments(p)
+
 
 def run(args):
     """Dispatch to the sub-command."""
+    if args.bag_command == 'import':
+        from ..bag_import import run_import
+        return run_import(args)
     return {'simulate': run_simulate, 'play': run_play, 'process': run_process,
             'info': run_info}[args.bag_command](args)
 
