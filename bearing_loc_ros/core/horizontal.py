@@ -6,12 +6,12 @@ radians; an azimuth-only (1D) bearing has elevation NaN.
 Most direction-finding networks measure azimuth only, and azimuths never fix the height. The
 horizontal solve estimates (x, y) with the target altitude stated by the user: z₀ (m, world
 frame) with standard deviation σ_z (m, 0 = exactly known), a Gaussian prior N(z₀, σ_z²) on z
-(:mod:`.horizontal_crlb` derives the bound, :mod:`.horizontal_estimators` and
-:mod:`.horizontal_ctls` the estimators). Elevations present are still used: with the altitude
-known, a 2D station's elevation gives the horizontal range ρ_i = (z₀ − z_i)/tan ψ_i. The fix
-carries z = z₀ (``mle``/``wmle`` with σ_z > 0 and elevations: the posterior z), variance σ_z²
-for an azimuth-only set (otherwise the posterior variance) and no x-y/z correlation unless
-elevations create one.
+(:mod:`.horizontal_crlb` derives the bound; :mod:`.horizontal_estimators`,
+:mod:`.horizontal_ctls` and :mod:`.horizontal_ml` hold the estimators). Elevations present are
+still used: with the altitude known, a 2D station's elevation gives the horizontal range
+ρ_i = (z₀ − z_i)/tan ψ_i. The fix carries z = z₀ (``mle``/``wmle`` with σ_z > 0 and
+elevations: the posterior z), variance σ_z² for an azimuth-only set (otherwise the posterior
+variance) and no x-y/z correlation unless elevations create one.
 
 Dimension selection, per problem (:func:`select_dimension`):
 
@@ -35,6 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import horizontal_estimators as _h
+from . import horizontal_ml as _ml
 from .bearings import BearingSet
 from .conventions import azimuth_elevation, wrap_angle
 from .crlb import fisher_information
@@ -83,8 +84,8 @@ ESTIMATORS = {
     'tls': _h.tls,
     'ctls': _constrained_tls('paper'),
     'ctls_am': _constrained_tls('am'),
-    'mle': _h.mle,
-    'wmle': _h.wmle,
+    'mle': _ml.mle,
+    'wmle': _ml.wmle,
 }
 OPTION_DEFAULTS = _h.OPTION_DEFAULTS
 

@@ -47,9 +47,9 @@ treats z₀ as exact.
 import numpy as np
 
 from .horizontal_crlb import inverse2
-from .horizontal_estimators import (fix_result, parse_horizontal_options, plane_system, start,
-                                    STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_MAX_ITERATIONS,
-                                    STATUS_OK)
+from .estimators import (STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_MAX_ITERATIONS,
+                         STATUS_OK)
+from .horizontal_estimators import fix_result, parse_horizontal_options, plane_system, start
 
 WEIGHTINGS = ('paper', 'am')
 _COST_RTOL = 1e-12
