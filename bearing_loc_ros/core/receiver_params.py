@@ -2,7 +2,8 @@
 
 Names are the station node's ROS parameters. ``input`` selects the receiver input; every
 other receiver parameter is under ``kraken.`` (YAML: a nested ``kraken:`` mapping). Angles
-are degrees in ``_deg`` names, other values SI (m, s, m/s, Hz in ``poll_rate``).
+are degrees in ``_deg`` names and dB in ``_db`` names; other values are SI without a suffix
+(m, s, m/s, Hz), as in the node parameter schema.
 :func:`receiver_from_params` builds the validated core objects from a plain dict of values
 (defaults filled in), so the same parameter file configures the live node, ``bearing_loc
 calibrate`` and ``bearing_loc bag import``.
@@ -24,7 +25,7 @@ PARAMETERS = (
     ('kraken.url', '', 'URL polled by kraken_xml_http (…:8081/doa.xml) or kraken_csv_http '
      '(…:8081/DOA_value.html); the only host contacted', None),
     ('kraken.poll_rate', 2.0, 'HTTP polls per second, Hz', (0.01, 100.0)),
-    ('kraken.timeout_s', 2.0, 'HTTP request timeout, s', (0.05, 60.0)),
+    ('kraken.timeout', 2.0, 'HTTP request timeout, s', (0.05, 60.0)),
     ('kraken.post_address', '127.0.0.1', 'Address the JSON POST listener binds to '
      '(0.0.0.0 = every interface)', None),
     ('kraken.post_port', 8082, 'TCP port of the JSON POST listener', (1, 65535)),
@@ -35,7 +36,7 @@ PARAMETERS = (
      'recorded pace', (0.0, 1000.0)),
     ('kraken.stamp', 'receiver', "Bearing stamp: 'receiver' (the reading's TIME, unix) or "
      "'receive' (node clock on receipt)", STAMPS),
-    ('kraken.max_age_s', 0.0, 'Readings older than this (node clock - TIME) are stale; '
+    ('kraken.max_age', 0.0, 'Readings older than this (node clock - TIME) are stale; '
      '0 = no check', (0.0, 1.0e6)),
     ('kraken.receiver_id', '', "Accept only readings with this STATION_ID ('' = any)", None),
     ('kraken.sense', 'inverted', 'DOA sense: inverted (H + 360 - DOA), flipped '
@@ -55,14 +56,14 @@ PARAMETERS = (
      (0.0, 1.0e3)),
     ('kraken.low_speed', 'hold', 'Below min_speed: hold the last good heading, or use '
      'odometry', LOW_SPEED_MODES),
-    ('kraken.heading_hold_timeout_s', 0.0, 'A held heading expires after this long; 0 = '
+    ('kraken.heading_hold_timeout', 0.0, 'A held heading expires after this long; 0 = '
      'never', (0.0, 1.0e7)),
     ('kraken.position_source', 'parameters', 'Station position: parameters (position / '
      'geodetic_position), gps (receiver lat/lon via geodetic_origin) or odometry',
      POSITION_SOURCES),
-    ('kraken.gps_sigma_m', 5.0, 'Standard deviation of a GPS station position, m',
+    ('kraken.gps_sigma', 5.0, 'Standard deviation of a GPS station position, m',
      (0.0, 1.0e5)),
-    ('kraken.antenna_height_m', 0.0, 'Antenna height above the geodetic origin height for '
+    ('kraken.antenna_height', 0.0, 'Antenna height above the geodetic origin height for '
      'GPS positions, m', (-1.0e4, 1.0e5)),
     ('kraken.min_confidence', 0.0, 'Readings below this receiver confidence are rejected',
      (0.0, 1.0e4)),
@@ -157,9 +158,9 @@ def receiver_from_params(station, params):
         declination_deg=p['kraken.declination_deg'],
         heading_offset_deg=p['kraken.heading_offset_deg'], min_speed=p['kraken.min_speed'],
         low_speed=p['kraken.low_speed'],
-        heading_hold_timeout_s=p['kraken.heading_hold_timeout_s'],
-        position_source=p['kraken.position_source'], gps_sigma_m=p['kraken.gps_sigma_m'],
-        antenna_height_m=p['kraken.antenna_height_m'],
+        heading_hold_timeout_s=p['kraken.heading_hold_timeout'],
+        position_source=p['kraken.position_source'], gps_sigma_m=p['kraken.gps_sigma'],
+        antenna_height_m=p['kraken.antenna_height'],
         min_confidence=p['kraken.min_confidence'], sigma=sigma)
     try:
         channels = channel_map_from_params(p['kraken.channels'], p['kraken.channel_bands_mhz'])
