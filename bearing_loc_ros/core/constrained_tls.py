@@ -45,7 +45,7 @@ from .crlb import safe_inverse
 from .estimator_spec import BEARING_SIGMA, declare, ITERATIVE_OPTIONS, MULTISTATION, STEP_DECAY
 from .fix import iterative_result
 from .pseudo_linear import pseudo_linear_system, start
-from .solvers import inv2, solve3
+from .solvers import COST_RTOL, CHI2_STEP_TOL, inv2, solve3
 
 WEIGHTINGS = ('paper', 'am')
 
@@ -207,8 +207,15 @@ def constrained_tls(bearings, weighting='paper', **options):
     the paper requires μ < 1 but leaves its value open, section 5). Safeguards (ours): when
     H_n is not positive definite the positive semi-definite first term of H_n is used instead
     (a Gauss-Newton direction), and the step is halved (up to 40 times) until f does not
-    increase, so the cost never increases; a problem with no descent step is ``diverged``.
-    Converged when the full Newton step H_n⁻¹T_n is shorter than ``tolerance`` × rms range.
+    increase, so the cost never increases. Converged when the full Newton step H_n⁻¹T_n is
+    shorter than ``tolerance`` × rms range. Near the optimum the step can stay just above
+    that while every trial step changes f only by rounding: so a problem that stops without
+    meeting the step test (no trial step lowers f, or the iteration limit is reached) has
+    also converged when the predicted decrease of its last Newton step, ½ T_nᵀH_n⁻¹T_n, is
+    below 1e-10 × f/dof (the step is then under 1e-5 of the standard deviation implied by
+    the residual scatter; dof = measurements − 3) or below 1e-12 × f (the cost's rounding):
+    the stop the maximum likelihood iteration uses (core/estimators.py). Otherwise no
+    descent step is ``diverged`` and the limit is ``max_iterations``.
     Covariance: eq. (30) at the estimate (:meth:`_CTLSProblem.covariance`).
 
     ``weighting``: ``'paper'`` (estimator ``ctls``) or ``'am'`` (``ctls_am``), see module doc.
@@ -230,6 +237,9 @@ def constrained_tls(bearings, weighting='paper', **options):
     diverged |= ~finite0
     active = np.flatnonzero(finite0)
     mu, tol = opts['step_decay'], opts['tolerance']
+    dof = np.maximum(bearings.N + np.count_nonzero(bearings.has_elevation, axis=1) - 3, 1)
+    rel_tol = np.maximum(CHI2_STEP_TOL / dof, COST_RTOL)
+    flat = np.zeros(M, dtype=bool)       # last predicted decrease below rel_tol × f
     for n in range(opts['max_iterations']):
         if active.size == 0:
             break
@@ -244,6 +254,9 @@ def constrained_tls(bearings, weighting='paper', **options):
         iterations[active] += 1
         small = np.linalg.norm(step, axis=1) <= tol * scale
         usable = np.all(np.isfinite(step), axis=1) & np.isfinite(f)
+        with np.errstate(invalid='ignore'):
+            flat[active] = usable & (0.5 * np.abs(np.einsum('mi,mi->m', T, step))
+                                     <= rel_tol[active] * np.abs(f))
         # Backtracking on μ_n = μ^n (eq. (20)): never accept a cost increase.
         t = np.full(active.size, mu ** n)
         found = ~usable
@@ -260,11 +273,12 @@ def constrained_tls(bearings, weighting='paper', **options):
             found[todo[ok]] = True
             t[todo[~ok]] *= 0.5
         X[active] = Xa
-        newly = small & usable
+        stalled = ~(small & usable) & ~accepted
+        newly = (small & usable) | (stalled & flat[active])
         converged[active[newly]] = True
-        stalled = ~newly & ~accepted
-        diverged[active[stalled]] = True
+        diverged[active[stalled & ~newly]] = True
         active = active[~(newly | stalled)]
+    converged[active[flat[active]]] = True       # iteration limit reached at the optimum
     X[~finite0] = np.nan
     P = problem.covariance(np.where(np.isfinite(X), X, 0.0), bearings.sigma_az,
                            bearings.sigma_el)

@@ -50,7 +50,7 @@ from .estimator_spec import (BEARING_SIGMA, DEFAULT_REFERENCE_RANGE, declare, IT
 from .fix import (FixResult, iterative_result, STATUS_DEGENERATE, STATUS_DIVERGED,
                   STATUS_MAX_ITERATIONS, STATUS_OK, STATUSES)
 from .pseudo_linear import ls, pseudo_linear_system, start, tls
-from .solvers import solve3_packed
+from .solvers import CHI2_STEP_TOL, COST_RTOL, solve3_packed
 
 __all__ = ['DEFAULT_ESTIMATOR', 'DEFAULT_REFERENCE_RANGE', 'ESTIMATORS', 'FixResult', 'STATUSES',
            'STATUS_DEGENERATE', 'STATUS_DIVERGED', 'STATUS_MAX_ITERATIONS', 'STATUS_OK', 'ctls',
@@ -60,10 +60,6 @@ __all__ = ['DEFAULT_ESTIMATOR', 'DEFAULT_REFERENCE_RANGE', 'ESTIMATORS', 'FixRes
 #: Estimator used when none is named (CLI, fusion node): best measured RMSE/CRLB among the
 #: estimators that converge reliably (docs/estimators.md).
 DEFAULT_ESTIMATOR = 'mle'
-
-_CHI2_STEP_TOL = 1e-10   # converged when the Gauss-Newton step is < 1e-5 standard deviations
-_COST_RTOL = 1e-12       # ... or its predicted cost decrease is below the cost's rounding
-#                          (both relative to the cost, see _levenberg_marquardt)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -244,7 +240,7 @@ def _levenberg_marquardt(problem, x0, max_iterations, tolerance):
     # Decrease threshold relative to the cost: 1e-10 × cost/dof (the squared step in units
     # of the scatter-implied standard deviation), at least the cost's rounding level.
     dof = np.maximum(sub.n_measurements - 3, 1)
-    rel_tol = np.maximum(_CHI2_STEP_TOL / dof, _COST_RTOL)
+    rel_tol = np.maximum(CHI2_STEP_TOL / dof, COST_RTOL)
     it = np.zeros(active.size, dtype=int)
     done = np.zeros(active.size, dtype=bool)
     conv = np.zeros(active.size, dtype=bool)

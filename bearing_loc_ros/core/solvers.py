@@ -8,6 +8,13 @@ Pure numpy, no Python loop over problems. Used by the maximum likelihood iterati
 
 import numpy as np
 
+#: Stopping thresholds of the iterative estimators, relative to the cost (a sum of squared
+#: whitened residuals): converged when the predicted decrease of the full step is below
+#: CHI2_STEP_TOL × cost/dof (the step is then shorter than 1e-5 of the standard deviation
+#: implied by the residual scatter) or below COST_RTOL × cost (the cost's rounding level).
+CHI2_STEP_TOL = 1e-10
+COST_RTOL = 1e-12
+
 
 def solve3_packed(a00, a01, a02, a11, a12, a22, b0, b1, b2):
     """Solve symmetric 3 × 3 systems A x = b from their 6 unique entries by cofactors.
