@@ -6,37 +6,28 @@ bag, with the fusion node's parameters, and writes the fixes as a bag and a CSV.
 
 import math
 import os
+import sys
 
 from .cli import InputError
+from .core import parameters
 
 NS_PER_S = 1_000_000_000
 UPPER_TRIANGLE = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
 
-#: Defaults of the fusion node's parameters that shape the fusion (fusion_node.py
-#: _declare_parameters; test_bag.py checks them against a live FusionNode). bag process
-#: starts from these, so a bag processed offline with the node's --params-file gives the
+#: The fusion node's parameters (core.parameters is their one definition): those that shape
+#: the fusion, their defaults, and those with no effect on the fixes (accepted in a params
+#: file, ignored here). A bag processed offline with the node's --params-file gives the
 #: node's fixes.
-FUSION_NODE_DEFAULTS = {
-    'frame_id': 'map', 'stations': [], 'trigger': 'event', 'rate': 10.0, 'max_latency': 0.2,
-    'sync_tolerance': 0.05, 'interpolation': False, 'max_interpolation_gap': 1.0,
-    'station_timeout': 5.0, 'buffer_size': 50, 'buffer_age': 10.0,
-    'time_jump_tolerance': 0.1, 'estimator': None, 'min_stations': 2, 'outlier_gate': 0.999,
-    'max_iterations': 50, 'tolerance': 1e-9, 'reference_range': None, 'step_decay': 1.0,
-    'target_speed': 0.0, 'window': 120.0, 'speed_reference': 'relative',
-}
-#: Node parameters that go into FusionConfig.estimator_options (fusion_node.ESTIMATOR_OPTIONS).
-FUSION_ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay')
-#: Node parameters with no effect on the fixes (accepted in a params file, ignored here).
-FUSION_DISPLAY_PARAMS = ('mode', 'discover', 'discovery_period', 'qos_depth', 'qos_reliability',
-                         'geodetic_origin', 'publish_markers', 'marker_ray_length',
-                         'ellipsoid_sigma', 'diagnostics_period', 'use_sim_time',
-                         'start_type_description_service', 'accuracy_map.enabled',
-                         'accuracy_map.size', 'accuracy_map.resolution',
-                         'accuracy_map.altitude', 'accuracy_map.center', 'accuracy_map.model',
-                         'accuracy_map.scale', 'accuracy_map.min_error',
-                         'accuracy_map.max_error', 'accuracy_map.move_threshold',
-                         'accuracy_map')
+FUSION_ESTIMATOR_OPTIONS = parameters.ESTIMATOR_OPTIONS
+FUSION_NODE_DEFAULTS = {k: v for k, v in parameters.defaults('fusion_node').items()
+                        if k in parameters.FUSION_CONFIG_FIELDS + FUSION_ESTIMATOR_OPTIONS
+                        + ('stations',)}
+FUSION_DISPLAY_PARAMS = tuple(k for k in parameters.defaults('fusion_node')
+                              if k not in FUSION_NODE_DEFAULTS) + (
+    'use_sim_time', 'start_type_description_service', 'accuracy_map')
+#: Parameters every rclpy node has (accepted in a params file, no effect here).
+ROS_BUILTIN_PARAMS = ('use_sim_time', 'start_type_description_service')
 
 
 def read_params_file(path):
@@ -61,13 +52,22 @@ def read_params_file(path):
     raise InputError(f'params_file: {path}: no "<node>: ros__parameters:" mapping')
 
 
+def _flatten(params, prefix=''):
+    """Nested YAML mappings (``accuracy_map: {size: ...}``) as dotted names."""
+    out = {}
+    for k, v in params.items():
+        if isinstance(v, dict):
+            out.update(_flatten(v, f'{prefix}{k}.'))
+        else:
+            out[f'{prefix}{k}'] = v
+    return out
+
+
 def fusion_params(params_file=None, overrides=(), estimator=None):
-    """Fusion node parameters: node defaults < params file < NAME=VALUE overrides < estimator."""
+    """Fusion node parameters: schema defaults < params file < NAME=VALUE overrides <
+    estimator; each checked against the schema (type, range, allowed values). Deprecated
+    names are mapped to the current ones with a warning on stderr."""
     import yaml
-    from .core import estimators
-    p = dict(FUSION_NODE_DEFAULTS)
-    p['estimator'] = estimators.DEFAULT_ESTIMATOR
-    p['reference_range'] = float(estimators.DEFAULT_REFERENCE_RANGE)
     given = dict(read_params_file(params_file)) if params_file else {}
     for item in overrides:
         name, sep, value = item.partition('=')
@@ -76,30 +76,21 @@ def fusion_params(params_file=None, overrides=(), estimator=None):
         given[name.strip()] = yaml.safe_load(value)
     if estimator is not None:
         given['estimator'] = estimator
-    for name, value in given.items():
-        if name not in p and name not in FUSION_DISPLAY_PARAMS:
-            raise InputError(f'{name}: not a fusion node parameter')
-        p[name] = value
-    return p
+    given = {k: v for k, v in _flatten(given).items() if k not in ROS_BUILTIN_PARAMS}
+    try:
+        return parameters.resolve('fusion_node', given,
+                                  warn=lambda text: print(f'warning: {text}', file=sys.stderr))
+    except ValueError as exc:
+        name, _, problem = str(exc).partition(': ')
+        if problem.startswith('not a parameter'):
+            raise InputError(f'{name}: not a fusion node parameter') from None
+        raise InputError(str(exc)) from None
 
 
 def fusion_config(p):
-    """FusionConfig from fusion node parameters (the mapping fusion_node uses)."""
-    from .core.fusion import FusionConfig
+    """FusionConfig from fusion node parameters (core.parameters.fusion_config, as the node)."""
     try:
-        return FusionConfig(
-            frame_id=p['frame_id'], trigger=p['trigger'], rate=float(p['rate']),
-            max_latency=float(p['max_latency']), sync_tolerance=float(p['sync_tolerance']),
-            interpolation=bool(p['interpolation']),
-            max_interpolation_gap=float(p['max_interpolation_gap']),
-            station_timeout=float(p['station_timeout']), buffer_size=int(p['buffer_size']),
-            buffer_age=float(p['buffer_age']), min_stations=int(p['min_stations']),
-            estimator=p['estimator'],
-            estimator_options={k: p[k] for k in FUSION_ESTIMATOR_OPTIONS},
-            outlier_gate=float(p['outlier_gate']),
-            time_jump_tolerance=float(p['time_jump_tolerance']),
-            target_speed=float(p['target_speed']), window=float(p['window']),
-            speed_reference=p['speed_reference']).validate()
+        return parameters.fusion_config(p)
     except (TypeError, ValueError) as exc:
         raise InputError(str(exc)) from None
 
@@ -121,7 +112,7 @@ def _interp_truth(stamps, positions, t, max_gap_ns):
     return out
 
 
-def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'):
+def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix', log=None):
     """Run the fusion node's pipeline (core.fusion.FusionCore + replay) offline over a bag.
 
     Exactly what fusion_node does, message by message in bag order: a ``/clock`` message
@@ -130,25 +121,32 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
     (a ConversionError is counted as a bad message) and given to the core at the current
     node-clock time (the bearing's stamp before the first /clock; the bag time when the bag
     has no /clock). Stations: the ``stations`` parameter, else every bearing topic of the
-    namespace in sorted order. Writes ``<out>/`` (a bag with the fixes on ``<ns>/fix``, bag
-    time = node-clock time the fix was computed) and ``<out>.csv``; returns a summary dict
-    (epochs, fixes, no_fix reasons, dropped, bad, and ``errors`` against ``<ns>/truth`` when
-    the bag has it).
+    namespace in sorted order. With ``out``, writes ``<out>/`` (a bag with the fixes on
+    ``<ns>/fix``, bag time = node-clock time the fix was computed) and ``<out>.csv``; with
+    ``out`` None, nothing is written. Topics of message types that are not installed are
+    ignored with a warning through ``log``. Returns a summary dict (epochs, fixes, no_fix
+    reasons, dropped, bad, and ``errors`` against ``<ns>/truth`` when the bag has it).
     """
     import numpy as np
     from . import bagio
     from .core.evaluation import track_errors
     from .core.fusion import make_core, replay
     from .ros_conversions import bearing_from_msg, ConversionError
-    out = str(out).rstrip('/')
-    csv_path = out + '.csv'
-    if os.path.exists(out) or os.path.exists(csv_path):
+    log = log or (lambda text: print(text, file=sys.stderr, flush=True))
+    out = None if out is None else str(out).rstrip('/')
+    csv_path = None if out is None else out + '.csv'
+    if out is not None and (os.path.exists(out) or os.path.exists(csv_path)):
         raise InputError(f'out: {out} or {csv_path} exists already (never overwritten)')
     ns = namespace.strip('/')
     prefix = '/' + ns + '/' if ns else '/'
     config = fusion_config(params)
     with bagio.BagReader(path) as reader:
         topics = reader.topics
+        unknown = [f'{n} ({t.msgtype})' for n, t in sorted(topics.items())
+                   if t.msgtype not in bagio.typestore().types]
+        if unknown:
+            log('bag process: warning: message type not installed, topic ignored: '
+                + ', '.join(unknown))
         station_topics = {}
         for name, t in topics.items():
             if t.msgtype != bagio.POSE_COV_STAMPED or not name.startswith(prefix):
@@ -196,15 +194,16 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
     if has_truth and fixes:
         period = int(np.median(np.diff(np.unique(truth_t)))) if len(set(truth_t)) > 1 else 0
         truth = _interp_truth(truth_t, truth_p, stamps, max(period, NS_PER_S))
-    _write_fix_csv(csv_path, fixes, truth)
     fix_name = prefix + fix_topic.strip('/')
-    with bagio.BagWriter(out, storage=storage, custom_data={
-            'generator': 'bearing_loc bag process', 'source': str(path),
-            'estimator': config.estimator, 'trigger': config.trigger}) as bag:
-        bag.add_topic(fix_name, bagio.POSE_COV_STAMPED, bagio.qos_profile(10))
-        for e in fixes:
-            bag.write(fix_name, e.produced_ns,
-                      bagio.fix_message(e.position, e.covariance, e.stamp_ns, config.frame_id))
+    if out is not None:
+        _write_fix_csv(csv_path, fixes, truth)
+        with bagio.BagWriter(out, storage=storage, custom_data={
+                'generator': 'bearing_loc bag process', 'source': str(path),
+                'estimator': config.estimator, 'trigger': config.trigger}) as bag:
+            bag.add_topic(fix_name, bagio.POSE_COV_STAMPED, bagio.qos_profile(10))
+            for e in fixes:
+                bag.write(fix_name, e.produced_ns, bagio.fix_message(
+                    e.position, e.covariance, e.stamp_ns, config.frame_id))
     from collections import Counter
     summary = {'stations': stations, 'epochs': len(epochs), 'fixes': len(fixes),
                'no_fix': dict(Counter(e.reason for e in epochs if not e.ok)),
@@ -218,6 +217,8 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
 
 
 def _write_fix_csv(path, fixes, truth):
+    """One CSV row per fix: the fix time ``stamp_ns`` first, ``produced_ns`` (node-clock time
+    the fix was computed) after the solver figures."""
     import csv
     cols = ['stamp_ns', 'stamp_s', 'x', 'y', 'z', 'cov_xx', 'cov_xy', 'cov_xz', 'cov_yy',
             'cov_yz', 'cov_zz', 'n_stations', 'stations', 'rejected', 'estimator', 'status',

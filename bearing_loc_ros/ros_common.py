@@ -4,6 +4,7 @@ No numerics here (those live in ``bearing_loc_ros.core``).
 """
 
 import sys
+import traceback
 
 from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
@@ -25,13 +26,20 @@ class ParameterError(ValueError):
         self.name = name
 
 
+#: Exit code of a node stopped by an unexpected exception raised while it was running.
+INTERNAL_ERROR = 70
+
+
 def run_node(node_factory, args=None):
     """Run a node the ros2/demos way; return the process exit code.
 
-    ``node_factory()`` builds the node; a :class:`ParameterError` (or ValueError) raised while
-    building it is printed as ``error: <message>`` on stderr and gives exit code 1 (bad
-    configuration fails loudly and early, like joy_teleop). Ctrl-C and external shutdown end
-    the spin cleanly with exit code 0.
+    Start-up: ``node_factory()`` builds the node (parameters, configuration); a
+    :class:`ParameterError` (or ValueError) raised there is a configuration error, printed
+    as one line ``error: <message>`` on stderr, exit code 1 (bad configuration fails loudly
+    and early, like joy_teleop). Running: an exception escaping a callback during the spin
+    is not a configuration error: it is printed with its traceback as ``internal error``,
+    and the node exits with :data:`INTERNAL_ERROR` (70, EX_SOFTWARE). Ctrl-C and external
+    shutdown end the spin cleanly with exit code 0.
     """
     try:
         rclpy.init(args=args)
@@ -42,13 +50,18 @@ def run_node(node_factory, args=None):
     node = None
     code = 0
     try:
-        node = node_factory()
+        try:
+            node = node_factory()
+        except ValueError as exc:
+            print(f'error: {exc}', file=sys.stderr, flush=True)
+            return 1
         rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
-    except ValueError as exc:
-        print(f'error: {exc}', file=sys.stderr, flush=True)
-        code = 1
+    except Exception:  # noqa: B902 - a bug in a callback: report it as one, not as config
+        print('internal error: unexpected exception in a running node (not a configuration '
+              'problem):\n' + traceback.format_exc(), file=sys.stderr, flush=True)
+        code = INTERNAL_ERROR
     finally:
         if node is not None:
             node.destroy_node()
@@ -61,6 +74,101 @@ def main_for(node_cls):
     def main(args=None):
         sys.exit(run_node(node_cls, args))
     return main
+
+
+def _descriptor(p, description=None):
+    """ParameterDescriptor of schema Param ``p`` (description with unit, range, read_only,
+    allowed strings as additional_constraints)."""
+    desc = ParameterDescriptor(
+        description=description or (p.description + (f' [{p.unit}]' if p.unit else '')),
+        read_only=p.read_only,
+        additional_constraints=('one of: ' + ', '.join(p.choices)) if p.choices else '')
+    if p.min is not None or p.max is not None:
+        if p.type == 'integer':
+            desc.integer_range = [IntegerRange(
+                from_value=int(-2 ** 63 if p.min is None else p.min),
+                to_value=int(2 ** 63 - 1 if p.max is None else p.max), step=0)]
+        elif p.type == 'double':
+            desc.floating_point_range = [FloatingPointRange(
+                from_value=float(-sys.float_info.max if p.min is None else p.min),
+                to_value=float(sys.float_info.max if p.max is None else p.max), step=0.0)]
+    return desc
+
+
+_PTYPE = {'bool': Parameter.Type.BOOL, 'integer': Parameter.Type.INTEGER,
+          'double': Parameter.Type.DOUBLE, 'string': Parameter.Type.STRING,
+          'double_array': Parameter.Type.DOUBLE_ARRAY,
+          'string_array': Parameter.Type.STRING_ARRAY}
+
+
+def _as_double(param):
+    """An INTEGER (array) override of a double (array) parameter as DOUBLE (array), so
+    ``position:=[1,2,3]`` or ``rate:=10`` is accepted; any other Parameter unchanged."""
+    if param.type_ == Parameter.Type.INTEGER:
+        return Parameter(param.name, Parameter.Type.DOUBLE, float(param.value))
+    if param.type_ == Parameter.Type.INTEGER_ARRAY:
+        return Parameter(param.name, Parameter.Type.DOUBLE_ARRAY,
+                         [float(v) for v in param.value])
+    return param
+
+
+def _declare_one(node, p, name=None, description=None):
+    """Declare schema Param ``p`` (under ``name``, default p.name) and return its value
+    (None for an unset parameter declared without a default)."""
+    name = name or p.name
+    ptype = _PTYPE[p.type]
+    overrides = getattr(node, '_parameter_overrides', {})
+    if ptype in (Parameter.Type.DOUBLE, Parameter.Type.DOUBLE_ARRAY) and name in overrides:
+        overrides[name] = _as_double(overrides[name])
+    desc = _descriptor(p, description)
+    try:
+        if name != p.name or (isinstance(p.default, list) and not p.default):
+            value = node.declare_parameter(name, ptype, desc).value
+        else:
+            value = node.declare_parameter(name, p.default, desc).value
+    except Exception as exc:  # rclpy raises several types for bad overrides
+        raise ParameterError(name, str(exc).splitlines()[0] if str(exc) else repr(exc)) from None
+    return value
+
+
+def declare_schema(node, node_name):
+    """Declare every parameter of ``node_name``'s schema (core.parameters) on ``node``.
+
+    Returns {name: value}, each value checked against the schema (type, range, allowed
+    strings; ParameterError naming the parameter). Integers given for double parameters
+    (``rate:=10``, ``position:=[1,2,3]``) are accepted as doubles. A deprecated name
+    (Param.deprecated) is declared too; when set, its value is used for the current name
+    and a deprecation warning is logged once (ParameterError when both names are set).
+    Run-time sets of double parameters convert integers the same way.
+    """
+    from .core import parameters as schema
+    params = schema.schema(node_name)
+    overrides = getattr(node, '_parameter_overrides', {})
+    values = {}
+    for p in params:
+        value = _declare_one(node, p)
+        for old in p.deprecated:
+            old_value = _declare_one(node, p, old, f'deprecated: use {p.name}')
+            if old_value is None:
+                continue
+            if p.name in overrides:
+                raise ParameterError(old, f'deprecated name of {p.name}, and both are set')
+            node.get_logger().warning(
+                f"parameter '{old}' is deprecated: use '{p.name}' (the old name will be "
+                'removed in the next release)')
+            value = old_value
+        if value is None:
+            value = [] if isinstance(p.default, list) else p.default
+        try:
+            values[p.name] = p.check(list(value) if p.type.endswith('_array') else value)
+        except ValueError as exc:
+            raise ParameterError(p.name, str(exc).partition(': ')[2]) from None
+    doubles = {p.name for p in params if p.type in ('double', 'double_array')}
+    doubles |= {old for p in params if p.type in ('double', 'double_array')
+                for old in p.deprecated}
+    node.add_pre_set_parameters_callback(
+        lambda ps: [_as_double(x) if x.name in doubles else x for x in ps])
+    return values
 
 
 def declare(node, name, default, description, *, read_only=False, min_value=None,

@@ -16,6 +16,12 @@ Fix message (fusion -> users): position = estimate, position covariance = estima
 covariance, orientation identity with rotational variance :data:`UNKNOWN_ROTATION_VARIANCE`.
 With a geodetic origin the fix is also a ``sensor_msgs/NavSatFix`` (:func:`fix_to_navsat`).
 
+TMA track (``nav_msgs/Odometry``, :func:`track_to_msg`), simulator truth
+(``geometry_msgs/PoseStamped``, :func:`truth_to_msg`), RViz markers of a fix
+(``visualization_msgs/MarkerArray``, :func:`fix_markers_msg`) and the expected-accuracy map
+(``nav_msgs/OccupancyGrid``, :func:`occupancy_grid_msg`) are built here too; their geometry
+comes from :mod:`bearing_loc_ros.core.display`.
+
 Station inputs: ``geometry_msgs/Vector3Stamped`` raw readings (:func:`raw_reading_from_msg`)
 and ``nav_msgs/Odometry`` platform poses (:func:`pose_from_odometry`).
 
@@ -26,12 +32,16 @@ a message that breaks the contract is never converted.
 
 import math
 
-from builtin_interfaces.msg import Time
-from geometry_msgs.msg import PoseWithCovarianceStamped
+from builtin_interfaces.msg import Duration, Time
+from geometry_msgs.msg import Point, PoseStamped, PoseWithCovarianceStamped
+from nav_msgs.msg import OccupancyGrid, Odometry
 import numpy as np
 from sensor_msgs.msg import NavSatFix, NavSatStatus
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker, MarkerArray
 
 from .core import geodesy
+from .core.display import fix_markers
 from .core.bearings import Bearing, HALF_PI, SIGMA_MAX, SIGMA_MIN
 from .core.conventions import (azel_from_quaternion_scalar, quaternion_from_azel_scalar,
                                wrap_angle_scalar)
@@ -336,3 +346,111 @@ def pose_from_odometry(msg, expected_frame):
                            [o.x, o.y, o.z, o.w], cov)
     except ReadingError as exc:
         raise _reading_error(exc) from None
+
+
+def track_to_msg(position, velocity, state_covariance, stamp_ns, frame_id):
+    """TMA target state -> nav_msgs/Odometry (the ``track`` topic).
+
+    header.frame_id = child_frame_id = ``frame_id`` (the world frame): the velocity is
+    expressed in the world frame, and nav_msgs/Odometry defines the twist in
+    child_frame_id, so both name the world frame. pose.pose.position = position (3,) m,
+    orientation identity; pose.covariance[0..2, 0..2] = state_covariance[:3, :3] (m²);
+    twist.twist.linear = velocity (3,) m/s, twist.covariance[0..2, 0..2] =
+    state_covariance[3:, 3:] (m²/s²); the rotational blocks (orientation, angular velocity:
+    not estimated) get variance :data:`UNKNOWN_ROTATION_VARIANCE`. The position-velocity
+    cross-covariance (state_covariance[:3, 3:], m²/s) has no field in Odometry and is
+    dropped.
+    """
+    C = np.asarray(state_covariance, dtype=float)
+    msg = Odometry()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.child_frame_id = frame_id
+    p, v = msg.pose.pose.position, msg.twist.twist.linear
+    p.x, p.y, p.z = (float(x) for x in position)
+    v.x, v.y, v.z = (float(x) for x in velocity)
+    msg.pose.pose.orientation.w = 1.0
+    for block, target in ((C[:3, :3], msg.pose), (C[3:, 3:], msg.twist)):
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = block
+        cov[3, 3] = cov[4, 4] = cov[5, 5] = UNKNOWN_ROTATION_VARIANCE
+        target.covariance = cov.ravel().tolist()
+    return msg
+
+
+def truth_to_msg(position, stamp_ns, frame_id):
+    """Ground truth -> geometry_msgs/PoseStamped (position (3,) m, identity orientation)."""
+    msg = PoseStamped()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = frame_id
+    p = msg.pose.position
+    p.x, p.y, p.z = (float(v) for v in position)
+    msg.pose.orientation.w = 1.0
+    return msg
+
+
+#: Marker colours: bearings in the fix, bearings the gate rejected, fix, error ellipsoid.
+USED_COLOR = ColorRGBA(r=0.1, g=0.8, b=0.2, a=0.9)
+REJECTED_COLOR = ColorRGBA(r=0.9, g=0.1, b=0.1, a=0.9)
+FIX_COLOR = ColorRGBA(r=0.1, g=0.3, b=1.0, a=1.0)
+ELLIPSOID_COLOR = ColorRGBA(r=0.2, g=0.5, b=1.0, a=0.3)
+
+
+def fix_markers_msg(epoch, frame_id, ray_length=0.0, n_sigma=3.0, lifetime_ns=0):
+    """Fix Epoch -> visualization_msgs/MarkerArray (the ``markers`` topic).
+
+    Markers (namespace, id): ``bearings`` 0, a LINE_LIST of the rays of the bearings in the
+    fix (green) and of those the outlier gate rejected (red); ``fix`` 1, a SPHERE at the
+    fix; ``ellipsoid`` 2, a SPHERE scaled and rotated to the ``n_sigma`` error ellipsoid.
+    Geometry (m, world frame ``frame_id``): :func:`bearing_loc_ros.core.display.fix_markers`.
+    Every marker lives ``lifetime_ns`` (0 = forever) and is stamped with the epoch time.
+    """
+    g = fix_markers(epoch, ray_length, n_sigma)
+    stamp = ns_to_time(epoch.stamp_ns)
+    life = Duration(sec=int(lifetime_ns) // NS_PER_S, nanosec=int(lifetime_ns) % NS_PER_S)
+    out = MarkerArray()
+    rays = Marker(type=Marker.LINE_LIST, action=Marker.ADD, ns='bearings', id=0,
+                  lifetime=life)
+    rays.header.stamp, rays.header.frame_id = stamp, frame_id
+    rays.pose.orientation.w = 1.0
+    rays.scale.x = g.ray_width
+    for seg, color in ((g.used_rays, USED_COLOR), (g.rejected_rays, REJECTED_COLOR)):
+        for a, b in seg.tolist():
+            rays.points += [Point(x=a[0], y=a[1], z=a[2]), Point(x=b[0], y=b[1], z=b[2])]
+            rays.colors += [color, color]
+    out.markers.append(rays)
+    x, y, z = (float(v) for v in epoch.position)
+    size = g.fix_size
+    for mid, ns, scale, quat, color in (
+            (1, 'fix', (size, size, size), (0.0, 0.0, 0.0, 1.0), FIX_COLOR),
+            (2, 'ellipsoid', g.ellipsoid_diameters, g.ellipsoid_quaternion, ELLIPSOID_COLOR)):
+        m = Marker(type=Marker.SPHERE, action=Marker.ADD, ns=ns, id=mid, lifetime=life,
+                   color=color)
+        m.header.stamp, m.header.frame_id = stamp, frame_id
+        m.pose.position.x, m.pose.position.y, m.pose.position.z = x, y, z
+        o = m.pose.orientation
+        o.x, o.y, o.z, o.w = (float(v) for v in quat)
+        m.scale.x, m.scale.y, m.scale.z = (max(float(v), 1e-6) for v in scale)
+        out.markers.append(m)
+    return out
+
+
+def occupancy_grid_msg(grid, data, stamp_ns, frame_id):
+    """Expected-accuracy map -> nav_msgs/OccupancyGrid (the ``accuracy_map`` topic).
+
+    ``grid`` is a core.planning.GridSpec (origin_x, origin_y, resolution m, width, height
+    cells, altitude m), ``data`` the row-major int8 cell values (0-100, −1 unknown).
+    info.origin = (origin_x, origin_y, altitude) with identity orientation; map_load_time =
+    header.stamp = ``stamp_ns``.
+    """
+    msg = OccupancyGrid()
+    msg.header.stamp = ns_to_time(stamp_ns)
+    msg.header.frame_id = frame_id
+    msg.info.map_load_time = msg.header.stamp
+    msg.info.resolution = float(grid.resolution)
+    msg.info.width, msg.info.height = grid.width, grid.height
+    o = msg.info.origin
+    o.position.x, o.position.y, o.position.z = grid.origin_x, grid.origin_y, grid.altitude
+    o.orientation.w = 1.0
+    msg.data = np.asarray(data).tolist()
+    return msg

@@ -12,7 +12,8 @@ simulator publishes under its namespace):
 * ``<target ns>/truth`` geometry_msgs/PoseStamped, stamped with the true time;
 * ``/clock`` rosgraph_msgs/Clock when ``publish_clock`` is true.
 
-Parameters and the scenario format: README "Simulator".
+Parameters: ``python -m bearing_loc_ros.core.parameters --markdown simulator_node``; the
+truth message is built by ``ros_conversions.truth_to_msg``.
 """
 
 import time
@@ -25,8 +26,8 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from .core.simulation import bearing_topic, load_scenario, NS_PER_S, simulate, truth_topic
-from .ros_common import declare, main_for, ParameterError
-from .ros_conversions import bearing_to_msg, ns_to_time
+from .ros_common import declare_schema, main_for, ParameterError
+from .ros_conversions import bearing_to_msg, ns_to_time, truth_to_msg
 from .scenarios import resolve_scenario, ScenarioNotFoundError
 
 PACKAGE = 'bearing_loc_ros'
@@ -56,45 +57,18 @@ def resolve_scenario_path(path, cwd=None):
         raise ParameterError('scenario', exc.problem) from None
 
 
-def truth_to_msg(position, stamp_ns, frame_id):
-    """Ground truth -> geometry_msgs/PoseStamped (position m, identity orientation)."""
-    msg = PoseStamped()
-    msg.header.stamp = ns_to_time(stamp_ns)
-    msg.header.frame_id = frame_id
-    p = msg.pose.position
-    p.x, p.y, p.z = (float(v) for v in position)
-    msg.pose.orientation.w = 1.0
-    return msg
-
-
 class SimulatorNode(Node):
     """Replays a core Simulation in (scaled) real time over DDS."""
 
     def __init__(self, **kwargs):
         super().__init__('simulator', **kwargs)
-        scenario = declare(self, 'scenario', '', 'Scenario YAML path (relative: cwd, then the '
-                           'package share dir, then its config/scenarios)', read_only=True)
-        seed = declare(self, 'seed', 0, 'Random seed; same seed, same bearings',
-                       read_only=True, min_value=0)
-        self._time_scale = declare(self, 'time_scale', 1.0, 'Simulated seconds per wall '
-                                   'second (10.0 = ten times faster than real time)',
-                                   read_only=True, min_value=0.0, max_value=1.0e6)
-        if self._time_scale <= 0.0:
-            raise ParameterError('time_scale', f'must be > 0 (got {self._time_scale})')
-        self._publish_clock = declare(self, 'publish_clock', True, 'Publish /clock '
-                                      '(rosgraph_msgs/Clock) with the simulated time',
-                                      read_only=True)
-        duration = declare(self, 'duration', 0.0, 'Simulated seconds to run; 0 = the '
-                           "scenario's duration", read_only=True, min_value=0.0)
-        self._start_delay = declare(self, 'start_delay', 5.0, 'Maximum wall seconds to wait '
-                                    '(clock held at the epoch) for subscribers before '
-                                    'starting', read_only=True, min_value=0.0)
-        self._wait_for_subs = declare(self, 'wait_for_subscribers', True, 'Start before '
-                                      'start_delay has passed as soon as every bearing topic '
-                                      'has a matched subscriber', read_only=True)
-        self._exit_when_done = declare(self, 'exit_when_done', True, 'Shut the node down '
-                                       'once every message of the run has been published',
-                                       read_only=True)
+        p = declare_schema(self, 'simulator_node')
+        scenario, seed, duration = p['scenario'], p['seed'], p['duration']
+        self._time_scale = p['time_scale']
+        self._publish_clock = p['publish_clock']
+        self._start_delay = p['start_delay']
+        self._wait_for_subs = p['wait_for_subscribers']
+        self._exit_when_done = p['exit_when_done']
         path = resolve_scenario_path(scenario)
         self.scenario = load_scenario(path)   # ValueError names the file and key -> exit 1
         self.sim = simulate(self.scenario, duration=duration or None, seed=seed)

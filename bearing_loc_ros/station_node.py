@@ -14,9 +14,11 @@ Runs on a station computer (``ros2 run bearing_loc_ros station_node --ros-args
   interpolated to each reading's stamp.
 
 Outputs: ``bearing`` (geometry_msgs/PoseWithCovarianceStamped, DESIGN.md contract) and
-``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period_s``).
+``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period``).
 
-The node is thin: parameters -> :func:`bearing_loc_ros.core.station.station_config`,
+The node is thin: parameters (declared from the schema in core.parameters; print them with
+``python -m bearing_loc_ros.core.parameters --markdown station_node``) ->
+:func:`bearing_loc_ros.core.station.station_config`,
 messages/datagrams -> core readings (:mod:`bearing_loc_ros.ros_conversions`,
 :func:`~bearing_loc_ros.core.station.parse_datagram`), the core computes the bearing
 (:func:`~bearing_loc_ros.core.station.to_world_bearing`), the node publishes it. Bad
@@ -36,7 +38,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from . import ros_common as rcm
 from .core.station import (ConfigError, parse_datagram, PoseBuffer, ReadingError,
-                           station_config, to_world_bearing, UNITS)
+                           station_config, to_world_bearing)
 from .core.udp import udp_drops
 from .ros_conversions import (bearing_to_msg, ConversionError, pose_from_odometry,
                               raw_reading_from_msg)
@@ -44,7 +46,6 @@ from .ros_conversions import (bearing_to_msg, ConversionError, pose_from_odometr
 #: Period of the non-blocking UDP poll (s, steady clock) and datagrams read per poll.
 UDP_POLL_PERIOD_S = 0.01
 UDP_MAX_PER_POLL = 256
-UDP_STAMPS = ('datagram', 'receive')
 LOG_THROTTLE_S = 5.0
 
 #: Inputs accept best-effort and reliable publishers; outputs are reliable.
@@ -60,7 +61,7 @@ class StationNode(Node):
     def __init__(self, **kwargs):
         super().__init__('station_node', **kwargs)
         self._sock = None
-        p = self._declare_parameters()
+        p = rcm.declare_schema(self, 'station_node')
         station = p['station_id'] or rcm.station_id_from_namespace(self.get_namespace())
         try:
             self.config = station_config(
@@ -75,12 +76,6 @@ class StationNode(Node):
                 moving=bool(p['platform_odometry']))
         except ConfigError as exc:
             raise rcm.ParameterError(exc.field, exc.problem) from None
-        if p['input_units'] not in UNITS:
-            raise rcm.ParameterError('input_units', f"{p['input_units']!r} is not one of "
-                                                    f'{UNITS}')
-        if p['udp_stamp'] not in UDP_STAMPS:
-            raise rcm.ParameterError('udp_stamp', f"{p['udp_stamp']!r} is not one of "
-                                                  f'{UDP_STAMPS}')
         self.input_units = p['input_units']
         self.restamp_udp = p['udp_stamp'] == 'receive'
         self.published = 0
@@ -100,7 +95,7 @@ class StationNode(Node):
         self.poses = None
         if self.config.moving:
             self.poses = PoseBuffer(p['odometry_buffer_size'],
-                                    int(round(p['odometry_tolerance_s'] * 1e9)))
+                                    int(round(p['odometry_tolerance'] * 1e9)))
             self.odom_sub = self.create_subscription(Odometry, p['platform_odometry'],
                                                      self._on_odometry, INPUT_QOS)
             self.sources.append(f'odometry {self.odom_sub.topic_name}')
@@ -114,7 +109,7 @@ class StationNode(Node):
                 self.get_logger().warning(
                     'use_sim_time is true but udp_stamp is "datagram": UDP stamps are wall '
                     '(unix) time and will not match /clock; set udp_stamp:=receive')
-        self.create_timer(p['diagnostics_period_s'], self._publish_diagnostics, clock=steady)
+        self.create_timer(p['diagnostics_period'], self._publish_diagnostics, clock=steady)
         c = self.config
         where = 'moving platform' if c.moving else f'position {c.position.tolist()} m'
         self.get_logger().info(
@@ -123,63 +118,6 @@ class StationNode(Node):
             f"inputs: {'; '.join(self.sources)}")
 
     # ------------------------------------------------------------------ parameters
-
-    def _declare_parameters(self):
-        d, da = rcm.declare, rcm.declare_array
-        p = {}
-        p['frame_id'] = d(self, 'frame_id', 'map', 'World frame of the published bearings '
-                          '(must equal the fusion node frame_id)', read_only=True)
-        p['station_id'] = d(self, 'station_id', '', 'Station id for logs and diagnostics; '
-                            'empty = the node namespace', read_only=True)
-        p['position'] = da(self, 'position', [], 'Station (array phase centre) position '
-                           '[x, y, z] in the ENU world frame, m', read_only=True)
-        p['geodetic_position'] = da(self, 'geodetic_position', [], 'Station position '
-                                    '[lat_deg, lon_deg, alt_m] (WGS84, ellipsoidal height); '
-                                    'instead of position', read_only=True)
-        p['geodetic_origin'] = da(self, 'geodetic_origin', [], 'Geodetic origin of the ENU '
-                                  'world frame [lat_deg, lon_deg, alt_m]', read_only=True)
-        p['position_covariance'] = da(self, 'position_covariance', [], 'Station position '
-                                      'covariance, 3 (diagonal) or 9 (row-major) values, m^2',
-                                      read_only=True)
-        p['sigma_azimuth_deg'] = d(self, 'sigma_azimuth_deg', 2.0, 'Azimuth standard '
-                                   'deviation, degrees (unless a datagram gives sigma_deg)',
-                                   read_only=True, min_value=1e-6, max_value=180.0)
-        p['sigma_elevation_deg'] = d(self, 'sigma_elevation_deg', 2.0, 'Elevation standard '
-                                     'deviation, degrees', read_only=True, min_value=1e-6,
-                                     max_value=180.0)
-        p['measures_elevation'] = d(self, 'measures_elevation', False, 'True for a 2D '
-                                    '(azimuth + elevation) station; False ignores elevations',
-                                    read_only=True)
-        p['azimuth_reference'] = d(self, 'azimuth_reference', 'enu', "Raw azimuth reference: "
-                                   "'enu' (CCW from East / from the bow) or 'compass' (CW from "
-                                   "North / from the bow)", read_only=True,
-                                   additional_constraints="one of 'enu', 'compass'")
-        p['azimuth_offset_deg'] = d(self, 'azimuth_offset_deg', 0.0, 'Added to the raw '
-                                    'azimuth in its own reference and sense before conversion, '
-                                    'degrees', read_only=True, min_value=-360.0,
-                                    max_value=360.0)
-        p['input_units'] = d(self, 'input_units', 'rad', "Units of raw_bearing x/y: 'deg' or "
-                             "'rad'", read_only=True, additional_constraints="'deg' or 'rad'")
-        p['udp_port'] = d(self, 'udp_port', 0, 'UDP port for JSON datagrams; 0 = off',
-                          read_only=True, min_value=0, max_value=65535)
-        p['udp_address'] = d(self, 'udp_address', '127.0.0.1', 'Address to bind the UDP '
-                             'socket to (0.0.0.0 = all interfaces)', read_only=True)
-        p['udp_stamp'] = d(self, 'udp_stamp', 'datagram', "'datagram': stamp = the datagram's "
-                           "t (unix time); 'receive': node clock at receipt", read_only=True,
-                           additional_constraints="'datagram' or 'receive'")
-        p['platform_odometry'] = d(self, 'platform_odometry', '', 'nav_msgs/Odometry topic of '
-                                   'a moving platform; empty = fixed station', read_only=True)
-        p['odometry_tolerance_s'] = d(self, 'odometry_tolerance_s', 0.1, 'Readings up to this '
-                                      'far outside the buffered odometry use the nearest pose; '
-                                      'further out they are dropped, s', read_only=True,
-                                      min_value=0.0, max_value=60.0)
-        p['odometry_buffer_size'] = d(self, 'odometry_buffer_size', 200, 'Odometry messages '
-                                      'kept for interpolation', read_only=True, min_value=2,
-                                      max_value=100000)
-        p['diagnostics_period_s'] = d(self, 'diagnostics_period_s', 1.0, 'Period of the '
-                                      '/diagnostics status, s', read_only=True, min_value=0.05,
-                                      max_value=3600.0)
-        return p
 
     # ------------------------------------------------------------------ inputs
 

@@ -100,5 +100,4 @@ def test_auto_grid_and_disabled_map(harness):
     assert msg.info.origin.position.x == pytest.approx(c[0] - side / 2)
     assert msg.info.origin.position.z == 0.0
     off = harness(**{'accuracy_map.enabled': False})
-    assert off.fusion.map_pub is None and off.fusion.publish_accuracy_map not in \
-        off.fusion.geometry_hooks
+    assert off.fusion.map_pub is None and off.fusion.accuracy_map is None

@@ -11,9 +11,10 @@ from bearing_loc_ros.core import estimators
 from bearing_loc_ros.core.bearings import Bearing, BearingSet
 from bearing_loc_ros.core.conventions import azimuth_elevation, quaternion_from_azel
 from bearing_loc_ros.core.crlb import crlb
-from bearing_loc_ros.core.fusion import (
-    FusionConfig, FusionCore, check_estimator, error_ellipsoid, gate_threshold,
-    normalized_residuals, quaternion_from_matrix, ray_endpoints, replay, solve_epoch)
+from bearing_loc_ros.core import registry
+from bearing_loc_ros.core.display import error_ellipsoid, quaternion_from_matrix, ray_endpoints
+from bearing_loc_ros.core.fusion import (FusionConfig, FusionCore, gate_threshold,
+                                         normalized_residuals, replay, solve_epoch)
 from bearing_loc_ros.core.simulation import load_scenario, simulate
 
 S = 1_000_000_000
@@ -252,8 +253,8 @@ def test_config_errors_name_the_field():
         FusionConfig(min_stations=1).validate()
     # reference_range goes to wmle only, step_decay to ctls only: no estimator rejects them.
     for name in estimators.ESTIMATORS:
-        check_estimator(name, {'max_iterations': 50, 'tolerance': 1e-9,
-                               'reference_range': 1000.0, 'step_decay': 1.0})
+        registry.check(name, {'max_iterations': 50, 'tolerance': 1e-9,
+                              'reference_range': 1000.0, 'step_decay': 1.0})
 
 
 def test_estimator_switch_at_run_time_is_validated_then_applied():

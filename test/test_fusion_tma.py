@@ -1,4 +1,4 @@
-"""Fusion TMA mode (issue 5): core.fusion.TmaFusionCore without ROS, plus one in-process node
+"""Fusion TMA mode (issue 5): the core.fusion TMA strategy without ROS, plus one in-process node
 test (track and fix on the seed-001 scenario). Seed 001: one airborne station, a cruising
 target, σ = 0.1°, prior relative speed 380 m/s (config/scenarios/seed001.yaml)."""
 import math
@@ -7,10 +7,9 @@ import os
 import numpy as np
 import pytest
 
-from bearing_loc_ros.core import tma
+from bearing_loc_ros.core import registry, tma
 from bearing_loc_ros.core.bearings import Bearing
-from bearing_loc_ros.core.fusion import (FusionConfig, FusionCore, make_core, MODES,
-                                         mode_for_estimator, replay, TmaFusionCore)
+from bearing_loc_ros.core.fusion import FusionConfig, FusionCore, make_core, MODES, replay
 from bearing_loc_ros.core.simulation import load_scenario, simulate
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -45,7 +44,7 @@ def run(scenario, seed, config):
 def crlb_at_truth(core, sim):
     """Constrained TMA CRLB (README "Target motion analysis" (T15)) of the target state at the last
     bearing, evaluated at the true relative state, for the core's window."""
-    bs, times = core._acc.bearings()
+    bs, times = core.strategy.accumulator.bearings()
     p0 = sim.bearings[0].truth - bs.positions[0, 0]
     C = tma.tma_crlb(bs, times, p0, V_TARGET - V_OBSERVER)
     T = tma.state_transform(np.array([times[0, -1] - times[0, 0]]))
@@ -114,7 +113,7 @@ def test_first_bearings_are_unobservable_and_counted(scenario):
 def test_window_bounds_the_accumulator(scenario):
     core, eps, _ = run(scenario, 2, tma_config('tma_ctls6', window=40.0))
     # bearings every 0.2 s: the window [t − 40 s, t] holds 201 of them
-    assert core.window_bearings == 201
+    assert core.strategy.window_bearings == 201
     assert eps[-1].ok
 
 
@@ -129,9 +128,9 @@ def test_configuration_errors_are_clear():
         FusionCore(tma_config('tma_ctls'))
     with pytest.raises(ValueError, match='^mode:'):
         make_core(tma_config(), mode='magic')
-    assert mode_for_estimator('tma_mle') == 'tma' and mode_for_estimator('mle') == 'multistation'
-    assert isinstance(make_core(tma_config()), TmaFusionCore) and MODES['tma'] is TmaFusionCore
-    assert type(make_core(FusionConfig(estimator='ls'))) is FusionCore
+    assert registry.mode_of('tma_mle') == 'tma' and registry.mode_of('mle') == 'multistation'
+    assert make_core(tma_config()).mode == 'tma' and sorted(MODES) == ['multistation', 'tma']
+    assert make_core(FusionConfig(estimator='ls')).mode == 'multistation'
 
 
 def test_runtime_switch_within_tma_works_and_across_modes_is_rejected(scenario):
@@ -148,7 +147,7 @@ def test_runtime_switch_within_tma_works_and_across_modes_is_rejected(scenario):
     core.reconfigure(estimator='tma_mle', target_speed=370.0)
     eps = list(replay(core, items[150:]))
     assert eps[-1].ok and eps[-1].estimator == 'tma_mle'
-    assert core.window_bearings == len(items)        # the window survived the switch
+    assert core.strategy.window_bearings == len(items)        # the window survived the switch
     ms = make_core(FusionConfig(estimator='mle'), stations=['a', 'b'])
     with pytest.raises(ValueError, match='^estimator: tma_ctls is a tma estimator'):
         ms.check_config(estimator='tma_ctls', target_speed=SPEED)
@@ -159,13 +158,13 @@ def test_time_going_back_resets_the_window(scenario):
     items = [(e.publish_ns, e.bearing) for e in sim.bearings]
     core = make_core(tma_config('tma_ctls6', trigger='event'), stations=['station_1'])
     eps = list(replay(core, items))
-    assert eps[-1].ok and core.window_bearings == len(items)
+    assert eps[-1].ok and core.strategy.window_bearings == len(items)
     # the simulation restarts: the same bearings again from the beginning
     eps = list(replay(core, items[:3]))
-    assert core.time_jumps == 1 and core.window_bearings == 3
+    assert core.time_jumps == 1 and core.strategy.window_bearings == 3
     assert any(text.startswith('time jumped back') for _, text in core.drain_events())
     eps = list(replay(core, items[3:]))
-    assert eps[-1].ok and core.window_bearings == len(items)
+    assert eps[-1].ok and core.strategy.window_bearings == len(items)
 
 
 def test_bad_inputs_are_counted_not_raised(scenario):

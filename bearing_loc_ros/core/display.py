@@ -1,0 +1,258 @@
+"""Display geometry for RViz / Foxglove: error ellipsoids, bearing rays, marker sizes, and
+the expected-accuracy map of the live stations (no ROS; ros_conversions builds the messages).
+
+Conventions: world ENU frame (x East, y North, z Up; REP-103), metres, radians; azimuth
+counter-clockwise from East, elevation above the horizontal (Wang, Zhang & Wu eq. (1));
+quaternions (x, y, z, w).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .conventions import los_vector
+from .planning import GridSpec, MODELS, occupancy_error_map, SCALES, Stations
+
+#: Bearing rays without a configured length reach this × the station-to-fix distance.
+RAY_OVERSHOOT = 1.2
+#: Line width and fix sphere size as fractions of the scene size (metres, >= 1 m).
+RAY_WIDTH_FRACTION = 0.002
+FIX_SIZE_FRACTION = 0.01
+#: Accuracy map: automatic side = AUTO_SIZE_FACTOR × the largest horizontal station
+#: distance from the centre, at least AUTO_MIN_SIZE m; automatic cell = side / AUTO_CELLS.
+AUTO_SIZE_FACTOR = 3.0
+AUTO_MIN_SIZE = 100.0
+AUTO_CELLS = 100
+MAX_MAP_CELLS = 2000
+
+
+def quaternion_from_matrix(R):
+    """Unit quaternion(s) (x, y, z, w), w >= 0, of rotation matrices R (..., 3, 3).
+
+    Shepperd's method: of 4w², 4x², 4y², 4z² (1 + tr R, 1 + R00 − R11 − R22, ...) the largest
+    is square-rooted and the other components follow from the off-diagonal sums/differences,
+    which is accurate for every rotation including half turns. Same convention as
+    conventions.quaternion_from_azel (R maps body axes onto world axes).
+    """
+    R = np.asarray(R, dtype=float)
+    m = [[R[..., i, j] for j in range(3)] for i in range(3)]
+    diag = np.stack([1.0 + m[0][0] + m[1][1] + m[2][2], 1.0 + m[0][0] - m[1][1] - m[2][2],
+                     1.0 - m[0][0] + m[1][1] - m[2][2], 1.0 - m[0][0] - m[1][1] + m[2][2]],
+                    axis=-1)
+    k = np.argmax(diag, axis=-1)
+    s = 0.5 * np.sqrt(np.maximum(np.take_along_axis(diag, k[..., None], -1)[..., 0], 1e-300))
+    f = 0.25 / s
+    cand = np.stack([
+        np.stack([(m[2][1] - m[1][2]) * f, (m[0][2] - m[2][0]) * f, (m[1][0] - m[0][1]) * f,
+                  s], -1),
+        np.stack([s, (m[0][1] + m[1][0]) * f, (m[0][2] + m[2][0]) * f,
+                  (m[2][1] - m[1][2]) * f], -1),
+        np.stack([(m[0][1] + m[1][0]) * f, s, (m[1][2] + m[2][1]) * f,
+                  (m[0][2] - m[2][0]) * f], -1),
+        np.stack([(m[0][2] + m[2][0]) * f, (m[1][2] + m[2][1]) * f, s,
+                  (m[1][0] - m[0][1]) * f], -1)], axis=-2)
+    q = np.take_along_axis(cand, k[..., None, None], -2)[..., 0, :]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return np.where(q[..., 3:4] < 0.0, -q, q)
+
+
+def error_ellipsoid(covariance, n_sigma=1.0):
+    """Axes and orientation of the n-σ error ellipsoid of position covariance(s) (..., 3, 3).
+
+    With the eigen-decomposition P = V diag(λ) Vᵀ (V made a proper rotation, det V = +1), the
+    ellipsoid {x : xᵀ P⁻¹ x <= n²} has semi-axes n √λ_k along the columns of V. Returns
+    (diameters (..., 3) = 2 n √λ, m, ready for an RViz SPHERE marker's scale, and the
+    quaternion (..., 4) (x, y, z, w) rotating the marker's x, y, z axes onto V's columns).
+    Negative eigenvalues from round-off are clipped to 0. Raises ``ValueError`` for a
+    non-finite covariance.
+    """
+    P = np.asarray(covariance, dtype=float)
+    if not np.all(np.isfinite(P)):
+        raise ValueError('covariance: non-finite entries')
+    lam, V = np.linalg.eigh(0.5 * (P + np.swapaxes(P, -1, -2)))
+    det = np.linalg.det(V)
+    V = V.copy()
+    V[..., :, 2] *= np.where(det < 0.0, -1.0, 1.0)[..., None]
+    return 2.0 * float(n_sigma) * np.sqrt(np.clip(lam, 0.0, None)), quaternion_from_matrix(V)
+
+
+def ray_endpoints(positions, azimuth, elevation, length):
+    """Line segments (N, 2, 3) from each station along its bearing, for LINE_LIST markers.
+
+    End = p_i + L_i u(θ_i, ψ_i), u the line-of-sight unit vector
+    (cos ψ cos θ, cos ψ sin θ, sin ψ); an azimuth-only bearing (ψ NaN) is drawn horizontal.
+    ``length`` L (m) is a scalar or (N,) array.
+    """
+    p = np.asarray(positions, dtype=float).reshape(-1, 3)
+    u = los_vector(np.asarray(azimuth, dtype=float).reshape(-1),
+                   np.asarray(elevation, dtype=float).reshape(-1))
+    L = np.broadcast_to(np.asarray(length, dtype=float), (p.shape[0],))
+    return np.stack([p, p + L[:, None] * u], axis=1)
+
+
+def scene_size(station_positions, fix_position):
+    """Largest extent (m, >= 1) along x, y or z of the stations (N, 3) and the fix (3,)."""
+    pos = np.vstack([np.asarray(station_positions, dtype=float).reshape(-1, 3),
+                     np.asarray(fix_position, dtype=float).reshape(1, 3)])
+    return float(max(1.0, np.max(np.ptp(pos, axis=0))))
+
+
+@dataclass
+class FixMarkers:
+    """Geometry of the markers of one fix (m, world frame).
+
+    used_rays, rejected_rays: (N, 2, 3) segments of the bearings in the fix and of those the
+    outlier gate dropped; ray_width: line width; fix_size: diameter of the fix sphere;
+    ellipsoid_diameters (3,) and ellipsoid_quaternion (4,) (x, y, z, w): the n-σ error
+    ellipsoid (:func:`error_ellipsoid`).
+    """
+
+    used_rays: np.ndarray
+    rejected_rays: np.ndarray
+    ray_width: float
+    fix_size: float
+    ellipsoid_diameters: np.ndarray
+    ellipsoid_quaternion: np.ndarray
+
+
+def fix_markers(epoch, ray_length=0.0, n_sigma=3.0):
+    """:class:`FixMarkers` of a fix Epoch (``position``, ``covariance``, ``bearings``,
+    ``rejected``).
+
+    Rays are ``ray_length`` m long, or RAY_OVERSHOOT × the station-to-fix distance when
+    ``ray_length`` <= 0; line width RAY_WIDTH_FRACTION and fix size FIX_SIZE_FRACTION of
+    :func:`scene_size` (stations in the fix plus the fix). ValueError for a non-finite
+    covariance.
+    """
+    fix = np.asarray(epoch.position, dtype=float)
+    scene = scene_size([b.position for b in epoch.bearings], fix)
+
+    def rays(group):
+        if not group:
+            return np.zeros((0, 2, 3))
+        pos = np.array([b.position for b in group], dtype=float)
+        length = (ray_length if ray_length > 0.0
+                  else RAY_OVERSHOOT * np.linalg.norm(pos - fix, axis=1))
+        return ray_endpoints(pos, [b.azimuth for b in group], [b.elevation for b in group],
+                             length)
+    diam, q = error_ellipsoid(epoch.covariance, n_sigma)
+    return FixMarkers(rays(epoch.bearings), rays(epoch.rejected),
+                      RAY_WIDTH_FRACTION * max(1.0, scene), FIX_SIZE_FRACTION * scene, diam, q)
+
+
+@dataclass(frozen=True)
+class AccuracyMapConfig:
+    """Settings of the expected-accuracy map (the node's ``accuracy_map.*`` parameters).
+
+    center: () or (x, y) m (empty: centroid of the live stations); size: side of the square
+    map, m (0: automatic); resolution: cell, m (0: size / AUTO_CELLS); altitude: target z,
+    m; model: core.planning.MODELS; scale: core.planning.SCALES; min_error, max_error: ε
+    mapped to cell values 0 and 100, m; move_threshold: a station moving more than this
+    (m; 0: one cell) triggers a recomputation.
+    """
+
+    center: tuple = ()
+    size: float = 0.0
+    resolution: float = 0.0
+    altitude: float = 0.0
+    model: str = 'crlb'
+    scale: str = 'linear'
+    min_error: float = 0.0
+    max_error: float = 100.0
+    move_threshold: float = 0.0
+
+    def validate(self):
+        """Raise ``ValueError('accuracy_map.<field>: ...')`` for the first invalid field."""
+        def bad(name, text):
+            return ValueError(f'accuracy_map.{name}: {text}')
+        if self.model not in MODELS:
+            raise bad('model', f'{self.model!r} is not one of {list(MODELS)}')
+        if self.scale not in SCALES:
+            raise bad('scale', f'{self.scale!r} is not one of {list(SCALES)}')
+        if not self.max_error > self.min_error:
+            raise bad('max_error', 'must exceed accuracy_map.min_error')
+        if self.scale == 'log' and self.min_error <= 0.0:
+            raise bad('min_error', 'must be > 0 m for the log scale')
+        if self.center and len(self.center) != 2:
+            raise bad('center', 'expected [] or [x, y]')
+        if self.size > 0.0 and self.resolution > 0.0 and \
+                self.size / self.resolution > MAX_MAP_CELLS:
+            raise bad('resolution', f'size / resolution exceeds {MAX_MAP_CELLS} cells per side')
+        return self
+
+    def grid(self, positions):
+        """GridSpec of the map for live station positions (N, 3), m.
+
+        Centre: ``center`` or the stations' horizontal centroid; side ``size`` or
+        AUTO_SIZE_FACTOR × the largest horizontal distance of a station from the centre
+        (>= AUTO_MIN_SIZE); cells of ``resolution`` (or side / AUTO_CELLS), at most
+        MAX_MAP_CELLS per side, at ``altitude``.
+        """
+        pos = np.asarray(positions, dtype=float).reshape(-1, 3)
+        c = np.asarray(self.center, dtype=float) if self.center else pos[:, :2].mean(axis=0)
+        size = self.size
+        if size <= 0.0:
+            reach = float(np.max(np.hypot(*(pos[:, :2] - c).T))) if len(pos) else 0.0
+            size = max(AUTO_MIN_SIZE, AUTO_SIZE_FACTOR * reach)
+        res = self.resolution if self.resolution > 0.0 else size / AUTO_CELLS
+        n = max(1, min(MAX_MAP_CELLS, int(round(size / res))))
+        half = 0.5 * n * res
+        return GridSpec(float(c[0] - half), float(c[1] - half), float(res), n, n,
+                        float(self.altitude))
+
+
+class AccuracyMap:
+    """The expected-accuracy grid of the live stations, recomputed only when it changes.
+
+    :meth:`update` takes the pipeline's geometry (station -> (position (3,) m, σ_θ rad, σ_ψ
+    rad or NaN), FusionCore.geometry()) and returns (GridSpec, int8 cell values) when the set
+    of live stations changed or one moved more than ``move_threshold``, else None. Cell value
+    = error_to_occupancy(ε) of ε = sqrt(trace P) per cell (core.planning.occupancy_error_map,
+    the CRLB or the CTLS first-order error of Wang, Zhang & Wu eqs. (30)-(32)). No live
+    station: every cell −1 (unknown) on the last grid. ValueError from the planning core
+    (degenerate station sets) propagates; the map is then left unchanged.
+    """
+
+    def __init__(self, config):
+        self.config = config.validate()
+        self.grid = None          # GridSpec of the last map
+        self.last = None          # OccupancyErrorMap of the last map (None: all unknown)
+        self.stations = []        # live station names of the last map
+        self._key = None          # (station names, positions) of the last map
+
+    def _changed(self, names, positions):
+        if self._key is None:
+            return True
+        old_names, old_pos = self._key
+        if names != old_names:
+            return True
+        if not names:
+            return False
+        thr = self.config.move_threshold
+        if thr <= 0.0 and self.grid is not None:
+            thr = self.grid.resolution
+        return bool(np.max(np.linalg.norm(positions - old_pos, axis=1)) > thr)
+
+    def update(self, geometry):
+        """(grid, data) of a new map, or None when nothing changed (class docstring)."""
+        names = sorted(geometry)
+        positions = np.array([geometry[s][0] for s in names]).reshape(-1, 3)
+        if not self._changed(names, positions):
+            return None
+        m = self.config
+        if names:
+            sel = np.array([geometry[s][2] for s in names], dtype=float)
+            stations = Stations.from_arrays(positions, [geometry[s][1] for s in names], sel,
+                                            has_elevation=np.isfinite(sel), names=names)
+            grid = m.grid(positions)
+            om = occupancy_error_map(stations, grid, m.model, m.scale, m.min_error,
+                                     m.max_error)
+            data = om.data
+        elif self.grid is not None:
+            grid, om = self.grid, None
+            data = np.full(grid.width * grid.height, -1, dtype=np.int8)
+        else:
+            return None
+        self._key = (names, positions)
+        self.grid, self.last, self.stations = grid, om, names
+        return grid, data

@@ -1,0 +1,147 @@
+"""Settings of the fusion pipeline (:class:`FusionConfig`) and their validation.
+
+Units: seconds, Hz, metres, m/s; angles are not configured here (each bearing carries its
+own σ). Every check raises ``ValueError('<field>: <problem>')`` naming the field, which the
+node reports as ``parameter '<field>': <problem>`` and ``bag process`` as one line.
+"""
+
+from dataclasses import dataclass, field, replace
+import math
+
+from .. import parameters as _parameters
+from .. import registry as _registry
+from ..alignment import AlignmentConfig, seconds_to_ns
+from ..tma import SPEED_REFERENCES
+
+NS_PER_S = 1_000_000_000
+
+#: Epoch triggers.
+TRIGGER_EVENT = 'event'
+TRIGGER_TIMER = 'timer'
+TRIGGERS = (TRIGGER_EVENT, TRIGGER_TIMER)
+
+#: Fusion modes (the node's ``mode`` parameter; ``auto`` follows the estimator).
+MODE_MULTISTATION = _registry.MODE_MULTISTATION
+MODE_TMA = _registry.MODE_TMA
+
+
+#: Defaults: the fusion node's parameter schema (core.parameters), the one place they live.
+_DEFAULTS = _parameters.defaults('fusion_node')
+
+
+def _seconds(name, value, positive=False):
+    v = float(value)
+    if not math.isfinite(v) or v < 0.0 or (positive and v == 0.0):
+        raise ValueError(f'{name}: must be {"> 0" if positive else ">= 0"} seconds, got {value}')
+    return v
+
+
+@dataclass(frozen=True)
+class FusionConfig:
+    """Settings of the fusion pipeline (the fusion node's parameters; seconds, Hz, metres).
+
+    Defaults are those of the fusion node's parameter schema (core.parameters);
+    ``estimator_options`` defaults to {} (each estimator's own defaults apply).
+
+    Attributes:
+        frame_id: world frame; bearings in another frame are rejected (``wrong_frame``).
+        trigger: ``event`` or ``timer`` (:mod:`.triggers`).
+        rate: timer epoch rate, Hz (also the node's housekeeping tick rate in event mode).
+        max_latency: timer mode: epoch t_k is processed once now >= t_k + max_latency, s.
+        sync_tolerance: nearest alignment window |stamp − t|, s.
+        interpolation: interpolate between bracketing bearings.
+        max_interpolation_gap: longest bracketing gap t1 − t0, s.
+        station_timeout: a station is stale when now − (its newest stamp) > this, s.
+        buffer_size: bearings kept per station. buffer_age: their maximum age, s.
+        min_stations: fewest stations in a fix (>= 2).
+        estimator: a name of the estimator registry (core.registry.names()).
+        estimator_options: keyword options for it (each estimator gets the ones it accepts,
+            core.registry.scoped_options).
+        outlier_gate: χ² gate probability in [0.5, 1]; 1 disables gating.
+        time_jump_tolerance: "now" going back by more than this (s) clears the buffers.
+        target_speed: TMA speed prior v_c, m/s (Lin et al.; required > 0 for a TMA
+            estimator, 0 = unset).
+        window: TMA window, s: bearings older than the newest minus this leave the sums.
+        speed_reference: TMA prior on 'relative' (|v_t − v_o|, Lin et al.) or 'ground'
+            (|v_t|) speed.
+    """
+
+    frame_id: str = _DEFAULTS['frame_id']
+    trigger: str = _DEFAULTS['trigger']
+    rate: float = _DEFAULTS['rate']
+    max_latency: float = _DEFAULTS['max_latency']
+    sync_tolerance: float = _DEFAULTS['sync_tolerance']
+    interpolation: bool = _DEFAULTS['interpolation']
+    max_interpolation_gap: float = _DEFAULTS['max_interpolation_gap']
+    station_timeout: float = _DEFAULTS['station_timeout']
+    buffer_size: int = _DEFAULTS['buffer_size']
+    buffer_age: float = _DEFAULTS['buffer_age']
+    min_stations: int = _DEFAULTS['min_stations']
+    estimator: str = _DEFAULTS['estimator']
+    estimator_options: dict = field(default_factory=dict)
+    outlier_gate: float = _DEFAULTS['outlier_gate']
+    time_jump_tolerance: float = _DEFAULTS['time_jump_tolerance']
+    target_speed: float = _DEFAULTS['target_speed']
+    window: float = _DEFAULTS['window']
+    speed_reference: str = _DEFAULTS['speed_reference']
+
+    def validate(self):
+        """Raise ``ValueError`` naming the first invalid field; return self."""
+        if not isinstance(self.frame_id, str) or not self.frame_id:
+            raise ValueError('frame_id: must be a non-empty string')
+        if self.trigger not in TRIGGERS:
+            raise ValueError(f'trigger: {self.trigger!r} is not one of {list(TRIGGERS)}')
+        if not (math.isfinite(float(self.rate)) and 0.0 < float(self.rate) <= 1000.0):
+            raise ValueError(f'rate: must be in (0, 1000] Hz, got {self.rate}')
+        _seconds('max_latency', self.max_latency)
+        _seconds('sync_tolerance', self.sync_tolerance)
+        _seconds('max_interpolation_gap', self.max_interpolation_gap, positive=True)
+        _seconds('station_timeout', self.station_timeout, positive=True)
+        _seconds('buffer_age', self.buffer_age, positive=True)
+        _seconds('time_jump_tolerance', self.time_jump_tolerance)
+        if int(self.buffer_size) < 2:
+            raise ValueError(f'buffer_size: must be >= 2, got {self.buffer_size}')
+        if float(self.buffer_age) <= float(self.max_latency) + float(self.sync_tolerance):
+            raise ValueError('buffer_age: must exceed max_latency + sync_tolerance, or the '
+                             'bearings of an epoch are pruned before it is processed')
+        if int(self.min_stations) < 2:
+            raise ValueError(f'min_stations: must be >= 2, got {self.min_stations}')
+        if not isinstance(self.estimator_options, dict):
+            raise ValueError('estimator_options: must be a dict')
+        _seconds('window', self.window, positive=True)
+        if self.speed_reference not in SPEED_REFERENCES:
+            raise ValueError(f'speed_reference: {self.speed_reference!r} is not one of '
+                             f'{list(SPEED_REFERENCES)}')
+        v = float(self.target_speed)
+        if not (math.isfinite(v) and v >= 0.0):
+            raise ValueError(f'target_speed: must be finite and >= 0 m/s, got {v}')
+        if _registry.mode_of(self.estimator) == MODE_TMA:
+            if v <= 0.0:
+                raise ValueError(f'target_speed: must be > 0 m/s for the TMA estimator '
+                                 f'{self.estimator} (the speed prior of Lin et al.)')
+            it = self.estimator_options.get('max_iterations', 1)
+            if int(it) != it or it < 1:
+                raise ValueError(f'max_iterations: must be an integer >= 1, got {it}')
+        else:
+            _registry.check(self.estimator, self.estimator_options)
+        g = float(self.outlier_gate)
+        if not 0.5 <= g <= 1.0:
+            raise ValueError(f'outlier_gate: probability must be in [0.5, 1], got {g}')
+        return self
+
+    def replace(self, **changes):
+        """A copy with ``changes`` applied (validate it before use)."""
+        return replace(self, **changes)
+
+    def alignment(self):
+        """The :class:`AlignmentConfig` (integer ns) of these settings."""
+        return AlignmentConfig(
+            sync_tolerance_ns=seconds_to_ns(self.sync_tolerance),
+            interpolation=bool(self.interpolation),
+            max_interpolation_gap_ns=seconds_to_ns(self.max_interpolation_gap),
+            buffer_size=int(self.buffer_size), buffer_age_ns=seconds_to_ns(self.buffer_age))
+
+    @property
+    def period_ns(self):
+        """Timer period 1 / rate, integer ns."""
+        return max(1, int(round(NS_PER_S / float(self.rate))))

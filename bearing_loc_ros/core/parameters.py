@@ -1,0 +1,523 @@
+"""The parameter schema of every node: the one source of names, types, defaults and ranges.
+
+Each node's parameters are a tuple of :class:`Param` (:data:`SCHEMAS`). The schema feeds:
+
+* the rclpy declarations (``ros_common.declare_schema``: ParameterDescriptor with the
+  description, range and read_only flag);
+* the core configuration objects (:func:`fusion_config` builds the FusionConfig of the
+  fusion node and of ``bag process`` from the same values);
+* the shipped parameter files (``config/<name>.yaml``, :func:`yaml_text`) and the parameter
+  tables of the documentation (:func:`markdown_table`); a test fails when any of them
+  drifts from the schema.
+
+Naming convention: SI units (metres, radians, seconds, m/s) carry no suffix
+(``diagnostics_period``); other units do (``sigma_azimuth_deg``). A renamed parameter keeps
+its old name for one release (:attr:`Param.deprecated`): the old name is accepted, mapped
+to the new one and reported once as deprecated.
+
+Print a node's table: ``python -m bearing_loc_ros.core.parameters --markdown fusion_node``
+(``--yaml NODE`` prints its parameter file, ``--update-docs FILE`` rewrites the parameter
+tables of a documentation page between its ``<!-- BEGIN/END parameters NODE -->`` markers).
+
+No ROS imports here (core layer).
+"""
+
+import argparse
+from dataclasses import dataclass
+import math
+import sys
+import textwrap
+
+BOOL = 'bool'
+INTEGER = 'integer'
+DOUBLE = 'double'
+STRING = 'string'
+DOUBLE_ARRAY = 'double_array'
+STRING_ARRAY = 'string_array'
+TYPES = (BOOL, INTEGER, DOUBLE, STRING, DOUBLE_ARRAY, STRING_ARRAY)
+#: Python types a value of each parameter type may have (an integer is a valid double).
+PY_TYPES = {BOOL: (bool,), INTEGER: (int,), DOUBLE: (float, int), STRING: (str,),
+            DOUBLE_ARRAY: (list, tuple), STRING_ARRAY: (list, tuple)}
+
+
+@dataclass(frozen=True)
+class Param:
+    """One node parameter.
+
+    Attributes:
+        name: the ROS parameter name (``group.name`` for nested YAML keys).
+        type: one of :data:`TYPES` (rclpy's BOOL, INTEGER, DOUBLE, STRING, DOUBLE_ARRAY,
+            STRING_ARRAY).
+        default: the value when not set (``[]`` for an unset array).
+        description: one sentence for the descriptor, the docs table and the YAML comment.
+        unit: unit of the value ('' when dimensionless or not a number).
+        min, max: inclusive numeric range (None = unbounded), checked at start-up and on
+            run-time sets; ``min_open`` makes the lower bound exclusive (> min).
+        choices: the allowed strings of a string parameter (empty: free text).
+        read_only: True unless the parameter may change while the node runs.
+        deprecated: former names, accepted for one release with a warning.
+        example: value written in the shipped parameter file when it differs from the
+            default; None = the default.
+        commented: the example is written as a comment (the parameter stays unset).
+    """
+
+    name: str
+    type: str
+    default: object
+    description: str
+    unit: str = ''
+    min: float = None
+    max: float = None
+    min_open: bool = False
+    choices: tuple = ()
+    read_only: bool = True
+    deprecated: tuple = ()
+    example: object = None
+    commented: bool = False
+
+    def check(self, value):
+        """Raise ``ValueError('<name>: ...')`` unless ``value`` fits the type, range and
+        choices; return the value (an int given for a double becomes a float)."""
+        types = PY_TYPES[self.type]
+        if isinstance(value, bool) and self.type != BOOL or not isinstance(value, types):
+            raise ValueError(f'{self.name}: expected {self.type}, got {value!r}'[:200])
+        if self.type == DOUBLE:
+            value = float(value)
+        if self.type in (DOUBLE_ARRAY, STRING_ARRAY):
+            item = (float, int) if self.type == DOUBLE_ARRAY else (str,)
+            if not all(isinstance(v, item) and not isinstance(v, bool) for v in value):
+                raise ValueError(f'{self.name}: expected {self.type}, got {value!r}'[:200])
+            value = [float(v) for v in value] if self.type == DOUBLE_ARRAY else list(value)
+        if self.type in (INTEGER, DOUBLE):
+            if self.type == DOUBLE and not math.isfinite(value):
+                raise ValueError(f'{self.name}: must be finite, got {value}')
+            if self.min is not None and (value < self.min or (self.min_open
+                                                              and value == self.min)):
+                raise ValueError(f'{self.name}: {value} is below the minimum '
+                                 f'{"(exclusive) " if self.min_open else ""}{self.min}')
+            if self.max is not None and value > self.max:
+                raise ValueError(f'{self.name}: {value} is above the maximum {self.max}')
+        if self.choices and value not in self.choices:
+            raise ValueError(f'{self.name}: {value!r} is not one of {list(self.choices)}')
+        return value
+
+    def range_text(self):
+        """The range as the docs print it: ``[0, 60]``, ``(0, 3600]``, choices or ''."""
+        if self.choices:
+            return ', '.join(f'`{c}`' for c in self.choices)
+        if self.min is None and self.max is None:
+            return ''
+        lo = '−∞' if self.min is None else _num(self.min)
+        hi = '∞' if self.max is None else _num(self.max)
+        return f'{"(" if self.min_open or self.min is None else "["}{lo}, {hi}' \
+               f'{")" if self.max is None else "]"}'
+
+
+def _num(v):
+    return f'{v:g}' if isinstance(v, float) else str(v)
+
+
+def _estimator_names():
+    from . import registry
+    return registry.names()
+
+
+def _default_estimator():
+    from . import registry
+    return registry.default_estimator()
+
+
+def _default_reference_range():
+    from .estimators import DEFAULT_REFERENCE_RANGE
+    return float(DEFAULT_REFERENCE_RANGE)
+
+
+def _fusion_schema():
+    from .planning import MODELS, SCALES
+    from .tma import SPEED_REFERENCES
+    P = Param
+    run = dict(read_only=False)
+    return (
+        P('mode', STRING, 'auto', 'Fusion mode; auto = tma for a TMA estimator (tma_*), '
+          'else multistation', choices=('auto', 'multistation', 'tma')),
+        P('frame_id', STRING, 'map', 'World frame; bearings in any other frame are rejected '
+          '(bad.wrong_frame)'),
+        P('stations', STRING_ARRAY, [], 'Station ids; subscribes to <station>/bearing '
+          'relative to the node namespace', example=['station_1', 'station_2', 'station_3'],
+          **run),
+        P('discover', BOOL, False, 'Also subscribe to every */bearing '
+          'PoseWithCovarianceStamped topic under the namespace'),
+        P('discovery_period', DOUBLE, 1.0, 'Wall-clock period of the topic discovery scan',
+          's', 0.05, 3600.0),
+        P('qos_depth', INTEGER, 10, 'Keep-last depth of each bearing subscription', '', 1,
+          10000),
+        P('qos_reliability', STRING, 'reliable', 'QoS reliability of the bearing '
+          'subscriptions (best_effort also matches best-effort publishers)',
+          choices=('reliable', 'best_effort')),
+        P('trigger', STRING, 'event', 'Epoch trigger: event (every live station reported) '
+          'or timer (every 1/rate s, after max_latency)', choices=('event', 'timer')),
+        P('rate', DOUBLE, 10.0, 'Timer epoch rate; also the housekeeping tick rate in event '
+          'mode', 'Hz', 0.01, 1000.0),
+        P('max_latency', DOUBLE, 0.2, 'Timer mode: epoch t is processed once now >= t + '
+          'max_latency', 's', 0.0, 60.0),
+        P('sync_tolerance', DOUBLE, 0.05, 'Nearest alignment window |stamp - t|', 's', 0.0,
+          60.0),
+        P('interpolation', BOOL, False, 'Interpolate between the two bearings bracketing t '
+          '(angle-aware)'),
+        P('max_interpolation_gap', DOUBLE, 1.0, 'Longest gap between bracketing bearings',
+          's', 1e-6, 3600.0),
+        P('station_timeout', DOUBLE, 5.0, 'A station without a bearing for this long (now - '
+          'its newest stamp) is stale and left out of fixes', 's', 1e-3, 3600.0),
+        P('buffer_size', INTEGER, 50, 'Bearings kept per station', '', 2, 100000),
+        P('buffer_age', DOUBLE, 10.0, 'Bearings older than now - buffer_age are dropped; '
+          'must exceed max_latency + sync_tolerance', 's', 1e-3, 3600.0),
+        P('time_jump_tolerance', DOUBLE, 0.1, 'The clock going back by more than this '
+          'clears every buffer', 's', 0.0, 3600.0),
+        P('estimator', STRING, _default_estimator(), 'Estimator; a switch between a TMA '
+          '(tma_*) and a multi-station estimator needs a restart', choices=_estimator_names(),
+          **run),
+        P('target_speed', DOUBLE, 0.0, 'TMA speed prior v_c (Lin et al.); required > 0 with '
+          'a tma_* estimator', 'm/s', 0.0, 1e6, **run),
+        P('window', DOUBLE, 120.0, 'TMA: bearings older than the newest minus window leave '
+          'the recursive sums', 's', 1e-3, 1e6),
+        P('speed_reference', STRING, 'relative', 'TMA: the prior is on the relative '
+          '(target - station, Lin et al.) or the ground (target) speed',
+          choices=tuple(SPEED_REFERENCES)),
+        P('min_stations', INTEGER, 2, 'Fewest stations in a fix', '', 2, 10000, **run),
+        P('outlier_gate', DOUBLE, 0.999, 'Chi-square gate probability (1 dof per angle); '
+          '1.0 disables the gate', '', 0.5, 1.0, **run),
+        P('max_iterations', INTEGER, 50, 'Iterative estimators: iteration limit', '', 1,
+          100000, **run),
+        P('tolerance', DOUBLE, 1e-9, 'Iterative estimators: relative step tolerance', '',
+          1e-15, 1.0, **run),
+        P('reference_range', DOUBLE, _default_reference_range(), 'wmle only: d_ref of '
+          'sigma(d) = sigma_ref d / d_ref (Zong & Cui 2015 eqs. (9)-(10))', 'm', 1e-3, 1e9,
+          **run),
+        P('step_decay', DOUBLE, 1.0, 'ctls/ctls_am only: Newton step factor mu (Wang, Zhang '
+          '& Wu eq. (20))', '', 1e-6, 1.0, **run),
+        P('geodetic_origin', DOUBLE_ARRAY, [], 'Origin of the ENU frame [lat_deg, lon_deg, '
+          'alt_m] (WGS84); enables fix/navsat', 'deg, deg, m',
+          example=[48.137, 11.575, 520.0], commented=True),
+        P('publish_markers', BOOL, True, 'Publish markers (built only while markers has a '
+          'subscriber)'),
+        P('marker_ray_length', DOUBLE, 0.0, 'Length of the bearing rays; 0 = 1.2 x the '
+          'station-to-fix distance', 'm', 0.0, 1e9, **run),
+        P('ellipsoid_sigma', DOUBLE, 3.0, 'Error ellipsoid marker size in standard '
+          'deviations', '', 0.1, 10.0, **run),
+        P('diagnostics_period', DOUBLE, 1.0, 'Wall-clock period of /diagnostics', 's', 0.01,
+          3600.0),
+        P('accuracy_map.enabled', BOOL, True, 'Publish the expected-accuracy OccupancyGrid on '
+          'accuracy_map (multistation mode)'),
+        P('accuracy_map.size', DOUBLE, 0.0, 'Side of the square map; 0 = 3 x the largest '
+          'horizontal station distance from the centre, at least 100 m', 'm', 0.0, 1e8),
+        P('accuracy_map.resolution', DOUBLE, 0.0, 'Cell size; 0 = size / 100; at most 2000 '
+          'cells per side', 'm', 0.0, 1e7),
+        P('accuracy_map.altitude', DOUBLE, 0.0, 'Target altitude (world z) of the map', 'm',
+          -1e6, 1e6),
+        P('accuracy_map.center', DOUBLE_ARRAY, [], '[x, y] centre of the map; [] = centroid '
+          'of the live stations', 'm', example=[0.0, 0.0], commented=True),
+        P('accuracy_map.model', STRING, 'crlb', 'Error model: CRLB or the CTLS first-order '
+          'error (Wang, Zhang & Wu eqs. (30)-(32))', choices=tuple(MODELS)),
+        P('accuracy_map.scale', STRING, 'linear', 'Mapping of the error (m) to cell values',
+          choices=tuple(SCALES)),
+        P('accuracy_map.min_error', DOUBLE, 0.0, 'Error mapped to cell value 0 (> 0 for the '
+          'log scale)', 'm', 0.0, 1e9),
+        P('accuracy_map.max_error', DOUBLE, 100.0, 'Error mapped to cell value 100 (and '
+          'above); must exceed min_error', 'm', 1e-9, 1e9),
+        P('accuracy_map.move_threshold', DOUBLE, 0.0, 'Recompute when a live station moved '
+          'more than this; 0 = one cell', 'm', 0.0, 1e9),
+    )
+
+
+def _station_schema():
+    from .station import UNITS
+    P = Param
+    return (
+        P('frame_id', STRING, 'map', 'World frame of the published bearings; must equal the '
+          'fusion node frame_id'),
+        P('station_id', STRING, '', 'Station id for logs and diagnostics; empty = the node '
+          'namespace'),
+        P('position', DOUBLE_ARRAY, [], 'Station (array phase centre) position [x, y, z] in '
+          'the ENU world frame', 'm', example=[120.0, -35.5, 4.0]),
+        P('geodetic_position', DOUBLE_ARRAY, [], 'Instead of position: [lat_deg, lon_deg, '
+          'alt_m] (WGS84, ellipsoidal height)', 'deg, deg, m',
+          example=[46.0185, 7.752, 1680.0], commented=True),
+        P('geodetic_origin', DOUBLE_ARRAY, [], 'Origin of the ENU world frame [lat_deg, '
+          'lon_deg, alt_m]; required with geodetic_position', 'deg, deg, m',
+          example=[46.017, 7.75, 1673.0], commented=True),
+        P('position_covariance', DOUBLE_ARRAY, [], 'Station position covariance: 3 '
+          '(diagonal) or 9 (row-major) values; empty = zeros', 'm^2',
+          example=[0.04, 0.04, 0.25]),
+        P('sigma_azimuth_deg', DOUBLE, 2.0, 'Azimuth standard deviation (a datagram may '
+          'override it per reading)', 'deg', 1e-6, 180.0),
+        P('sigma_elevation_deg', DOUBLE, 2.0, 'Elevation standard deviation', 'deg', 1e-6,
+          180.0, example=3.0),
+        P('measures_elevation', BOOL, False, 'True for a 2D (azimuth + elevation) station; '
+          'false ignores elevations'),
+        P('azimuth_reference', STRING, 'enu', 'Raw azimuth reference: enu (CCW from East / '
+          'the bow) or compass (CW from North / the bow)', choices=('enu', 'compass'),
+          example='compass'),
+        P('azimuth_offset_deg', DOUBLE, 0.0, 'Added to the raw azimuth in its own reference '
+          'and sense before conversion', 'deg', -360.0, 360.0),
+        P('input_units', STRING, 'rad', 'Units of raw_bearing x/y (UDP is always degrees)',
+          choices=tuple(UNITS), example='deg'),
+        P('udp_port', INTEGER, 0, 'UDP port for JSON datagrams; 0 = off', '', 0, 65535),
+        P('udp_address', STRING, '127.0.0.1', 'Address to bind the UDP socket to (0.0.0.0 = '
+          'all IPv4 interfaces)'),
+        P('udp_stamp', STRING, 'datagram', "Stamp of a datagram's bearing: its t (unix "
+          'time) or the node clock at receipt', choices=('datagram', 'receive')),
+        P('platform_odometry', STRING, '', 'nav_msgs/Odometry topic of a moving platform; '
+          'empty = fixed station'),
+        P('odometry_tolerance', DOUBLE, 0.1, 'Readings up to this far outside the buffered '
+          'odometry use the nearest pose; further out they are dropped', 's', 0.0, 60.0,
+          deprecated=('odometry_tolerance_s',)),
+        P('odometry_buffer_size', INTEGER, 200, 'Odometry messages kept for interpolation',
+          '', 2, 100000),
+        P('diagnostics_period', DOUBLE, 1.0, 'Period of the /diagnostics status', 's', 0.05,
+          3600.0, deprecated=('diagnostics_period_s',)),
+    )
+
+
+def _simulator_schema():
+    P = Param
+    return (
+        P('scenario', STRING, '', 'Scenario YAML (required); a relative path is looked up in '
+          'the current directory, then in the package share dir and its config/scenarios'),
+        P('seed', INTEGER, 0, 'Random seed; the same seed gives the same bearings, truth and '
+          'timing', '', 0, None),
+        P('time_scale', DOUBLE, 1.0, 'Simulated seconds per wall second (10.0 = ten times '
+          'faster than real time)', '', 0.0, 1e6, min_open=True),
+        P('publish_clock', BOOL, True, 'Publish /clock (rosgraph_msgs/Clock) with the '
+          'simulated time'),
+        P('duration', DOUBLE, 0.0, "Simulated seconds to run; 0 = the scenario's duration",
+          's', 0.0, None),
+        P('start_delay', DOUBLE, 5.0, 'Longest wall-clock wait for subscribers before '
+          'starting (the clock is held at the epoch meanwhile)', 's', 0.0, None),
+        P('wait_for_subscribers', BOOL, True, 'Start before start_delay has passed as soon as '
+          'every bearing topic has a matched subscriber'),
+        P('exit_when_done', BOOL, True, 'Shut the node down once every message of the run '
+          'has been published and acknowledged'),
+    )
+
+
+_BUILDERS = {'fusion_node': _fusion_schema, 'station_node': _station_schema,
+             'simulator_node': _simulator_schema}
+#: Node executable -> its shipped parameter file under config/ (None: none shipped).
+PARAMS_FILES = {'fusion_node': 'fusion.yaml', 'station_node': 'station.yaml',
+                'simulator_node': None}
+NODES = tuple(_BUILDERS)
+_CACHE = {}
+
+
+def schema(node):
+    """The tuple of :class:`Param` of ``node`` ('fusion_node', 'station_node',
+    'simulator_node'); ValueError for another name."""
+    if node not in _BUILDERS:
+        raise ValueError(f'node: unknown node {node!r}; choose one of {list(NODES)}')
+    if node not in _CACHE:
+        _CACHE[node] = _BUILDERS[node]()
+    return _CACHE[node]
+
+
+def param(node, name):
+    """The :class:`Param` ``name`` of ``node`` (KeyError if it has none)."""
+    for p in schema(node):
+        if p.name == name:
+            return p
+    raise KeyError(name)
+
+
+def defaults(node):
+    """name -> default value of every parameter of ``node`` (arrays copied)."""
+    return {p.name: (list(p.default) if isinstance(p.default, list) else p.default)
+            for p in schema(node)}
+
+
+def renamed(node):
+    """Deprecated name -> current name, for ``node``."""
+    return {old: p.name for p in schema(node) for old in p.deprecated}
+
+
+def resolve(node, values, warn=None):
+    """Parameters given by name (old names allowed) -> {current name: checked value}.
+
+    Unknown names, wrong types and out-of-range values raise ``ValueError('<name>: ...')``;
+    an old name is mapped to its current one and ``warn(text)`` called once for it; giving
+    both names is an error. Missing parameters take their defaults.
+    """
+    old = renamed(node)
+    known = {p.name: p for p in schema(node)}
+    out = defaults(node)
+    for name, value in values.items():
+        if name in old:
+            new = old[name]
+            if new in values:
+                raise ValueError(f'{name}: deprecated name of {new}, and both are given')
+            if warn is not None:
+                warn(f"parameter '{name}' is deprecated: use '{new}' (the old name will be "
+                     'removed in the next release)')
+            name = new
+        if name not in known:
+            raise ValueError(f'{name}: not a parameter of {node}')
+        out[name] = known[name].check(value)
+    return out
+
+
+#: FusionConfig fields filled from fusion node parameters of the same name.
+FUSION_CONFIG_FIELDS = ('frame_id', 'trigger', 'rate', 'max_latency', 'sync_tolerance',
+                        'interpolation', 'max_interpolation_gap', 'station_timeout',
+                        'buffer_size', 'buffer_age', 'min_stations', 'estimator',
+                        'outlier_gate', 'time_jump_tolerance', 'target_speed', 'window',
+                        'speed_reference')
+#: Fusion node parameters that are estimator options (FusionConfig.estimator_options).
+ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay')
+
+
+def fusion_config_kwargs(values):
+    """FusionConfig keyword arguments from fusion node parameter values (name -> value;
+    missing names take the schema defaults)."""
+    v = defaults('fusion_node')
+    v.update(values)
+    kw = {k: v[k] for k in FUSION_CONFIG_FIELDS}
+    kw['estimator_options'] = {k: v[k] for k in ESTIMATOR_OPTIONS}
+    return kw
+
+
+def fusion_config(values=None):
+    """The validated FusionConfig of fusion node parameter values (the node and
+    ``bag process`` both build it here); ValueError naming the field."""
+    from .fusion.config import FusionConfig
+    return FusionConfig(**fusion_config_kwargs(values or {})).validate()
+
+
+# --------------------------------------------------------------------------------- renderers
+def _code(value):
+    if isinstance(value, bool):
+        return f'`{str(value).lower()}`'
+    if isinstance(value, float):
+        return f'`{value:g}`' if abs(value) < 1e-4 and value else f'`{value!r}`'
+    if value == '':
+        return "`''`"
+    if isinstance(value, list):
+        return '`[' + ', '.join(str(v) for v in value) + ']`'
+    return f'`{value}`'
+
+
+def _type_text(p):
+    return {BOOL: 'bool', INTEGER: 'int', DOUBLE: 'double', STRING: 'string',
+            DOUBLE_ARRAY: 'double[]', STRING_ARRAY: 'string[]'}[p.type]
+
+
+def _cell(text):
+    return text.replace('|', '\\|')
+
+
+def markdown_table(node):
+    """The Markdown parameter table of ``node`` (one row per parameter, schema order)."""
+    rows = ['| name | type | default | unit | range | run time | description |',
+            '|---|---|---|---|---|---|---|']
+    for p in schema(node):
+        desc = p.description
+        if p.deprecated:
+            desc += ' (formerly ' + ', '.join(f'`{d}`' for d in p.deprecated) + \
+                ', accepted with a deprecation warning)'
+        rows.append(f'| `{p.name}` | {_type_text(p)} | {_code(p.default)} | {p.unit} | '
+                    f'{_cell(p.range_text())} | {"no" if p.read_only else "yes"} | '
+                    f'{_cell(desc)} |')
+    return '\n'.join(rows) + '\n'
+
+
+def _yaml_double(v):
+    """A float as YAML 1.1 reads it back as a float (``1.0e-09``, not ``1e-09``)."""
+    text = repr(float(v))
+    mantissa, e, exp = text.partition('e')
+    return f'{mantissa}.0e{exp}' if e and '.' not in mantissa else text
+
+
+def _yaml_value(p, value):
+    import yaml
+    if p.type == DOUBLE:
+        return _yaml_double(value)
+    if p.type == DOUBLE_ARRAY:
+        return '[' + ', '.join(_yaml_double(v) for v in value) + ']'
+    if p.type == STRING and value == '':
+        return "''"
+    return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()
+
+
+def yaml_text(node):
+    """The shipped parameter file of ``node``: every parameter at its default (or its
+    example value), each with its description, unit and range as a comment."""
+    head = (f'# {node} parameters: every parameter with its default (or an example value).\n'
+            '# Generated from the schema in bearing_loc_ros/core/parameters.py:\n'
+            f'#   python -m bearing_loc_ros.core.parameters --yaml {node}\n'
+            f'# Use: ros2 run bearing_loc_ros {node} --ros-args --params-file <this file>\n'
+            '# `/**:` matches the node whatever its name and namespace. Doubles are written '
+            'with a\n# decimal point (3.0); an integer is accepted for a double too.\n'
+            '/**:\n  ros__parameters:\n')
+    lines = []
+    group = None
+    for p in schema(node):
+        prefix, _, leaf = p.name.rpartition('.')
+        indent = '    '
+        if prefix:
+            if prefix != group:
+                lines.append(f'    {prefix}:')
+                group = prefix
+            indent = '      '
+        else:
+            group = None
+        rng = p.range_text().replace('`', '')
+        rng = (f'one of {rng}' if p.choices else f'range {rng}') if rng else ''
+        extra = '; '.join(x for x in (p.unit, rng, '' if p.read_only else 'run time') if x)
+        comment = p.description + (f' ({extra})' if extra else '')
+        for c in textwrap.wrap(comment, 95 - len(indent)):
+            lines.append(f'{indent}# {c}')
+        value = p.default if p.example is None else p.example
+        lines.append(f'{indent}{"# " if p.commented else ""}{leaf}: {_yaml_value(p, value)}')
+    return head + '\n'.join(lines) + '\n'
+
+
+def docs_region(text, node):
+    """The text between ``<!-- BEGIN parameters <node> -->`` and ``<!-- END parameters
+    <node> -->`` in ``text`` (None when the markers are absent)."""
+    begin, end = f'<!-- BEGIN parameters {node} -->\n', f'<!-- END parameters {node} -->'
+    i = text.find(begin)
+    j = text.find(end, i + len(begin)) if i >= 0 else -1
+    return None if j < 0 else text[i + len(begin):j]
+
+
+def fill_docs(text):
+    """``text`` with every node's parameter region replaced by :func:`markdown_table`."""
+    for node in NODES:
+        old = docs_region(text, node)
+        if old is not None:
+            begin = f'<!-- BEGIN parameters {node} -->\n'
+            text = text.replace(begin + old, begin + markdown_table(node), 1)
+    return text
+
+
+def main(argv=None):
+    """``python -m bearing_loc_ros.core.parameters --markdown|--yaml NODE|--update-docs FILE``."""
+    ap = argparse.ArgumentParser(prog='python -m bearing_loc_ros.core.parameters',
+                                 description='Print a node parameter table or file.')
+    what = ap.add_mutually_exclusive_group(required=True)
+    what.add_argument('--markdown', metavar='NODE', choices=NODES,
+                      help='Markdown parameter table of NODE')
+    what.add_argument('--yaml', metavar='NODE', choices=NODES,
+                      help='parameter file of NODE (every parameter at its default)')
+    what.add_argument('--update-docs', metavar='FILE',
+                      help='rewrite the parameter-table regions of FILE in place')
+    args = ap.parse_args(argv)
+    if args.update_docs:
+        with open(args.update_docs, encoding='utf-8') as f:
+            text = f.read()
+        with open(args.update_docs, 'w', encoding='utf-8') as f:
+            f.write(fill_docs(text))
+        return 0
+    sys.stdout.write(markdown_table(args.markdown) if args.markdown else yaml_text(args.yaml))
+    return 0
+
+
+if __name__ == '__main__':
+    sys.exit(main())
