@@ -30,26 +30,23 @@ from rclpy.clock import Clock, ClockType, JumpThreshold
 from rclpy.duration import Duration
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import NavSatFix
 from visualization_msgs.msg import MarkerArray
 
 from .core import parameters
 from .core.display import AccuracyMap, AccuracyMapConfig
-from .core.fusion import LEVEL_ERROR, LEVEL_OK, LEVEL_WARN, make_core, MODE_MULTISTATION, \
-    MODE_TMA
-from .ros_common import declare_schema, diagnostic_status, ERROR, main_for, OK, \
-    ParameterError, WARN
-from .ros_conversions import (bearing_from_msg, ConversionError, fix_markers_msg, fix_to_msg,
-                              fix_to_navsat, ns_to_time, occupancy_grid_msg, track_to_msg)
+from .core.fusion import make_core, MODE_MULTISTATION, MODE_TMA
+from .ros_common import declare_schema, keep_last_qos, main_for, ParameterError, \
+    topics_under_namespace
+from .ros_conversions import (bearing_from_msg, ConversionError, diagnostic_array,
+                              fix_markers_msg, fix_to_msg, fix_to_navsat, occupancy_grid_msg,
+                              track_to_msg)
 
 BEARING_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 #: A station id: one or more ROS name tokens separated by '/' (the topic namespace).
 STATION_RE = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$')
-#: Run-time parameters (schema: read_only False) by what they change.
-ESTIMATOR_OPTIONS = parameters.ESTIMATOR_OPTIONS
+#: Run-time parameters that change only the display (the others change the core).
 RUNTIME_DISPLAY = ('marker_ray_length', 'ellipsoid_sigma')
-LEVELS = {LEVEL_OK: OK, LEVEL_WARN: WARN, LEVEL_ERROR: ERROR}
 MAP_PREFIX = 'accuracy_map.'
 
 
@@ -97,11 +94,7 @@ class FusionNode(Node):
         self.ray_length = p['marker_ray_length']
         self.ellipsoid_sigma = p['ellipsoid_sigma']
         self.discover = p['discover']
-        reliability = (ReliabilityPolicy.BEST_EFFORT if p['qos_reliability'] == 'best_effort'
-                       else ReliabilityPolicy.RELIABLE)
-        self.bearing_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=p['qos_depth'],
-                                      reliability=reliability,
-                                      durability=DurabilityPolicy.VOLATILE)
+        self.bearing_qos = keep_last_qos(p['qos_depth'], p['qos_reliability'])
         self._subs = {}            # station -> Subscription
         self.incompatible_qos = {}  # station -> incompatible publishers seen (QoS events)
         self._discovered = set()   # stations found by discovery (not in the parameter)
@@ -120,9 +113,7 @@ class FusionNode(Node):
         self.accuracy_map_ms = None     # wall time of the last map computation
         self._geometry_seen = None
         if self.accuracy_map is not None and self.mode == MODE_MULTISTATION:
-            self.map_pub = pub(OccupancyGrid, 'accuracy_map', QoSProfile(
-                history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                durability=DurabilityPolicy.TRANSIENT_LOCAL))
+            self.map_pub = pub(OccupancyGrid, 'accuracy_map', keep_last_qos(1, latched=True))
 
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._tick_timer = self.create_timer(self.core.tick_period_ns / 1e9, self._on_tick)
@@ -154,21 +145,12 @@ class FusionNode(Node):
         return SetParametersResult(successful=True)
 
     def _parameter_changes(self, params):
-        config, display, stations = {}, {}, None
-        options = dict(self.core.config.estimator_options)
-        for prm in params:
-            if prm.name in ESTIMATOR_OPTIONS:
-                options[prm.name] = prm.value
-            elif prm.name in RUNTIME_DISPLAY:
-                display[prm.name] = prm.value
-            elif prm.name == 'stations':
-                stations = list(prm.value or [])
-                for s in stations:
-                    _check_station_name(s)
-            elif prm.name in parameters.FUSION_CONFIG_FIELDS:
-                config[prm.name] = prm.value    # read-only ones never get here
-        if options != self.core.config.estimator_options:
-            config['estimator_options'] = options
+        values = {prm.name: prm.value for prm in params}
+        config = parameters.fusion_config_changes(self.core.config, values)
+        display = {k: v for k, v in values.items() if k in RUNTIME_DISPLAY}
+        stations = list(values['stations'] or []) if 'stations' in values else None
+        for s in stations or ():
+            _check_station_name(s)
         if config:
             try:
                 self.core.check_config(**config)
@@ -212,21 +194,14 @@ class FusionNode(Node):
 
     def _discover(self):
         """Subscribe to new */bearing topics under the namespace; drop vanished ones."""
-        ns = self.get_namespace()
-        prefix = ns if ns.endswith('/') else ns + '/'
-        found = set()
-        for name, types in self.get_topic_names_and_types():
-            station = name[len(prefix):-len('/bearing')]
-            if (not name.startswith(prefix) or not name.endswith('/bearing')
-                    or BEARING_TYPE not in types or not STATION_RE.match(station)):
-                continue
-            found.add(station)
+        found = topics_under_namespace(self, '/bearing', BEARING_TYPE, STATION_RE)
+        for station, name in found.items():
             if station not in self._subs and self.count_publishers(name) > 0:
                 self._discovered.add(station)
                 self._subscribe(station)
                 self.get_logger().info(f'discovered station {station} ({name})')
         for station in list(self._discovered):
-            topic = prefix + station + '/bearing'
+            topic = f'{self.get_namespace().rstrip("/")}/{station}/bearing'
             gone = station not in found or self.count_publishers(topic) == 0
             if gone and self.core.station_state(station) != 'alive':
                 self._unsubscribe(station)
@@ -342,24 +317,16 @@ class FusionNode(Node):
     # ------------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self):
         now = self.now_ns() or 0
-        arr = DiagnosticArray()
-        arr.header.stamp = ns_to_time(now)
-        name = self.get_fully_qualified_name().lstrip('/')
-        for d in self.core.diagnostics(now):
-            values = dict(d.values)
-            if d.name == 'fusion':
-                values['fixes_published'] = self.fixes_published
-                values['mode'] = self.mode
-                if self.map_pub is not None:
-                    values['accuracy_maps'] = self.accuracy_maps
-                    values['accuracy_map_ms'] = (f'{self.accuracy_map_ms:.1f}'
-                                                 if self.accuracy_map_ms is not None
-                                                 else 'n/a')
-            elif d.hardware_id in self.incompatible_qos:
-                values['incompatible_qos_publishers'] = self.incompatible_qos[d.hardware_id]
-            arr.status.append(diagnostic_status(f'{name}: {d.name}', LEVELS[d.level],
-                                                d.message, values, d.hardware_id))
-        self.diag_pub.publish(arr)
+        entries = self.core.diagnostics(now)
+        entries[0].values.update(fixes_published=self.fixes_published, mode=self.mode)
+        if self.map_pub is not None:
+            entries[0].values.update(accuracy_maps=self.accuracy_maps, accuracy_map_ms=(
+                'n/a' if self.accuracy_map_ms is None else f'{self.accuracy_map_ms:.1f}'))
+        for d in entries[1:]:
+            if d.hardware_id in self.incompatible_qos:
+                d.values['incompatible_qos_publishers'] = self.incompatible_qos[d.hardware_id]
+        self.diag_pub.publish(diagnostic_array(
+            entries, self.get_fully_qualified_name().lstrip('/'), now))
 
 
 main = main_for(FusionNode)

@@ -11,6 +11,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 import rclpy
 from rclpy.executors import ExternalShutdownException
 from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 OK = DiagnosticStatus.OK
 WARN = DiagnosticStatus.WARN
@@ -232,3 +233,29 @@ def diagnostic_status(name, level, message, values, hardware_id=''):
 def station_id_from_namespace(namespace):
     """Station id from a node namespace: '/station_1' -> 'station_1', '/a/b' -> 'a/b'."""
     return namespace.strip('/')
+
+
+def keep_last_qos(depth, reliability='reliable', latched=False):
+    """Keep-last QoS of ``depth``: ``reliability`` 'reliable' or 'best_effort'; ``latched``
+    = transient local (late subscribers get the last message), else volatile."""
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_LAST, depth=int(depth),
+        reliability=(ReliabilityPolicy.BEST_EFFORT if reliability == 'best_effort'
+                     else ReliabilityPolicy.RELIABLE),
+        durability=(DurabilityPolicy.TRANSIENT_LOCAL if latched
+                    else DurabilityPolicy.VOLATILE))
+
+
+def topics_under_namespace(node, suffix, msg_type, name_re):
+    """{relative name: topic} of the topics ``<node namespace>/<relative name><suffix>`` of
+    type ``msg_type`` (e.g. 'geometry_msgs/msg/PoseWithCovarianceStamped') whose relative
+    name matches the regular expression ``name_re`` (graph query, no subscription)."""
+    ns = node.get_namespace()
+    prefix = ns if ns.endswith('/') else ns + '/'
+    out = {}
+    for name, types in node.get_topic_names_and_types():
+        if name.startswith(prefix) and name.endswith(suffix) and msg_type in types:
+            rel = name[len(prefix):len(name) - len(suffix)]
+            if name_re.match(rel):
+                out[rel] = name
+    return out

@@ -33,6 +33,7 @@ a message that breaks the contract is never converted.
 import math
 
 from builtin_interfaces.msg import Duration, Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
 import numpy as np
@@ -454,3 +455,24 @@ def occupancy_grid_msg(grid, data, stamp_ns, frame_id):
     o.orientation.w = 1.0
     msg.data = np.asarray(data).tolist()
     return msg
+
+
+#: core diagnostic levels -> diagnostic_msgs/DiagnosticStatus levels.
+DIAGNOSTIC_LEVELS = {'ok': DiagnosticStatus.OK, 'warn': DiagnosticStatus.WARN,
+                     'error': DiagnosticStatus.ERROR}
+
+
+def diagnostic_array(entries, prefix, stamp_ns):
+    """Core DiagnosticEntry list -> diagnostic_msgs/DiagnosticArray (``/diagnostics``).
+
+    Each entry becomes a DiagnosticStatus named ``<prefix>: <entry name>`` with its level
+    (:data:`DIAGNOSTIC_LEVELS`), message, hardware_id and values as string KeyValues.
+    """
+    arr = DiagnosticArray()
+    arr.header.stamp = ns_to_time(stamp_ns)
+    arr.status = [DiagnosticStatus(
+        level=DIAGNOSTIC_LEVELS[d.level], name=f'{prefix}: {d.name}', message=d.message,
+        hardware_id=d.hardware_id,
+        values=[KeyValue(key=str(k), value=str(v)) for k, v in d.values.items()])
+        for d in entries]
+    return arr

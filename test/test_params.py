@@ -13,6 +13,7 @@ from rclpy.parameter import Parameter
 import yaml
 
 from bearing_loc_ros import ros_common
+from bearing_loc_ros.core import parameter_docs as docs
 from bearing_loc_ros.core import parameters as schema
 from ros_helpers import node_env, REPO
 
@@ -83,7 +84,7 @@ def test_shipped_parameter_files_are_generated_from_the_schema(node):
     path = os.path.join(REPO, 'config', schema.PARAMS_FILES[node])
     with open(path, encoding='utf-8') as f:
         text = f.read()
-    assert text == schema.yaml_text(node), f'regenerate: python -m ' \
+    assert text == docs.yaml_text(node), f'regenerate: python -m ' \
         f'bearing_loc_ros.core.parameters --yaml {node} > config/{schema.PARAMS_FILES[node]}'
     body = yaml.safe_load(text)['/**']['ros__parameters']
     flat = {}
@@ -103,10 +104,10 @@ def test_docs_tables_are_generated_from_the_schema():
         with open(path, encoding='utf-8') as f:
             text = f.read()
         for node in schema.NODES:
-            region = schema.docs_region(text, node)
+            region = docs.docs_region(text, node)
             if region is not None:
                 found[node] = path
-                assert region == schema.markdown_table(node), \
+                assert region == docs.markdown_table(node), \
                     f'{path}: python -m bearing_loc_ros.core.parameters --update-docs {path}'
     assert set(found) == set(schema.NODES), found
 
@@ -116,7 +117,7 @@ def test_markdown_command_prints_the_table():
         out = subprocess.run([sys.executable, '-m', 'bearing_loc_ros.core.parameters',
                               '--markdown', node], capture_output=True, text=True, cwd=REPO,
                              env=node_env(), timeout=60, check=True).stdout
-        assert out == schema.markdown_table(node)
+        assert out == docs.markdown_table(node)
         assert out.count('\n') == len(schema.schema(node)) + 2
 
 
