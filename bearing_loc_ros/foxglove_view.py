@@ -158,6 +158,11 @@ class FoxgloveView:
 
     # ----------------------------------------------------------------------------- messages
 
+    def advertise(self, topic, msgtype):
+        """Create (advertise) the channel of a topic before its first message arrives."""
+        with self._lock:
+            self._channel(topic, msgtype)
+
     def forward(self, topic, msgtype, raw, log_time_ns):
         """Forward one CDR message unchanged; update clock, picture and station positions."""
         raw = bytes(raw)

@@ -22,6 +22,7 @@ Parameters:
   max_backlog (int, 512): messages queued per WebSocket client before the oldest is dropped.
 """
 
+from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
@@ -85,8 +86,11 @@ class ViewNode(Node):
         self._subs = {}
         self._bad_topics = set()
         self._discover()
-        self.create_timer(period, self._discover)
-        self.create_timer(max(geo_period, 0.1), self._flush_geojson)
+        # Wall-clock (steady) timers: with use_sim_time a ROS-time timer would not run before
+        # the first /clock message, and the topics must be found before the data flows.
+        steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self.create_timer(period, self._discover, clock=steady)
+        self.create_timer(max(geo_period, 0.1), self._flush_geojson, clock=steady)
         self.get_logger().info(
             f'Foxglove WebSocket server on ws://{host}:{self.view.port} (subprotocol '
             f'foxglove.sdk.v1){"; server time from /clock" if sim else ""}')
@@ -104,6 +108,12 @@ class ViewNode(Node):
                 continue
             try:
                 cls = message_class(msgtype)
+            except ValueError as exc:
+                self._bad_topics.add(topic)
+                self.get_logger().warning(f'{topic}: not forwarded ({exc})')
+                continue
+            try:
+                self.view.advertise(topic, msgtype)
             except ValueError as exc:
                 self._bad_topics.add(topic)
                 self.get_logger().warning(f'{topic}: not forwarded ({exc})')

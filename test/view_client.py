@@ -76,9 +76,10 @@ class FoxgloveClient:
             if until is not None and until(self):
                 return True
             try:
-                frame = await asyncio.wait_for(self.ws.recv(), max(0.01, end - loop.time()))
+                frame = await asyncio.wait_for(self.ws.recv(),
+                                               max(0.01, min(0.2, end - loop.time())))
             except asyncio.TimeoutError:
-                break
+                continue
             self._handle(frame)
         return until(self) if until is not None else True
 

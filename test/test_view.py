@@ -1,0 +1,239 @@
+"""The Foxglove view server, live: simulator + fusion + view_node as processes on loopback, and
+a client of the Foxglove WebSocket protocol (test/view_client.py) that decodes what it
+serves and compares it with what the fusion node publishes over DDS."""
+import asyncio
+import json
+import os
+import re
+import threading
+
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import OccupancyGrid
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from visualization_msgs.msg import MarkerArray
+import yaml
+
+from bearing_loc_ros import msgdefs
+from bearing_loc_ros.core import geodesy
+from bearing_loc_ros.ros_conversions import fix_from_msg
+from ros_helpers import REPO, spin_until, start_node
+from view_client import FoxgloveClient, geojson_payload
+
+pytestmark = pytest.mark.ros
+
+ORIGIN = [48.137, 11.575, 520.0]
+TYPES = ['geometry_msgs/msg/PoseWithCovarianceStamped', 'sensor_msgs/msg/NavSatFix',
+         'visualization_msgs/msg/MarkerArray', 'nav_msgs/msg/OccupancyGrid',
+         'nav_msgs/msg/Odometry', 'diagnostic_msgs/msg/DiagnosticArray',
+         'rosgraph_msgs/msg/Clock', 'geometry_msgs/msg/PoseStamped']
+
+
+@pytest.mark.parametrize('msgtype', TYPES)
+def test_ros2msg_schema_matches_the_typestore(msgtype):
+    """Each flattened definition parses (rosbags' .msg parser) into the same fields as the
+    Jazzy typestore, dependency by dependency."""
+    from rosbags.typesys import get_types_from_msg
+    from bearing_loc_ros import bagio
+    text = msgdefs.message_definition(msgtype)
+    sections = text.split(msgdefs.SEPARATOR + '\n')
+    names = [msgtype] + [s.splitlines()[0][len('MSG: '):] for s in sections[1:]]
+    bodies = [sections[0]] + ['\n'.join(s.splitlines()[1:]) for s in sections[1:]]
+    assert len(set(names)) == len(names)
+    ts = bagio.typestore()
+    for name, body in zip(names, bodies):
+        pkg, typ = msgdefs.split_type(name)
+        full = f'{pkg}/msg/{typ}'
+        parsed = get_types_from_msg(body, full)[full]
+        assert [f[0] for f in parsed[1]] == [f[0] for f in ts.fielddefs[full][1]], full
+
+
+@pytest.fixture
+def scenario_file(tmp_path):
+    with open(os.path.join(REPO, 'config/scenarios/seed000.yaml'), encoding='utf-8') as f:
+        data = yaml.safe_load(f)
+    data['station_defaults']['rate'] = 1.0
+    data['duration'] = 60.0
+    path = tmp_path / 'seed000_view.yaml'
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+class Listener:
+    """In-test rclpy subscriber (raw CDR) of /fix, /markers, /accuracy_map, in a thread."""
+
+    def __init__(self):
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx)
+        self.node = rclpy.create_node('view_test_listener', context=self.ctx)
+        self.ex = SingleThreadedExecutor(context=self.ctx)
+        self.ex.add_node(self.node)
+        self.fix, self.markers, self.maps = [], [], []
+        rel = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self.node.create_subscription(PoseWithCovarianceStamped, '/fix', self.fix.append, rel,
+                                      raw=True)
+        self.node.create_subscription(MarkerArray, '/markers', self.markers.append, rel,
+                                      raw=True)
+        self.node.create_subscription(OccupancyGrid, '/accuracy_map', self.maps.append,
+                                      latched, raw=True)
+        self.thread = None
+
+    def start(self):
+        self.thread = threading.Thread(target=self.ex.spin, daemon=True)
+        self.thread.start()
+
+    def close(self):
+        self.ex.shutdown()
+        if self.thread:
+            self.thread.join(5)
+        self.node.destroy_node()
+        rclpy.try_shutdown(context=self.ctx)
+
+
+async def crowd(url, n=20, abort=10):
+    """n clients at once: each subscribes to /fix and /map_geojson and receives; ``abort``
+    of them drop the TCP connection without a close frame, the others close politely."""
+    clients = await asyncio.gather(*(FoxgloveClient(url).connect() for _ in range(n)))
+    await asyncio.gather(*(c.pump(3.0, lambda c: '/fix' in c.by_topic) for c in clients))
+    for c in clients:
+        await c.subscribe(['/fix', '/map_geojson'])
+    await asyncio.gather(*(c.pump(4.0, lambda c: len(c.messages.get('/fix', ())) >= 2)
+                           for c in clients))
+    got = [len(c.messages.get('/fix', ())) for c in clients]
+    for k, c in enumerate(clients):
+        if k < abort:
+            c.ws.transport.abort()
+        else:
+            await c.close()
+    return got
+
+
+async def slow_client(url):
+    """Subscribes to everything and then never reads (its socket buffers fill up)."""
+    c = await FoxgloveClient(url).connect()
+    await c.pump(3.0, lambda c: '/fix' in c.by_topic)
+    await c.subscribe(list(c.by_topic))
+    return c
+
+
+async def session(url, sim):
+    a = await FoxgloveClient(url).connect()
+    await a.pump(10.0, lambda c: {'/fix', '/markers', '/accuracy_map', '/map_geojson'}
+                 <= set(c.by_topic))
+    await a.subscribe(['/fix', '/markers', '/accuracy_map', '/map_geojson', '/clock'])
+    slow = await slow_client(url)
+    sim.start()
+    crowd_task = asyncio.create_task(crowd(url))
+    await a.pump(60.0, lambda c: sim.done())
+    counts = await crowd_task
+    await a.pump(1.5)                       # the last fixes and pictures in flight
+    late = await FoxgloveClient(url).connect()
+    await late.pump(3.0, lambda c: '/accuracy_map' in c.by_topic)
+    await late.subscribe(['/accuracy_map', '/map_geojson'])
+    await late.pump(5.0, lambda c: '/accuracy_map' in c.messages and '/map_geojson' in
+                    c.messages)
+    slow.ws.transport.abort()
+    await a.close()
+    await late.close()
+    return a, late, counts
+
+
+class Sim:
+    """Starts the simulator on demand from the asyncio side."""
+
+    def __init__(self, args):
+        self.args, self.proc = args, None
+
+    def start(self):
+        self.proc = start_node('bearing_loc_ros.simulator_node', self.args)
+
+    def done(self):
+        return self.proc is not None and self.proc.proc.poll() is not None
+
+
+def test_live_view_serves_what_the_fusion_publishes(scenario_file):
+    stations = '["station_1","station_2","station_3"]'
+    origin = '[' + ','.join(map(str, ORIGIN)) + ']'
+    fusion_args = ['-p', f'stations:={stations}', '-p', 'use_sim_time:=true',
+                   '-p', 'estimator:=mle', '-p', f'geodetic_origin:={origin}']
+    view_args = ['-p', 'port:=0', '-p', 'use_sim_time:=true', '-p', f'geodetic_origin:={origin}',
+                 '-p', 'geojson_period:=0.2', '-p', 'discovery_period:=0.2']
+    sim = Sim(['-p', f'scenario:={scenario_file}', '-p', 'seed:=7', '-p', 'time_scale:=10.0',
+               '-p', 'start_delay:=10.0'])
+    listener = Listener()
+    try:
+        with start_node('bearing_loc_ros.fusion_node', fusion_args) as fusion, \
+                start_node('bearing_loc_ros.view_node', view_args) as view:
+            assert spin_until(listener.ex, lambda: listener.node.count_publishers('/fix') > 0
+                              and re.search(r'ws://127\.0\.0\.1:(\d+)', view.output()), 20.0), \
+                fusion.output() + view.output()
+            port = int(re.search(r'ws://127\.0\.0\.1:(\d+)', view.output()).group(1))
+            listener.start()
+            a, late, counts = asyncio.run(session(f'ws://127.0.0.1:{port}', sim))
+            assert sim.proc.stop() == 0, sim.proc.output()
+            assert view.running(), view.output()      # survived aborts and the slow client
+            assert view.stop() == 0, view.output()
+            assert fusion.stop() == 0, fusion.output()
+    finally:
+        if sim.proc is not None:
+            sim.proc.stop()
+        listener.close()
+
+    # Fixes: every fix the fusion published reached the client, byte for byte.
+    dds = {fix_from_msg(deserialize_message(r, PoseWithCovarianceStamped))[0]: bytes(r)
+           for r in listener.fix}
+    ws = {fix_from_msg(deserialize_message(p, PoseWithCovarianceStamped))[0]: p
+          for _, p in a.messages['/fix']}
+    assert len(dds) >= 50 and set(ws) == set(dds)
+    assert all(ws[k] == dds[k] for k in dds)
+    # Markers: decoded, and every one served is one the fusion published.
+    served = [p for _, p in a.messages['/markers']]
+    assert served and set(served) <= {bytes(r) for r in listener.markers}
+    assert deserialize_message(served[-1], MarkerArray).markers
+    # Accuracy map: the live subscriber and the late joiner get the latched map.
+    assert listener.maps and a.messages['/accuracy_map']
+    assert late.messages['/accuracy_map'][-1][1] == bytes(listener.maps[-1])
+    grid = deserialize_message(late.messages['/accuracy_map'][-1][1], OccupancyGrid)
+    assert grid.info.width > 0 and len(grid.data) == grid.info.width * grid.info.height
+    # GeoJSON: the last picture shows the stations, their rays and a fix the fusion published.
+    fc = json.loads(geojson_payload(a.messages['/map_geojson'][-1][1]))
+    kinds = [f['properties']['kind'] for f in fc['features']]
+    assert kinds.count('station') == 3 and kinds.count('bearing') == 3
+    assert 'ellipse' in kinds
+    fix = [f for f in fc['features'] if f['properties']['kind'] == 'fix'][0]
+    stamp = fix['properties']['stamp_ns']
+    assert stamp in dds
+    _, pos, _ = fix_from_msg(deserialize_message(dds[stamp], PoseWithCovarianceStamped))
+    lat, lon, _ = geodesy.enu_to_geodetic(pos, ORIGIN)
+    assert fix['geometry']['coordinates'][:2] == pytest.approx([float(lon), float(lat)],
+                                                               abs=2e-9)
+    assert late.messages['/map_geojson']
+    # Server time is the simulated clock (scenario epoch 1000 s), not the wall clock.
+    assert a.times and all(1000e9 <= t <= 1100e9 for t in a.times)
+    assert np.all(np.diff(a.times) >= 0)
+    # 20 clients at once all received fixes.
+    assert len(counts) == 20 and min(counts) >= 2, counts
+
+
+def test_view_refuses_a_polar_origin_and_a_busy_port():
+    with start_node('bearing_loc_ros.view_node',
+                    ['-p', 'port:=0', '-p', 'geodetic_origin:=[89.9,0.0,0.0]']) as bad:
+        assert bad.wait(20.0) == 1
+        assert 'polar' in bad.output() and 'Traceback' not in bad.output()
+    import socket
+    s = socket.socket()
+    s.bind(('127.0.0.1', 0))
+    s.listen(1)
+    try:
+        port = s.getsockname()[1]
+        with start_node('bearing_loc_ros.view_node', ['-p', f'port:={port}']) as busy:
+            assert busy.wait(20.0) == 1
+            assert "parameter 'port'" in busy.output(), busy.output()
+    finally:
+        s.close()
