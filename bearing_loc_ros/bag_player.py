@@ -13,6 +13,10 @@ import time
 from .cli import InputError
 
 NS_PER_S = 1_000_000_000
+#: Default bound (s) of the wait for matched subscribers before playing.
+DEFAULT_WAIT_S = 5.0
+#: The ROS graph must be unchanged this long (s) before playing (subscriber discovery).
+SETTLE_S = 1.0
 
 
 def _import_msg_class(msgtype):
@@ -36,8 +40,8 @@ def _qos_from_dict(q):
                       durability=dur)
 
 
-def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0, wait_for_subscribers=0.0,
-             topics=None, quiet=False, log=None):
+def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0,
+             wait_for_subscribers=DEFAULT_WAIT_S, topics=None, quiet=False, log=None):
     """Publish the messages of bag ``path`` paced by bag time / ``rate`` (rclpy node).
 
     Raw CDR bytes are published as they are (``Publisher.publish(bytes)``), on publishers with
@@ -46,7 +50,9 @@ def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0, wait_for_sub
     t0 + (wall − wall0) · rate is published at ``clock_rate`` Hz wall and the bag's own
     /clock is skipped; otherwise the bag's /clock messages are replayed, or, if it has none,
     a clock is generated at 100 Hz. Messages of one bag instant go out before its clock tick.
-    Returns 0; Ctrl-C stops cleanly.
+    Topics whose message type is not installed are skipped with a warning (as rosbag2 does).
+    Before playing, waits up to ``wait_for_subscribers`` s (see :func:`wait_for_subscribers`;
+    0: no wait). Returns 0; Ctrl-C stops cleanly.
     """
     import rclpy
     from rclpy.duration import Duration
@@ -67,6 +73,18 @@ def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0, wait_for_sub
         info = {k: v for k, v in info.items() if k in topics}
     has_clock = bagio.CLOCK_TOPIC in info
     generate = clock_rate > 0 or not has_clock
+    classes, skipped = {}, []
+    for name, t in info.items():
+        if name == bagio.CLOCK_TOPIC and generate:
+            continue
+        try:
+            classes[name] = _import_msg_class(t.msgtype)
+        except InputError:
+            skipped.append(f'{name} ({t.msgtype})')
+    if skipped:
+        log('bag play: warning: message type not installed, not played: ' + ', '.join(skipped))
+    if not classes:
+        raise InputError(f'bag: {path} has no topic of an installed message type')
     gen_hz = clock_rate if clock_rate > 0 else 100.0
     from rclpy.signals import SignalHandlerOptions
     # No rclpy signal handler: with it, Ctrl-C shuts the context down and the next
@@ -79,28 +97,20 @@ def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0, wait_for_sub
     rclpy.init(args=['--ros-args'], signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node('bag_player')
     try:
-        pubs = {}
-        for name, t in info.items():
-            if name == bagio.CLOCK_TOPIC and generate:
-                continue
-            pubs[name] = node.create_publisher(_import_msg_class(t.msgtype), name,
-                                               _qos_from_dict(t.qos[0] if t.qos else {}))
+        pubs = {name: node.create_publisher(cls, name, _qos_from_dict(
+                    info[name].qos[0] if info[name].qos else {}))
+                for name, cls in classes.items()}
         clock_pub = node.create_publisher(Clock, bagio.CLOCK_TOPIC,
                                           _qos_from_dict(bagio.CLOCK_QOS)) if generate else None
         if wait_for_subscribers > 0:
-            deadline = time.monotonic() + wait_for_subscribers
-            while time.monotonic() < deadline:
-                if all(p.get_subscription_count() > 0 for p in pubs.values()):
-                    break
-                time.sleep(0.02)
-            lonely = [n for n, p in pubs.items() if p.get_subscription_count() == 0]
-            if lonely and not quiet:
-                log(f'bag play: no subscriber yet on {", ".join(sorted(lonely))}')
+            waited = dict(pubs, **({bagio.CLOCK_TOPIC: clock_pub} if clock_pub else {}))
+            wait_for_subscribers_of(node, waited, wait_for_subscribers, quiet, log)
         if delay > 0:
             time.sleep(delay)
         period_ns = int(NS_PER_S / gen_hz)
         while True:
-            n = _play_once(path, pubs, clock_pub, rate, period_ns, set(info), quiet, log)
+            n = _play_once(path, pubs, clock_pub, rate, period_ns, set(classes) | (
+                {bagio.CLOCK_TOPIC} & set(info)), quiet, log)
             if not loop or not rclpy.ok():
                 break
         for p in pubs.values():
@@ -115,6 +125,41 @@ def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0, wait_for_sub
         if old_sigint is not None:
             signal.signal(signal.SIGINT, old_sigint)
     return 0
+
+
+def wait_for_subscribers_of(node, pubs, timeout, quiet=False, log=print):
+    """Wait until every topic of ``pubs`` (name -> publisher) that has a subscriber is matched.
+
+    A topic counts as waited for when the ROS graph shows a subscription on it
+    (``node.count_subscribers``) that is not yet matched with our publisher
+    (``get_subscription_count``); topics nobody subscribes to (``/truth`` without a viewer)
+    never hold playback. Returns once some topic is matched, none is waited for and the graph
+    has been unchanged for SETTLE_S (discovery of a subscriber's endpoints arrives in bursts),
+    or after ``timeout`` s (with a warning naming the unmatched topics, if any). Returns the
+    unmatched topics.
+    """
+    start = time.monotonic()
+    last, since = None, start
+    while True:
+        now = time.monotonic()
+        state = tuple((n, node.count_subscribers(n), p.get_subscription_count())
+                      for n, p in sorted(pubs.items()))
+        if state != last:
+            last, since = state, now
+        pending = [n for n, graph, matched in state if graph > matched]
+        heard = any(matched for _, _, matched in state)
+        if (heard and not pending and now - since >= SETTLE_S) or now - start >= timeout:
+            break
+        time.sleep(0.02)
+    if pending:
+        log(f'bag play: warning: subscribers not matched after {timeout:g} s on '
+            f'{", ".join(pending)}; playing anyway')
+    elif not quiet:
+        matched = [n for n, _, m in state if m > 0]
+        idle = [n for n, _, m in state if m == 0]
+        log(f'bag play: matched subscribers on {len(matched)} topic(s)'
+            + (f'; no subscriber on {", ".join(idle)}' if idle else ''))
+    return pending
 
 
 def _play_once(path, pubs, clock_pub, rate, period_ns, topics, quiet, log):

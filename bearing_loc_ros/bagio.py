@@ -45,6 +45,8 @@ BAG_VERSION = 9
 #: Storage plugins understood by ``ros2 bag`` in Jazzy and by ``rosbags``.
 STORAGES = ('mcap', 'sqlite3')
 DEFAULT_STORAGE = 'mcap'
+#: ROS 2 distribution recorded in written bags (metadata ros_distro).
+ROS_DISTRO = 'jazzy'
 
 #: Message type names used by bearing_loc_ros (DESIGN.md).
 POSE_COV_STAMPED = 'geometry_msgs/msg/PoseWithCovarianceStamped'
@@ -313,6 +315,17 @@ class BagWriter:
         """Create the bag directory and storage file."""
         self._writer.open()
         self._open = True
+        storage = self._writer.storage
+        close = storage.close
+
+        def close_as_distro(version, metadata):
+            # rosbags records itself as the distribution; the bags are Jazzy's format
+            cursor = getattr(storage, 'cursor', None)
+            if cursor is not None:          # sqlite3: its schema table names it too
+                cursor.execute('UPDATE schema SET ros_distro = ?', (ROS_DISTRO,))
+            close(version, metadata.replace('ros_distro: rosbags', f'ros_distro: {ROS_DISTRO}'))
+
+        storage.close = close_as_distro
         return self
 
     def add_topic(self, topic, msgtype, qos=None):
@@ -343,6 +356,9 @@ class BagWriter:
         if self._open:
             self._writer.close()
             self._open = False
+            meta = self.path / 'metadata.yaml'
+            meta.write_text(meta.read_text(encoding='utf-8').replace(
+                'ros_distro: rosbags', f'ros_distro: {ROS_DISTRO}'), encoding='utf-8')
 
     def __enter__(self):
         return self.open()

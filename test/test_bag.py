@@ -392,8 +392,8 @@ def test_fusion_defaults_mirror_the_node():
 
     from bearing_loc_ros import fusion_node
     from bearing_loc_ros import bag_process as bagcli
-    from bearing_loc_ros.core import estimators
-    assert bagcli.FUSION_ESTIMATOR_OPTIONS == fusion_node.ESTIMATOR_OPTIONS
+    from bearing_loc_ros.core import estimators, parameters
+    assert bagcli.FUSION_ESTIMATOR_OPTIONS == parameters.ESTIMATOR_OPTIONS
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     try:

@@ -80,6 +80,6 @@ def test_helpers_live_in_their_layer():
         assert not _imports(os.path.join(cli, name)) & others, name
     demo = _imports(os.path.join(PKG, 'demo.py'))
     assert not {m for m in demo if m.endswith('_node') or '_node.' in m}, demo
-    for name in ('cli/bag.py', 'cli/evaluate.py', 'cli/plan.py', 'demo.py'):
+    for name in ('cli/bag.py', 'cli/evaluate.py', 'cli/plan_args.py', 'demo.py'):
         assert 'bearing_loc_ros.scenarios.resolve_scenario' in _imports(
             os.path.join(PKG, name)), name

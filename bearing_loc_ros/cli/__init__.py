@@ -16,8 +16,9 @@ VERBS = {
     'tma': 'Single moving station target motion analysis (JSON in, JSON out).',
     'plan': 'Station placement: cut angle, accuracy maps, placement.',
     'evaluate': 'Monte Carlo evaluation of estimators against the CRLB.',
-    'bag': 'rosbag2 datasets: simulate, play, process.',
+    'bag': 'rosbag2 datasets: simulate, play, process, info, import.',
     'calibrate': 'Receiver heading biases and confidence->sigma from a calibration run.',
+    'view': 'Foxglove WebSocket server of the live topics or of bags.',
 }
 
 
@@ -32,15 +33,21 @@ def _load(verb):
 def main(argv=None):
     """Entry point of the ``bearing_loc`` console script."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    parser = argparse.ArgumentParser(prog='bearing_loc', description=__doc__.splitlines()[0])
+    from . import helptext
+    argv = helptext.join_negative_lists(argv)
+    parser = argparse.ArgumentParser(
+        prog='bearing_loc', description=helptext.fill(helptext.DESCRIPTION),
+        epilog=helptext.example_epilog(helptext.TOP_EXAMPLE, helptext.TOP_EPILOG),
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest='verb', metavar='VERB')
     # Only the verb named on the command line is imported (keeps start-up fast).
     wanted = argv[0] if argv and argv[0] in VERBS else None
     for verb, help_text in VERBS.items():
-        p = sub.add_parser(verb, help=help_text)
+        p = helptext.verb_parser(sub, verb, help_text)
         if verb == wanted:
             try:
                 _load(verb).add_arguments(p)
+                helptext.finish(p)
             except ModuleNotFoundError as exc:
                 if exc.name != f'{__name__}.{verb}':
                     raise

@@ -17,6 +17,8 @@ import os
 import time
 
 from . import InputError
+from ..bag_player import DEFAULT_WAIT_S
+from .helptext import sub_command
 
 NS_PER_S = 1_000_000_000
 
@@ -26,8 +28,10 @@ def add_arguments(parser):
     sub = parser.add_subparsers(dest='bag_command', metavar='COMMAND')
     sub.required = True
 
-    p = sub.add_parser('simulate', help='write a simulated rosbag2 bag from a scenario')
-    p.add_argument('--scenario', required=True, help='scenario YAML (README "Simulator")')
+    p = sub_command(sub, 'simulate', 'write a simulated rosbag2 bag from a scenario',
+                    'bearing_loc bag simulate --scenario seed000 --duration 30 --out run1')
+    p.add_argument('--scenario', required=True,
+                   help='scenario YAML: a path, or the name of a shipped scenario (seed000)')
     p.add_argument('--duration', type=float, default=0.0,
                    help="simulated seconds (default 0: the scenario's duration)")
     p.add_argument('--seed', type=int, default=0, help='simulator seed (default 0)')
@@ -38,7 +42,8 @@ def add_arguments(parser):
                    help='/clock messages per simulated second (default 100, as '
                         'simulator_node; 0: no /clock topic)')
 
-    p = sub.add_parser('play', help="publish a bag's messages with /clock (rclpy)")
+    p = sub_command(sub, 'play', "publish a bag's messages with /clock (rclpy)",
+                    'bearing_loc bag play run1 --rate 4')
     p.add_argument('bag', help='bag directory')
     p.add_argument('--rate', type=float, default=1.0, help='playback speed factor (default 1)')
     p.add_argument('--loop', action='store_true', help='play again from the start when done')
@@ -48,16 +53,20 @@ def add_arguments(parser):
                         'topic, or generate at 100 Hz if it has none')
     p.add_argument('--delay', type=float, default=0.0,
                    help='wall seconds to wait before playing (default 0)')
-    p.add_argument('--wait-for-subscribers', type=float, default=0.0, metavar='SECONDS',
-                   help='wait up to SECONDS until every topic has a matched subscriber')
+    p.add_argument('--wait-for-subscribers', type=float, default=DEFAULT_WAIT_S,
+                   metavar='SECONDS',
+                   help='before playing, wait up to SECONDS until every topic that has a '
+                        'subscriber is matched; topics nobody subscribes to are not waited '
+                        f'for (default {DEFAULT_WAIT_S:g}; 0: do not wait)')
     p.add_argument('--topics', nargs='+', default=None, help='play only these topics')
     p.add_argument('--quiet', action='store_true', help='no progress output')
 
-    p = sub.add_parser('process', help='offline fusion over a bag -> fixes bag + CSV')
+    p = sub_command(sub, 'process', 'offline fusion over a bag: error statistics, and with '
+                    '--out a fixes bag and CSV',
+                    'bearing_loc bag process run1 --estimator wmle --out run1_fixes')
     p.add_argument('bag', help='input bag directory')
     p.add_argument('--estimator', default=None,
-                   help="estimator name (default: the fusion node's, "
-                        'core.estimators.DEFAULT_ESTIMATOR)')
+                   help="estimator name (default: the fusion node's default)")
     p.add_argument('--params-file', default=None,
                    help="the fusion node's parameters YAML (as given to --ros-args "
                         '--params-file), so the offline run uses the same settings')
@@ -67,16 +76,19 @@ def add_arguments(parser):
     p.add_argument('--namespace', default='',
                    help='target namespace of the bearing topics (<ns>/<station>/bearing, '
                         '<ns>/truth); default: the root namespace')
-    p.add_argument('--out', required=True,
-                   help='output name: bag directory OUT/ (fix topic) and OUT.csv')
+    p.add_argument('--out', default=None,
+                   help='write the fixes as bag directory OUT/ (fix topic) and OUT.csv '
+                        '(default: print the statistics only)')
     p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     p.add_argument('--fix-topic', default='fix',
                    help='topic of the fixes, relative to the namespace (default fix)')
 
-    p = sub.add_parser('info', help='print a summary of a bag')
+    p = sub_command(sub, 'info', 'print a summary of a bag', 'bearing_loc bag info run1')
     p.add_argument('bag', help='bag directory')
 
-    p = sub.add_parser('import', help='recorded KrakenSDR CSV logs -> a bag of bearings')
+    p = sub_command(sub, 'import', 'recorded KrakenSDR CSV logs -> a bag of bearings',
+                    'bearing_loc bag import --station s1=s1.csv --station s2=s2.csv '
+                    '--params stations.yaml --out run2')
     from ..bag_import import add_import_arguments
     add_import_arguments(p)
 
@@ -190,6 +202,20 @@ def run_simulate(args):
 
 # -------------------------------------------------------------------------------------- info
 
+def format_qos(q):
+    """One offered QoS profile (metadata dict): reliability, durability, history and depth,
+    then deadline, lifespan and liveliness when they are not the defaults."""
+    text = (f'{q.get("reliability", "?")}, {q.get("durability", "?")}, '
+            f'{q.get("history", "?")} {q.get("depth", "?")}')
+    for key in ('deadline', 'lifespan', 'liveliness_lease_duration'):
+        d = q.get(key) or {}
+        if d.get('sec') or d.get('nsec'):
+            text += f', {key} {d.get("sec", 0) + d.get("nsec", 0) / NS_PER_S:g} s'
+    if q.get('liveliness', 'automatic') not in ('automatic', 'system_default'):
+        text += f', liveliness {q["liveliness"]}'
+    return text
+
+
 def run_info(args):
     """``bag info``: files, duration, start, message count, topics with type/count/QoS."""
     from .. import bagio
@@ -204,10 +230,8 @@ def run_info(args):
         print(f'Messages:          {r.message_count}')
         for name in sorted(topics):
             t = topics[name]
-            q = t.qos[0] if t.qos else {}
             print(f'  {name} | {t.msgtype} | {t.count} msgs | '
-                  f'{q.get("reliability", "?")}, {q.get("history", "?")} '
-                  f'{q.get("depth", "?")} | {t.type_hash}')
+                  f'{"; ".join(map(format_qos, t.qos)) or "no QoS recorded"} | {t.type_hash}')
     return 0
 
 
@@ -230,7 +254,8 @@ def run_process(args):
     if not os.path.isdir(args.bag):
         raise InputError(f'bag: {args.bag} is not a directory')
     params = fusion_params(args.params_file, args.param, args.estimator)
-    check_out_parent(args.out)
+    if args.out is not None:
+        check_out_parent(args.out)
     t0 = time.perf_counter()
     s = process_bag(args.bag, args.out, params, args.storage, args.namespace, args.fix_topic)
     dt = time.perf_counter() - t0
@@ -240,7 +265,8 @@ def run_process(args):
           f'{s["epochs"]} epochs, {s["fixes"]} fixes (no fix: {no_fix}); dropped bearings: '
           f'{dropped}; bad messages {s["bad_messages"]}; outliers rejected {s["outliers"]}; '
           f'{dt:.2f} s')
-    print(f'wrote {s["bag"]}/ ({s["fix_topic"]}) and {s["csv"]}')
+    if s['bag'] is not None:
+        print(f'wrote {s["bag"]}/ ({s["fix_topic"]}) and {s["csv"]}')
     e = s['errors']
     if e is not None and e['n']:
         print(f'error against truth ({e["n"]} fixes): RMSE {e["rmse"]:.3f} m, mean '

@@ -52,10 +52,11 @@ def add_arguments(parser):
                              'azimuth, elevation, both (default) or none')
     parser.add_argument('--fixed-sigma-deg', type=float, default=0.5,
                         help='σ of the angle held fixed in a single-angle sweep, degrees '
-                             '(default 0.5, as seed 003 figs. 3-4)')
+                             '(default 0.5, as Zong & Cui 2015 figs. 3-4)')
     parser.add_argument('--range-ref', type=float, default=None, metavar='M',
                         help="override the stations' σ growth reference range r_ref, m "
-                             '(σ(r) = σ · r / r_ref, seed 003 eqs. (9)-(10)); 0: constant σ')
+                             '(σ(r) = σ · r / r_ref, Zong & Cui 2015 eqs. (9)-(10)); 0: '
+                             'constant σ')
     parser.add_argument('--out', default=None,
                         help='output directory for CSV, JSON and PNG files (created)')
     parser.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
@@ -198,7 +199,7 @@ def plot_results(rows, meta, out):
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     names = []
-    title = {'joint': 'σθ = σψ = σ (seed 003 fig. 2)',
+    title = {'joint': 'σθ = σψ = σ (Zong & Cui 2015 fig. 2)',
              'azimuth': f'azimuth σθ = σ, elevation σψ = {meta["fixed_sigma_deg"]:g}°',
              'elevation': f'elevation σψ = σ, azimuth σθ = {meta["fixed_sigma_deg"]:g}°'}
     for sw in meta['sweeps']:

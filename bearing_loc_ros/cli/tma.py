@@ -51,7 +51,7 @@ OBS_FIELDS = ('t', 'observer', 'azimuth', 'elevation', 'sigma_azimuth', 'sigma_e
 def add_arguments(parser):
     """Command line of ``bearing_loc tma``."""
     parser.description = ('Target motion analysis from one moving station with a speed prior '
-                          '(seed 001): JSON in (file or stdin), JSON out. Format: '
+                          '(Lin et al.): JSON in (file or stdin), JSON out. Format: '
                           'README "Target motion analysis".')
     add_io_arguments(parser)
     parser.add_argument('--estimator', default=None, metavar='NAME',
@@ -63,8 +63,8 @@ def add_arguments(parser):
     parser.add_argument('--speed', type=float, default=None,
                         help='prior speed v_c in m/s, overrides the input\'s "speed"')
     parser.add_argument('--compass', action='store_true',
-                        help='azimuths are compass bearings (clockwise from North, seed 001); '
-                             'converted to ENU as pi/2 - azimuth')
+                        help='azimuths are compass bearings (clockwise from North, as Lin et '
+                             'al.); converted to ENU as pi/2 - azimuth')
 
 
 def parse_observations(items, where, defaults, compass=False):
