@@ -22,7 +22,7 @@ setup(
     data_files=[
         ('share/ament_index/resource_index/packages', ['resource/' + PACKAGE]),
         ('share/' + PACKAGE, ['package.xml']),
-        ('share/' + PACKAGE + '/config', glob('config/*.yaml')),
+        ('share/' + PACKAGE + '/config', glob('config/*.yaml') + glob('config/*.json')),
         ('share/' + PACKAGE + '/config/scenarios', glob('config/scenarios/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.py')),
     ],
@@ -38,6 +38,7 @@ setup(
             'station_node = bearing_loc_ros.station_node:main',
             'simulator_node = bearing_loc_ros.simulator_node:main',
             'fusion_node = bearing_loc_ros.fusion_node:main',
+            'view_node = bearing_loc_ros.view_node:main',
             'bearing_loc = bearing_loc_ros.cli:main',
         ],
     },

@@ -14,6 +14,9 @@ foxglove-sdk, understood by Foxglove and by Lichtblick releases that speak it):
   ``geojson_period`` s, when a geodetic origin is set;
 * ``/<station>/navsat`` (sensor_msgs/NavSatFix, latched) for every station seen in a bearing
   message, when a geodetic origin is set;
+* ``/view/fix_stats`` (JSON): for every fix, its σ (sqrt of the covariance diagonal and
+  horizontal sqrt(C_xx + C_yy), m) and the fix rate (fixes per second of fix stamps over the
+  last :data:`RATE_WINDOW_NS`), for the layout's plot;
 * the server time (Foxglove ``time`` capability) from ``/clock`` when ``use_time`` is set
   (a node running with ``use_sim_time``, or a bag).
 
@@ -21,7 +24,9 @@ Slow clients: foxglove-sdk queues at most ``backlog`` messages per client and dr
 oldest data message when the queue is full, so a stalled client costs bounded memory.
 """
 
+from collections import deque
 import importlib
+import math
 import threading
 import time
 
@@ -37,6 +42,12 @@ LATCHED_LEAVES = ('accuracy_map',)
 CLOCK_TYPE = 'rosgraph_msgs/msg/Clock'
 BEARING_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 DEFAULT_BACKLOG = 512
+STATS_TOPIC = '/view/fix_stats'
+RATE_WINDOW_NS = 10_000_000_000
+STATS_SCHEMA = {'type': 'object', 'properties': {
+    k: {'type': 'number'} for k in ('stamp_s', 'sigma_east_m', 'sigma_north_m', 'sigma_up_m',
+                                    'sigma_horizontal_m', 'sigma_3d_m', 'fix_rate_hz')}}
+STATS_SCHEMA['properties']['stamp_ns'] = {'type': 'integer'}
 
 
 def wanted_topic(topic, msgtype, leaves=DEFAULT_LEAVES, extra=DEFAULT_GLOBAL):
@@ -96,6 +107,9 @@ class FoxgloveView:
         self.subscriptions = 0
         self.time_ns = None
         self.context = foxglove.Context()
+        self._fix_stamps = deque()
+        from foxglove import Channel
+        self._stats_channel = Channel(STATS_TOPIC, schema=STATS_SCHEMA, context=self.context)
         view = self
 
         class Listener(ServerListener):
@@ -175,7 +189,7 @@ class FoxgloveView:
             self.forwarded_bytes += len(raw)
         if msgtype == CLOCK_TYPE and topic == '/clock':
             self._on_clock(raw)
-        elif self.picture is not None and msgtype == BEARING_TYPE:
+        elif msgtype == BEARING_TYPE:
             self._observe(topic, raw, log_time_ns)
 
     def set_time(self, stamp_ns):
@@ -201,8 +215,10 @@ class FoxgloveView:
             msg = deserialize_message(raw, PoseWithCovarianceStamped)
             if leaf == 'fix':
                 stamp, pos, cov = fix_from_msg(msg)
-                self.picture.update_fix(gis.GeoFix(stamp, pos, cov, 'ok'))
-            elif leaf == 'bearing':
+                self._fix_stats(stamp, cov, log_time_ns)
+                if self.picture is not None:
+                    self.picture.update_fix(gis.GeoFix(stamp, pos, cov, 'ok'))
+            elif leaf == 'bearing' and self.picture is not None:
                 b = bearing_from_msg(msg, station_of(topic))
                 self.picture.update_bearing(b)
                 self._station_navsat(topic, b, log_time_ns)
@@ -212,6 +228,24 @@ class FoxgloveView:
             self.dropped += 1
             return
         self.publish_geojson(log_time_ns)
+
+    def _fix_stats(self, stamp, cov, log_time_ns):
+        """Log σ (m) and the fix rate (Hz, over RATE_WINDOW_NS of stamps) of a fix."""
+        stamps = self._fix_stamps
+        stamps.append(stamp)
+        while stamps and stamps[0] < stamp - RATE_WINDOW_NS:
+            stamps.popleft()
+        span = (stamps[-1] - stamps[0]) / 1e9 if len(stamps) > 1 else 0.0
+        d = [float(cov[i, i]) for i in range(3)]
+
+        def root(v):
+            return math.sqrt(v) if math.isfinite(v) and v >= 0 else None
+        self._stats_channel.log({
+            'stamp_ns': int(stamp), 'stamp_s': stamp / 1e9, 'sigma_east_m': root(d[0]),
+            'sigma_north_m': root(d[1]), 'sigma_up_m': root(d[2]), 'sigma_horizontal_m': root(d[0] + d[1]),
+            'sigma_3d_m': root(sum(d)),
+            'fix_rate_hz': (len(stamps) - 1) / span if span > 0 else None},
+            log_time=log_time_ns)
 
     def _station_navsat(self, topic, b, log_time_ns):
         """Publish a station's position as NavSatFix when it is new or moved."""

@@ -126,7 +126,8 @@ async def session(url, sim):
     a = await FoxgloveClient(url).connect()
     await a.pump(10.0, lambda c: {'/fix', '/markers', '/accuracy_map', '/map_geojson'}
                  <= set(c.by_topic))
-    await a.subscribe(['/fix', '/markers', '/accuracy_map', '/map_geojson', '/clock'])
+    await a.subscribe(['/fix', '/markers', '/accuracy_map', '/map_geojson', '/clock',
+                       '/view/fix_stats'])
     slow = await slow_client(url)
     sim.start()
     crowd_task = asyncio.create_task(crowd(url))
@@ -217,6 +218,14 @@ def test_live_view_serves_what_the_fusion_publishes(scenario_file):
     # Server time is the simulated clock (scenario epoch 1000 s), not the wall clock.
     assert a.times and all(1000e9 <= t <= 1100e9 for t in a.times)
     assert np.all(np.diff(a.times) >= 0)
+    # The plot channel: σ of each fix and the fix rate (1 Hz bearings -> 1 Hz fixes).
+    stats = [json.loads(p) for _, p in a.messages['/view/fix_stats']]
+    assert len(stats) == len(dds)
+    for st in stats:
+        _, _, cov = fix_from_msg(deserialize_message(dds[st['stamp_ns']],
+                                                     PoseWithCovarianceStamped))
+        assert st['sigma_horizontal_m'] == pytest.approx(np.sqrt(cov[0, 0] + cov[1, 1]))
+    assert stats[-1]['fix_rate_hz'] == pytest.approx(1.0, rel=0.05)
     # 20 clients at once all received fixes.
     assert len(counts) == 20 and min(counts) >= 2, counts
 
@@ -237,3 +246,25 @@ def test_view_refuses_a_polar_origin_and_a_busy_port():
             assert "parameter 'port'" in busy.output(), busy.output()
     finally:
         s.close()
+
+
+def test_shipped_layout_is_the_generated_one_and_plots_served_fields():
+    from bearing_loc_ros import foxglove_layout
+    from bearing_loc_ros.foxglove_view import STATS_SCHEMA, STATS_TOPIC
+    with open(os.path.join(REPO, 'config', 'foxglove_layout.json'), encoding='utf-8') as f:
+        text = f.read()
+    assert text == foxglove_layout.layout_json()
+    doc = json.loads(text)
+    panels = {k.split('!')[0] for k in doc['configById']}
+    assert panels == {'map', '3D', 'Plot'}
+
+    def leaves(node):
+        if isinstance(node, str):
+            return [node]
+        return leaves(node['first']) + leaves(node['second'])
+    assert sorted(leaves(doc['layout'])) == sorted(doc['configById'])
+    three = doc['configById']['3D!bearingloc']['topics']
+    assert three['/markers']['visible'] and three['/accuracy_map']['visible']
+    for path in doc['configById']['Plot!bearingloc']['paths']:
+        topic, _, field = path['value'].rpartition('.')
+        assert topic == STATS_TOPIC and field in STATS_SCHEMA['properties']
