@@ -242,7 +242,8 @@ class FoxgloveView:
             return math.sqrt(v) if math.isfinite(v) and v >= 0 else None
         self._stats_channel.log({
             'stamp_ns': int(stamp), 'stamp_s': stamp / 1e9, 'sigma_east_m': root(d[0]),
-            'sigma_north_m': root(d[1]), 'sigma_up_m': root(d[2]), 'sigma_horizontal_m': root(d[0] + d[1]),
+            'sigma_north_m': root(d[1]), 'sigma_up_m': root(d[2]),
+            'sigma_horizontal_m': root(d[0] + d[1]),
             'sigma_3d_m': root(sum(d)),
             'fix_rate_hz': (len(stamps) - 1) / span if span > 0 else None},
             log_time=log_time_ns)
