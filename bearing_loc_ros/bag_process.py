@@ -88,9 +88,10 @@ def fusion_params(params_file=None, overrides=(), estimator=None):
 
 
 def fusion_config(p):
-    """FusionConfig from fusion node parameters (core.parameters.fusion_config, as the node)."""
+    """FusionConfig from fusion node parameters (FusionConfig.from_parameters, as the node)."""
+    from .core.fusion import FusionConfig
     try:
-        return parameters.fusion_config(p)
+        return FusionConfig.from_parameters(p)
     except (TypeError, ValueError) as exc:
         raise InputError(str(exc)) from None
 

@@ -33,9 +33,8 @@ from rclpy.node import Node
 from sensor_msgs.msg import NavSatFix
 from visualization_msgs.msg import MarkerArray
 
-from .core import parameters
 from .core.display import AccuracyMap, AccuracyMapConfig
-from .core.fusion import make_core, MODE_MULTISTATION, MODE_TMA
+from .core.fusion import FusionConfig, make_core, MODE_MULTISTATION, MODE_TMA
 from .ros_common import declare_schema, keep_last_qos, main_for, ParameterError, \
     topics_under_namespace
 from .ros_conversions import (bearing_from_msg, ConversionError, diagnostic_array,
@@ -82,7 +81,8 @@ class FusionNode(Node):
             except ValueError as exc:
                 raise ParameterError('geodetic_origin', str(exc).partition(': ')[2]) from None
         try:
-            self.core = make_core(parameters.fusion_config(p), self.stations_param, p['mode'])
+            self.core = make_core(FusionConfig.from_parameters(p), self.stations_param,
+                                  p['mode'])
             self.accuracy_map = (AccuracyMap(AccuracyMapConfig(**{
                 k[len(MAP_PREFIX):]: (tuple(v) if isinstance(v, list) else v)
                 for k, v in p.items() if k.startswith(MAP_PREFIX) and k != MAP_PREFIX +
@@ -146,7 +146,7 @@ class FusionNode(Node):
 
     def _parameter_changes(self, params):
         values = {prm.name: prm.value for prm in params}
-        config = parameters.fusion_config_changes(self.core.config, values)
+        config = self.core.config.parameter_changes(values)
         display = {k: v for k, v in values.items() if k in RUNTIME_DISPLAY}
         stations = list(values['stations'] or []) if 'stations' in values else None
         for s in stations or ():

@@ -84,7 +84,7 @@ def test_shipped_parameter_files_are_generated_from_the_schema(node):
     path = os.path.join(REPO, 'config', schema.PARAMS_FILES[node])
     with open(path, encoding='utf-8') as f:
         text = f.read()
-    assert text == docs.yaml_text(node), f'regenerate: python -m ' \
+    assert text == schema.yaml_text(node), f'regenerate: python -m ' \
         f'bearing_loc_ros.core.parameters --yaml {node} > config/{schema.PARAMS_FILES[node]}'
     body = yaml.safe_load(text)['/**']['ros__parameters']
     flat = {}
@@ -107,7 +107,7 @@ def test_docs_tables_are_generated_from_the_schema():
             region = docs.docs_region(text, node)
             if region is not None:
                 found[node] = path
-                assert region == docs.markdown_table(node), \
+                assert region == schema.markdown_table(node), \
                     f'{path}: python -m bearing_loc_ros.core.parameters --update-docs {path}'
     assert set(found) == set(schema.NODES), found
 
@@ -117,7 +117,7 @@ def test_markdown_command_prints_the_table():
         out = subprocess.run([sys.executable, '-m', 'bearing_loc_ros.core.parameters',
                               '--markdown', node], capture_output=True, text=True, cwd=REPO,
                              env=node_env(), timeout=60, check=True).stdout
-        assert out == docs.markdown_table(node)
+        assert out == schema.markdown_table(node)
         assert out.count('\n') == len(schema.schema(node)) + 2
 
 
@@ -137,7 +137,7 @@ def test_schema_check_rules():
 def test_fusion_config_is_built_from_the_schema_for_node_and_bag_process(ros):
     from bearing_loc_ros import bag_process
     from bearing_loc_ros.core.fusion import FusionConfig
-    assert FusionConfig() == schema.fusion_config().replace(estimator_options={})
+    assert FusionConfig() == FusionConfig.from_parameters().replace(estimator_options={})
     path = os.path.join(REPO, 'config', 'fusion.yaml')
     offline = bag_process.fusion_config(bag_process.fusion_params(path, ['rate=2']))
     given = {k: v for k, v in bag_process.read_params_file(path).items()

@@ -1,5 +1,7 @@
 """Renderers of the parameter schema (core.parameters): the Markdown tables of the docs and
-the shipped parameter files, and the command line that prints or updates them::
+the shipped parameter files, and the command line that prints or updates them. They take
+the schema (a sequence of core.parameters.Param) as an argument and import nothing from
+the package::
 
     python -m bearing_loc_ros.core.parameters --markdown fusion_node
     python -m bearing_loc_ros.core.parameters --yaml station_node > config/station.yaml
@@ -10,8 +12,9 @@ import argparse
 import sys
 import textwrap
 
-from .parameters import (BOOL, DOUBLE, DOUBLE_ARRAY, INTEGER, NODES, schema, STRING,
-                         STRING_ARRAY)
+#: Parameter types (the values of core.parameters' type constants) as the tables print them.
+TYPE_NAMES = {'bool': 'bool', 'integer': 'int', 'double': 'double', 'string': 'string',
+              'double_array': 'double[]', 'string_array': 'string[]'}
 
 
 def _code(value):
@@ -27,19 +30,18 @@ def _code(value):
 
 
 def _type_text(p):
-    return {BOOL: 'bool', INTEGER: 'int', DOUBLE: 'double', STRING: 'string',
-            DOUBLE_ARRAY: 'double[]', STRING_ARRAY: 'string[]'}[p.type]
+    return TYPE_NAMES[p.type]
 
 
 def _cell(text):
     return text.replace('|', '\\|')
 
 
-def markdown_table(node):
-    """The Markdown parameter table of ``node`` (one row per parameter, schema order)."""
+def markdown_table(params):
+    """The Markdown parameter table of the Params ``params`` (one row each, in order)."""
     rows = ['| name | type | default | unit | range | run time | description |',
             '|---|---|---|---|---|---|---|']
-    for p in schema(node):
+    for p in params:
         desc = p.description
         if p.deprecated:
             desc += ' (formerly ' + ', '.join(f'`{d}`' for d in p.deprecated) + \
@@ -59,18 +61,19 @@ def _yaml_double(v):
 
 def _yaml_value(p, value):
     import yaml
-    if p.type == DOUBLE:
+    if p.type == 'double':
         return _yaml_double(value)
-    if p.type == DOUBLE_ARRAY:
+    if p.type == 'double_array':
         return '[' + ', '.join(_yaml_double(v) for v in value) + ']'
-    if p.type == STRING and value == '':
+    if p.type == 'string' and value == '':
         return "''"
     return yaml.safe_dump(value, default_flow_style=True).strip().removesuffix('...').strip()
 
 
-def yaml_text(node):
-    """The shipped parameter file of ``node``: every parameter at its default (or its
-    example value), each with its description, unit and range as a comment."""
+def yaml_text(node, params):
+    """The shipped parameter file of ``node`` with the Params ``params``: every parameter at
+    its default (or its example value), each with its description, unit and range as a
+    comment."""
     head = (f'# {node} parameters: every parameter with its default (or an example value).\n'
             '# Generated from the schema in bearing_loc_ros/core/parameters.py:\n'
             f'#   python -m bearing_loc_ros.core.parameters --yaml {node}\n'
@@ -80,7 +83,7 @@ def yaml_text(node):
             '/**:\n  ros__parameters:\n')
     lines = []
     group = None
-    for p in schema(node):
+    for p in params:
         prefix, _, leaf = p.name.rpartition('.')
         indent = '    '
         if prefix:
@@ -110,24 +113,25 @@ def docs_region(text, node):
     return None if j < 0 else text[i + len(begin):j]
 
 
-def fill_docs(text):
-    """``text`` with every node's parameter region replaced by :func:`markdown_table`."""
-    for node in NODES:
+def fill_docs(text, schemas):
+    """``text`` with the parameter region of every node of ``schemas`` (node -> Params)
+    replaced by its :func:`markdown_table`."""
+    for node, params in schemas.items():
         old = docs_region(text, node)
         if old is not None:
             begin = f'<!-- BEGIN parameters {node} -->\n'
-            text = text.replace(begin + old, begin + markdown_table(node), 1)
+            text = text.replace(begin + old, begin + markdown_table(params), 1)
     return text
 
 
-def main(argv=None):
+def main(schemas, argv=None):
     """``python -m bearing_loc_ros.core.parameters --markdown|--yaml NODE|--update-docs FILE``."""
     ap = argparse.ArgumentParser(prog='python -m bearing_loc_ros.core.parameters',
                                  description='Print a node parameter table or file.')
     what = ap.add_mutually_exclusive_group(required=True)
-    what.add_argument('--markdown', metavar='NODE', choices=NODES,
+    what.add_argument('--markdown', metavar='NODE', choices=tuple(schemas),
                       help='Markdown parameter table of NODE')
-    what.add_argument('--yaml', metavar='NODE', choices=NODES,
+    what.add_argument('--yaml', metavar='NODE', choices=tuple(schemas),
                       help='parameter file of NODE (every parameter at its default)')
     what.add_argument('--update-docs', metavar='FILE',
                       help='rewrite the parameter-table regions of FILE in place')
@@ -136,7 +140,8 @@ def main(argv=None):
         with open(args.update_docs, encoding='utf-8') as f:
             text = f.read()
         with open(args.update_docs, 'w', encoding='utf-8') as f:
-            f.write(fill_docs(text))
+            f.write(fill_docs(text, schemas))
         return 0
-    sys.stdout.write(markdown_table(args.markdown) if args.markdown else yaml_text(args.yaml))
+    sys.stdout.write(markdown_table(schemas[args.markdown]) if args.markdown
+                     else yaml_text(args.yaml, schemas[args.yaml]))
     return 0

@@ -371,40 +371,23 @@ FUSION_CONFIG_FIELDS = ('frame_id', 'trigger', 'rate', 'max_latency', 'sync_tole
 ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay')
 
 
-def fusion_config_kwargs(values):
-    """FusionConfig keyword arguments from fusion node parameter values (name -> value;
-    missing names take the schema defaults)."""
-    v = defaults('fusion_node')
-    v.update(values)
-    kw = {k: v[k] for k in FUSION_CONFIG_FIELDS}
-    kw['estimator_options'] = {k: v[k] for k in ESTIMATOR_OPTIONS}
-    return kw
+def markdown_table(node):
+    """The Markdown parameter table of ``node`` (:func:`.parameter_docs.markdown_table`)."""
+    from . import parameter_docs
+    return parameter_docs.markdown_table(schema(node))
 
 
-def fusion_config_changes(config, values):
-    """FusionConfig field changes (``config.replace(**changes)``) that fusion node parameter
-    values (name -> value) make to ``config``: fields of the same name, and
-    ``estimator_options`` when an estimator option changes; other names are ignored."""
-    changes = {k: v for k, v in values.items() if k in FUSION_CONFIG_FIELDS}
-    options = dict(config.estimator_options)
-    options.update({k: v for k, v in values.items() if k in ESTIMATOR_OPTIONS})
-    if options != config.estimator_options:
-        changes['estimator_options'] = options
-    return changes
-
-
-def fusion_config(values=None):
-    """The validated FusionConfig of fusion node parameter values (the node and
-    ``bag process`` both build it here); ValueError naming the field."""
-    from .fusion.config import FusionConfig
-    return FusionConfig(**fusion_config_kwargs(values or {})).validate()
+def yaml_text(node):
+    """The shipped parameter file of ``node`` (:func:`.parameter_docs.yaml_text`)."""
+    from . import parameter_docs
+    return parameter_docs.yaml_text(node, schema(node))
 
 
 def main(argv=None):
     """``python -m bearing_loc_ros.core.parameters --markdown|--yaml NODE|--update-docs FILE``
-    (see :mod:`.parameter_docs`)."""
-    from .parameter_docs import main as _main
-    return _main(argv)
+    (the renderers are in :mod:`.parameter_docs`)."""
+    from . import parameter_docs
+    return parameter_docs.main({node: schema(node) for node in NODES}, argv)
 
 
 if __name__ == '__main__':

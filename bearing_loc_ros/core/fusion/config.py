@@ -129,6 +129,29 @@ class FusionConfig:
             raise ValueError(f'outlier_gate: probability must be in [0.5, 1], got {g}')
         return self
 
+    @classmethod
+    def from_parameters(cls, values=None):
+        """The validated config of fusion node parameter values (name -> value; missing
+        names take the schema defaults): the fields of the same name
+        (core.parameters.FUSION_CONFIG_FIELDS) and the estimator options
+        (core.parameters.ESTIMATOR_OPTIONS). The node and ``bag process`` both build their
+        config here. ValueError naming the field."""
+        v = _parameters.defaults('fusion_node')
+        v.update(values or {})
+        return cls(estimator_options={k: v[k] for k in _parameters.ESTIMATOR_OPTIONS},
+                   **{k: v[k] for k in _parameters.FUSION_CONFIG_FIELDS}).validate()
+
+    def parameter_changes(self, values):
+        """Field changes (for :meth:`replace`) that fusion node parameter values (name ->
+        value) make: fields of the same name, and ``estimator_options`` when an estimator
+        option changes; other names are ignored."""
+        changes = {k: v for k, v in values.items() if k in _parameters.FUSION_CONFIG_FIELDS}
+        options = dict(self.estimator_options)
+        options.update({k: v for k, v in values.items() if k in _parameters.ESTIMATOR_OPTIONS})
+        if options != self.estimator_options:
+            changes['estimator_options'] = options
+        return changes
+
     def replace(self, **changes):
         """A copy with ``changes`` applied (validate it before use)."""
         return replace(self, **changes)
