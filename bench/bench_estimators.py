@@ -1,23 +1,29 @@
-"""Latency and throughput of every estimator, next to scipy.optimize.least_squares.
+"""Speed of the estimators one fix at a time and in batches, next to scipy least_squares (lm).
 
-For N = 3, 10, 100, 1000 stations (random geometry within ±20 km, targets 0.5-7 km high,
-σ = 2 mrad, every third station azimuth-only) this prints, per estimator:
+Problems: random geometry within ±20 km (station heights 0-200 m), targets 0.5-7 km high,
+σ = 2 mrad, every third station azimuth-only. The reference is
+scipy.optimize.least_squares(method='lm', analytic Jacobian) on the same whitened residuals
+as ``mle`` ((measured − predicted)/σ, azimuth wrapped), started from ``ls``, one problem per
+call. Everything is measured in this one run, so the ratios compare like with like.
 
-* latency: wall time of one call with M = 1 problem (ms, best of several runs);
-* throughput: fixes per second of one batched call with M = min(10000, 100000 / N) problems;
-* iterations: mean iterations in the batch.
+* One fix: ``locate(name, bearings)`` with a one-problem BearingSet (validation included, as
+  the fusion node and ``bearing_loc locate`` call it), for N = 3, 4, 6, 10 bearings: median
+  and 90th percentile per call over ``--problems`` problems (each call timed alone, best of 3
+  repeats), and the ratio scipy / estimator (above 1: faster than scipy) and estimator / mle.
+* Batch: one call with M = 10,000 problems of N = 3 (and N = 10): fixes per second.
+* ``--large``: batch throughput also at N = 100 and 1000 (M = 100,000 / N).
 
-The reference is scipy.optimize.least_squares (method 'lm', analytic Jacobian, the same
-whitened residuals as ``mle``: (measured − predicted)/σ with the azimuth wrapped, started from
-``ls``), solving the same ML problems one by one (a Python loop; at most 200 problems timed).
-The last table gives the per-iteration cost of the default estimator (one evaluation of the
-residuals, normal matrix and gradient over the M × N bearings), which is what grows with N.
-Single-threaded: OMP/BLAS threads are pinned to 1 before numpy is imported.
+Single-threaded (OMP/BLAS threads pinned to 1 before numpy is imported). The median
+|x_scipy − x_mle| shows both solve the same problem.
 
-Run: .venv/bin/python bench/bench_estimators.py [--quick]
+Profile one fix (pyinstrument is a bench-only tool: ``.venv/bin/pip install pyinstrument``):
+``.venv/bin/python bench/bench_estimators.py --profile mle``.
+
+Run: .venv/bin/python bench/bench_estimators.py [--quick] [--large] [--problems 300]
 """
 import argparse
 import os
+import sys
 import time
 
 for _var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
@@ -26,15 +32,19 @@ for _var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
 import numpy as np  # noqa: E402
 from scipy.optimize import least_squares  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
 from bearing_loc_ros.core import estimators as est  # noqa: E402
 from bearing_loc_ros.core.bearings import BearingSet, simulate_bearings  # noqa: E402
 from bearing_loc_ros.core.conventions import wrap_angle  # noqa: E402
 from bearing_loc_ros.core.crlb import angle_jacobians  # noqa: E402
 
-METHODS = sorted(est.ESTIMATORS)
+ITERATIVE = ('mle', 'wmle', 'ctls_am', 'ctls')
+METHODS = ('mle', 'wmle', 'ctls_am', 'ctls', 'ls', 'tls')
 
 
 def problems(N, M, rng):
+    """(targets (M, 3), BearingSet) of M random problems with N stations."""
     st = rng.uniform(-20e3, 20e3, size=(N, 3))
     st[:, 2] = rng.uniform(0.0, 200.0, N)
     tgt = rng.uniform([-10e3, -10e3, 500.0], [10e3, 10e3, 7e3], size=(M, 3))
@@ -43,95 +53,146 @@ def problems(N, M, rng):
     return tgt, BearingSet.from_arrays(bs.positions, bs.azimuth, el, bs.sigma_az, bs.sigma_el)
 
 
-def best_time(fn, repeat):
-    best = np.inf
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
+def split(bs):
+    """One one-problem BearingSet per problem (built before timing)."""
+    return [BearingSet(bs.positions[m:m + 1].copy(), bs.azimuth[m:m + 1].copy(),
+                       bs.elevation[m:m + 1].copy(), bs.sigma_az[m:m + 1].copy(),
+                       bs.sigma_el[m:m + 1].copy()) for m in range(bs.M)]
 
 
-def scipy_ml(bs, x0):
-    """Solve each problem's ML (seed 003 eq. (3)) with scipy least_squares, one by one."""
-    out = np.empty((bs.M, 3))
-    nfev = np.empty(bs.M)
-    for m in range(bs.M):
-        pos = bs.positions[m]
-        az, el = bs.azimuth[m], bs.elevation[m]
-        has = np.isfinite(el)
-        saz, sel = bs.sigma_az[m], bs.sigma_el[m][has]
+def scipy_problem(one):
+    """(fun, jac) of one problem's whitened ML residuals (Zong & Cui 2015 eq. (3))."""
+    pos = one.positions[0]
+    az, el = one.azimuth[0], one.elevation[0]
+    has = np.isfinite(el)
+    saz, sel = one.sigma_az[0], one.sigma_el[0][has]
 
-        def fun(x):
-            d = x - pos
-            r_az = wrap_angle(az - np.arctan2(d[:, 1], d[:, 0])) / saz
-            r_el = (el[has] - np.arctan2(d[has, 2], np.hypot(d[has, 0], d[has, 1]))) / sel
-            return np.concatenate([r_az, r_el])
+    def fun(x):
+        d = x - pos
+        r_az = wrap_angle(az - np.arctan2(d[:, 1], d[:, 0])) / saz
+        r_el = (el[has] - np.arctan2(d[has, 2], np.hypot(d[has, 0], d[has, 1]))) / sel
+        return np.concatenate([r_az, r_el])
 
-        def jac(x):
-            g_az, g_el = angle_jacobians(x, pos)
-            return -np.concatenate([g_az[0] / saz[:, None], g_el[0][has] / sel[:, None]])
+    def jac(x):
+        g_az, g_el = angle_jacobians(x, pos)
+        return -np.concatenate([g_az[0] / saz[:, None], g_el[0][has] / sel[:, None]])
 
-        sol = least_squares(fun, x0[m], jac=jac, method='lm', xtol=1e-10)
-        out[m] = sol.x
-        nfev[m] = sol.nfev
-    return out, nfev
+    return fun, jac
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--quick', action='store_true', help='N = 3 and 100 only, smaller M')
-    ap.add_argument('--seed', type=int, default=0)
-    a = ap.parse_args()
-    rng = np.random.default_rng(a.seed)
-    sizes = [3, 100] if a.quick else [3, 10, 100, 1000]
-    t_start = time.perf_counter()
-    rows = []
-    per_iter = []
+def per_call(fn, items, repeat=3):
+    """Seconds per call of fn(item) for every item (best of ``repeat``), and the outputs."""
+    times = np.empty(len(items))
+    out = [None] * len(items)
+    for k, item in enumerate(items):
+        best = np.inf
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            out[k] = fn(item)
+            best = min(best, time.perf_counter() - t0)
+        times[k] = best
+    return times, out
+
+
+def single_fix_table(sizes, n_problems, rng):
+    """Rows (N, name, median ms, p90 ms, scipy/this, this/mle) and scipy agreement."""
+    rows, agree = [], []
     for N in sizes:
-        M = min(10000, 100000 // N) // (10 if a.quick else 1)
-        _, one = problems(N, 1, rng)
-        _, batch = problems(N, M, rng)
-        for method in METHODS:
-            fn = est.ESTIMATORS[method]
-            lat, _ = best_time(lambda: fn(one), 20 if N <= 100 else 5)
-            thr, res = best_time(lambda: fn(batch), 3 if M * N <= 30000 else 1)
-            rows.append((N, method, lat * 1e3, M, M / thr, res.iterations.mean(),
-                         res.converged.mean()))
-        # scipy reference on the same problems, one by one.
-        x0 = est.ls(batch).position
-        ms = min(M, 200)
-        sub = BearingSet(batch.positions[:ms], batch.azimuth[:ms], batch.elevation[:ms],
-                         batch.sigma_az[:ms], batch.sigma_el[:ms])
-        x_ls1 = est.ls(one).position
-        lat, _ = best_time(lambda: scipy_ml(one, x_ls1), 5)
-        thr, (xs, nfev) = best_time(lambda: scipy_ml(sub, x0[:ms]), 1)
-        mine = est.mle(sub).position
-        dev = np.max(np.linalg.norm(xs - mine, axis=1))
-        rows.append((N, 'scipy least_squares (ML)', lat * 1e3, ms, ms / thr, nfev.mean(), 1.0))
-        # Per-iteration cost of the default estimator: one evaluation over M × N bearings.
-        prob = est._MLProblem(batch)
-        xb = np.nan_to_num(est.mle(batch).position).T.copy()
-        t_eval, _ = best_time(lambda: prob.pack(xb[0], xb[1], xb[2]), 5)
-        prob1 = est._MLProblem(one)
-        x1 = np.nan_to_num(est.mle(one).position).T.copy()
-        t_eval1, _ = best_time(lambda: prob1.pack(x1[0], x1[1], x1[2]), 50)
-        per_iter.append((N, t_eval1 * 1e6, M, t_eval * 1e6, t_eval * 1e9 / (M * N), dev))
+        _, bs = problems(N, n_problems, rng)
+        ones = split(bs)
+        med = {}
+        for name in METHODS:
+            t, _ = per_call(lambda b, name=name: est.locate(name, b), ones)
+            med[name] = (np.median(t), np.percentile(t, 90))
+        x0 = [est.ls(b).position[0] for b in ones]
+        setups = [scipy_problem(b) for b in ones]
+        t, sols = per_call(lambda k: least_squares(setups[k][0], x0[k], jac=setups[k][1],
+                                                   method='lm', xtol=1e-10), range(len(ones)))
+        med['scipy lm'] = (np.median(t), np.percentile(t, 90))
+        x_mle = est.locate('mle', bs).position
+        agree.append((N, np.median(np.linalg.norm(np.array([s.x for s in sols]) - x_mle,
+                                                  axis=1))))
+        for name, (m, p90) in med.items():
+            rows.append((N, name, m * 1e3, p90 * 1e3, med['scipy lm'][0] / m,
+                         m / med['mle'][0]))
+    return rows, agree
 
-    print(f'N stations, M problems; seed {a.seed}; one thread '
+
+def batch_table(sizes, M_of, rng, repeat=3):
+    """Rows (N, name, M, fixes/s, mean iterations, converged fraction)."""
+    rows = []
+    for N in sizes:
+        M = M_of(N)
+        _, bs = problems(N, M, rng)
+        for name in METHODS:
+            best = np.inf
+            for _ in range(repeat if M * N <= 100000 else 1):
+                t0 = time.perf_counter()
+                res = est.locate(name, bs)
+                best = min(best, time.perf_counter() - t0)
+            rows.append((N, name, M, M / best, res.iterations.mean(), res.converged.mean()))
+        ms = min(M, 200)
+        ones = split(BearingSet(bs.positions[:ms], bs.azimuth[:ms], bs.elevation[:ms],
+                                bs.sigma_az[:ms], bs.sigma_el[:ms]))
+        setups = [scipy_problem(b) for b in ones]
+        x0 = est.ls(bs).position[:ms]
+        t0 = time.perf_counter()
+        nfev = [least_squares(f, x0[k], jac=j, method='lm', xtol=1e-10).nfev
+                for k, (f, j) in enumerate(setups)]
+        rows.append((N, 'scipy lm (one by one)', ms, ms / (time.perf_counter() - t0),
+                     float(np.mean(nfev)), 1.0))
+    return rows
+
+
+def profile(name, N=6, calls=2000):
+    """pyinstrument profile of ``calls`` single-fix calls of estimator ``name``."""
+    from pyinstrument import Profiler
+    _, bs = problems(N, calls, np.random.default_rng(1))
+    ones = split(bs)
+    p = Profiler(interval=1e-4)
+    p.start()
+    for b in ones:
+        est.locate(name, b)
+    p.stop()
+    print(p.output_text(unicode=True, color=False, show_all=False))
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--quick', action='store_true', help='fewer problems, N = 3 and 10 only')
+    ap.add_argument('--large', action='store_true', help='batch also at N = 100 and 1000')
+    ap.add_argument('--problems', type=int, default=300, help='problems per N (one fix)')
+    ap.add_argument('--seed', type=int, default=0)
+    ap.add_argument('--profile', metavar='ESTIMATOR', help='profile single fixes and exit')
+    a = ap.parse_args(argv)
+    if a.profile:
+        profile(a.profile)
+        return 0
+    rng = np.random.default_rng(a.seed)
+    t_start = time.perf_counter()
+    n_problems = 100 if a.quick else a.problems
+    sizes = (3, 10) if a.quick else (3, 4, 6, 10)
+    single, agree = single_fix_table(sizes, n_problems, rng)
+    batch_sizes = (3, 10) + ((100, 1000) if a.large else ())
+    batch = batch_table(batch_sizes, lambda N: min(10000, 100000 // N) // (10 if a.quick else 1),
+                        rng)
+    print(f'seed {a.seed}, one thread, {n_problems} problems per N '
           f'({time.perf_counter() - t_start:.0f} s to run)\n')
-    print('| N | estimator | latency M=1 (ms) | batch M | throughput (fixes/s) '
-          '| mean iterations | converged |')
-    print('|---|---|---|---|---|---|---|')
-    for N, name, lat, M, thr, it, conv in rows:
-        it_s = f'{it:.1f}' + (' (nfev)' if name.startswith('scipy') else '')
-        print(f'| {N} | {name} | {lat:.2f} | {M} | {thr:,.0f} | {it_s} | {conv:.3f} |')
-    print('\nPer iteration of the default estimator (mle): one cost/normal-matrix evaluation')
-    print('| N | M=1 (µs) | batch M | batch (µs) | ns per bearing | max |x_scipy − x_mle| (m) |')
+    print('One fix: locate(name, one problem), time per call')
+    print('| N | estimator | median (ms) | p90 (ms) | scipy lm / this | this / mle |')
     print('|---|---|---|---|---|---|')
-    for N, t1, M, tb, nsb, dev in per_iter:
-        print(f'| {N} | {t1:.0f} | {M} | {tb:,.0f} | {nsb:.1f} | {dev:.1e} |')
+    for N, name, m, p90, vs_scipy, vs_mle in single:
+        print(f'| {N} | {name} | {m:.3f} | {p90:.3f} | {vs_scipy:.2f} | {vs_mle:.2f} |')
+    print('\nMedian |x_scipy − x_mle| (m): '
+          + ', '.join(f'N={N}: {d:.1e}' for N, d in agree))
+    print('\nBatch: one call with M problems')
+    print('| N | estimator | M | fixes/s | mean iterations | converged |')
+    print('|---|---|---|---|---|---|')
+    for N, name, M, thr, it, conv in batch:
+        it_s = f'{it:.1f}' + (' (nfev)' if name.startswith('scipy') else '')
+        print(f'| {N} | {name} | {M} | {thr:,.0f} | {it_s} | {conv:.3f} |')
+    return 0
 
 
 if __name__ == '__main__':
-    main()
+    sys.exit(main())

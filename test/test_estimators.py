@@ -341,3 +341,49 @@ def test_ctls_never_reports_a_correct_fix_as_not_converged(sigma_deg):
                              bs.sigma_az[bad], bs.sigma_el[bad])
             again = locate(method, sub, tolerance=1e-6)
             assert not np.any(again.status == 'ok'), (method, bad[again.status == 'ok'])
+
+
+@pytest.mark.parametrize('method', ['mle', 'wmle'])
+def test_one_problem_path_gives_the_batch_paths_results(method):
+    # M = 1 runs the iteration on Python floats (core/ml_single.py); the same problem twice
+    # in one batch runs the vectorised iteration. Same statuses, iterations and fixes to
+    # rounding, also for starts, iteration limits, azimuth-only stations and N = 2-12.
+    rng = np.random.default_rng(21)
+    cases = []
+    for N in (2, 3, 5, 8, 12):
+        _, bs = random_problems(rng, 30, N, noise=True)
+        cases += [(bs.problem(m), {}) for m in range(bs.M)]
+    _, bs = random_problems(rng, 10, 4, noise=True)
+    cases += [(bs.problem(m), {'max_iterations': 1}) for m in range(5)]
+    cases += [(bs.problem(m), {'initial': [5e4, -3e4, 9e3], 'tolerance': 1e-6})
+              for m in range(5, 10)]
+    if method == 'wmle':
+        cases = [(b, dict(o, reference_range=700.0)) for b, o in cases]
+    statuses = set()
+    for one, opts in cases:
+        fast = locate(method, one, **opts)
+        two = BearingSet(*(np.concatenate([a, a]) for a in (
+            one.positions, one.azimuth, one.elevation, one.sigma_az, one.sigma_el)))
+        plain = locate(method, two, **opts)
+        assert fast.status[0] == plain.status[0] and fast.iterations[0] == plain.iterations[0]
+        scale = np.max(np.abs(plain.position[0]))
+        np.testing.assert_allclose(fast.position[0], plain.position[0], rtol=0,
+                                   atol=1e-9 * scale)
+        np.testing.assert_allclose(fast.covariance[0], plain.covariance[0], rtol=0,
+                                   atol=1e-9 * np.max(np.abs(plain.covariance[0])))
+        statuses.add(str(fast.status[0]))
+    assert {'ok', 'max_iterations'} <= statuses
+
+
+def test_one_problem_path_hands_ieee_cases_to_the_batch_path():
+    # A start on a station's vertical axis divides by zero on floats: the batch path (inf
+    # and NaN arithmetic) answers instead, identically to a batch of two.
+    st = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0], [0.0, 1000.0, 0.0]])
+    bs = simulate_bearings([[300.0, 400.0, 500.0]], st, 1e-3, rng=np.random.default_rng(2))
+    for method in ('mle', 'wmle'):
+        one = locate(method, bs, initial=[0.0, 0.0, 700.0])
+        two = locate(method, BearingSet(*(np.concatenate([a, a]) for a in (
+            bs.positions, bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el))),
+            initial=[0.0, 0.0, 700.0])
+        assert one.status[0] == two.status[0]
+        np.testing.assert_array_equal(one.position[0], two.position[0])

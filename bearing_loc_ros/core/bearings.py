@@ -190,6 +190,8 @@ class BearingSet:
         at least one elevation (azimuths alone never fix the height: seed 004 needs one 2D
         sensor).
         """
+        if _one_problem_valid(self):
+            return self
         _check_bearing_fields(self.positions, self.azimuth, self.elevation, self.sigma_az,
                               self.sigma_el)
         if self.N < 2:
@@ -232,6 +234,37 @@ def _scalar_fields_valid(b):
     if math.isnan(el):
         return True
     return math.isfinite(el) and abs(el) < HALF_PI and SIGMA_MIN <= sel <= SIGMA_MAX
+
+
+def _one_problem_valid(bs):
+    """Fast path of :meth:`BearingSet.validate` for one problem of float arrays (M = 1).
+
+    The same rules on Python floats (~3 µs at N = 10 instead of ~40 µs: one fix at a time is
+    the fusion node's and ``bearing_loc locate``'s case, bench/bench_estimators.py). True only
+    when the set certainly passes; anything else returns False and goes through the full
+    check, which names the bad field.
+    """
+    arrays = (bs.positions, bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el)
+    if not all(type(a) is np.ndarray and a.dtype == np.float64 for a in arrays):
+        return False
+    N = bs.azimuth.shape[-1]
+    if bs.positions.shape != (1, N, 3) or any(a.shape != (1, N) for a in arrays[1:]) or N < 2:
+        return False
+    # A sum is finite only if every term is (a finite sum that overflows returns False and
+    # takes the full check).
+    if not (math.isfinite(sum(bs.positions.ravel().tolist()))
+            and math.isfinite(sum(bs.azimuth[0].tolist()))):
+        return False
+    n_el = 0
+    for el, saz, sel in zip(bs.elevation[0].tolist(), bs.sigma_az[0].tolist(),
+                            bs.sigma_el[0].tolist()):
+        if not SIGMA_MIN <= saz <= SIGMA_MAX:
+            return False
+        if el == el:                                    # not NaN: a 2D bearing
+            if not (abs(el) < HALF_PI and SIGMA_MIN <= sel <= SIGMA_MAX):
+                return False
+            n_el += 1
+    return n_el > 0 and N + n_el >= 3
 
 
 def _check_bearing_fields(pos, az, el, saz, sel):

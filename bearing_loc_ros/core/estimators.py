@@ -47,6 +47,7 @@ from .crlb import crlb, safe_inverse
 from .estimator_spec import (BEARING_SIGMA, DEFAULT_REFERENCE_RANGE, declare, ITERATIVE_OPTIONS,
                              MULTISTATION, RANGE_GROWN_SIGMA, range_scaled_sigmas,
                              REFERENCE_RANGE)
+from .ml_single import solve_one
 from .fix import (FixResult, iterative_result, STATUS_DEGENERATE, STATUS_DIVERGED,
                   STATUS_MAX_ITERATIONS, STATUS_OK, STATUSES)
 from .pseudo_linear import ls, pseudo_linear_system, start, tls
@@ -319,9 +320,14 @@ def mle(bearings, **options):
     initial value), with Levenberg-Marquardt damping so the cost never increases (see
     :func:`_levenberg_marquardt`). Covariance: the inverse Fisher information J_iᵀW⁻¹J_i at the
     estimate — the CRLB of crlb.py evaluated at X̂ (m²). Options: ``max_iterations``,
-    ``tolerance``, ``initial``. Cost O(N) per iteration and problem.
+    ``tolerance``, ``initial``. Cost O(N) per iteration and problem. One problem (M = 1)
+    runs the same iteration on Python floats (core/ml_single.py, same results to rounding).
     """
     bearings.validate()
+    if bearings.M == 1:
+        res = solve_one('mle', bearings, None, mle.spec.parse(options, 1))
+        if res is not None:
+            return res
     problem = _MLProblem(bearings)
     opts, x0 = start(mle.spec, bearings, options, problem.pseudo_linear_start, validated=True)
     x, info, it, conv, div = _levenberg_marquardt(problem, x0, opts['max_iterations'],
@@ -346,6 +352,10 @@ def wmle(bearings, **options):
     """
     bearings.validate()
     opts = wmle.spec.parse(options, bearings.M)
+    if bearings.M == 1:
+        res = solve_one('wmle', bearings, opts['reference_range'], opts)
+        if res is not None:
+            return res
     problem = _MLProblem(bearings, d_ref=opts['reference_range'])
     opts, x0 = start(wmle.spec, bearings, options, problem.pseudo_linear_start,
                      validated=True)
@@ -384,7 +394,8 @@ def locate(method, bearings, **options):
     except (KeyError, TypeError):
         raise ValueError(f'method: unknown estimator {method!r}; choose one of '
                          f'{sorted(ESTIMATORS)}') from None
-    bearings.validate()
+    if getattr(fn, 'spec', None) is None:
+        bearings.validate()            # a declared estimator validates its input itself
     return fn(bearings, **options)
 
 
