@@ -82,6 +82,8 @@ def add_arguments(parser):
     p.add_argument('--storage', choices=('mcap', 'sqlite3'), default='mcap')
     p.add_argument('--fix-topic', default='fix',
                    help='topic of the fixes, relative to the namespace (default fix)')
+    from .gisargs import add_gis_arguments
+    add_gis_arguments(p)
 
     p = sub_command(sub, 'info', 'print a summary of a bag', 'bearing_loc bag info run1')
     p.add_argument('bag', help='bag directory')
@@ -256,6 +258,8 @@ def run_process(args):
     params = fusion_params(args.params_file, args.param, args.estimator)
     if args.out is not None:
         check_out_parent(args.out)
+    from . import gisargs
+    gisargs.check(args, params)
     t0 = time.perf_counter()
     s = process_bag(args.bag, args.out, params, args.storage, args.namespace, args.fix_topic)
     dt = time.perf_counter() - t0
@@ -276,4 +280,5 @@ def run_process(args):
               f'{e["mean_nees"]:.2f} (3 = consistent)')
     elif e is not None:
         print('error against truth: no fix within the truth time span')
+    gisargs.export_epochs(args, params, s['epoch_list'])
     return 0

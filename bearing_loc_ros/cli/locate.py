@@ -44,6 +44,8 @@ def add_arguments(parser):
     parser.description = ('Localize emitters from bearings: JSON in (file or stdin), JSON out '
                           '(stdout). Format: README "Estimation".')
     add_io_arguments(parser)
+    from .gisargs import add_gis_arguments
+    add_gis_arguments(parser)
     parser.add_argument('--estimator', choices=registry.names(registry.MODE_MULTISTATION),
                         default=None,
                         help='estimator, overrides the input\'s "estimator" (default: the '
@@ -156,7 +158,10 @@ def solve(method, options, sets):
 
 def run(args):
     """Entry point of the verb: read, validate, solve, print. Returns the exit code."""
+    from . import gisargs
+    gisargs.check(args)
     doc = read_json(args.input)
     method, options, sets, batch = parse_request(doc, args.estimator)
     results = solve(method, options, sets)
+    gisargs.export_locate(args, results, sets)
     return write_results(results, batch, args.indent)

@@ -108,6 +108,8 @@ def add_arguments(parser):
                            help='write the grid here as x_m,y_m,z_m,error_m (default: next '
                                 'to --png with .csv)')
             p.add_argument('--title', default=None, help='plot title')
+            from .gisargs import add_gis_arguments
+            add_gis_arguments(p, fixes=False)
         else:
             p.add_argument('--area-km', required=True,
                            help='area of interest XMIN,XMAX,YMIN,YMAX, km (write '
@@ -311,6 +313,8 @@ def run_map(args):
         with writing('--csv', csv):
             write_csv(amap, csv)
         out['csv'] = csv
+    from .gisargs import export_plan_map
+    out.update(export_plan_map(args, amap))
     print(json.dumps(out))
     return 0
 
