@@ -8,7 +8,7 @@ STAMP := $(VENV)/.installed
 export AMENT_PREFIX_PATH := $(CURDIR)/$(VENV)
 export PYTHONDONTWRITEBYTECODE := 1
 
-.PHONY: all venv test demo bench clean
+.PHONY: all venv test browser demo bench clean
 
 all: test
 
@@ -22,8 +22,15 @@ $(STAMP): requirements.txt setup.py package.xml
 	$(PY) -c 'import rclpy, numpy, scipy, yaml, geometry_msgs.msg'
 	touch $(STAMP)
 
-test: $(STAMP)
+test: $(STAMP) browser
 	$(PY) -m pytest test -q -p no:cacheprovider
+
+# Headless Chromium for the map page test (test/test_gis_browser.py): installed with apt-get
+# when running as root on Debian/Ubuntu; elsewhere that test skips and says why.
+browser:
+	@command -v chromium >/dev/null 2>&1 || { [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1 && \
+	  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium) \
+	  >/dev/null 2>&1; } || echo 'chromium not installed: the map browser test will be skipped'
 
 demo: $(STAMP)
 	$(PY) -m bearing_loc_ros.demo
