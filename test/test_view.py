@@ -268,3 +268,45 @@ def test_shipped_layout_is_the_generated_one_and_plots_served_fields():
     for path in doc['configById']['Plot!bearingloc']['paths']:
         topic, _, field = path['value'].rpartition('.')
         assert topic == STATS_TOPIC and field in STATS_SCHEMA['properties']
+
+
+def test_view_serves_a_bag_directly(tmp_path):
+    """``bearing_loc view --bag SIM FIXES``: both bags merged, server time from /clock, the
+    GeoJSON picture at the end shows the last fix of the processed bag."""
+    import subprocess
+    import sys
+    cli = [sys.executable, '-c',
+           'import sys; from bearing_loc_ros.cli import main; sys.exit(main())']
+    env = dict(os.environ, PYTHONUNBUFFERED='1')
+    for args in (['bag', 'simulate', '--scenario', 'config/scenarios/static3.yaml', '--out',
+                  str(tmp_path / 'sim')],
+                 ['bag', 'process', str(tmp_path / 'sim'), '--out', str(tmp_path / 'fix')]):
+        subprocess.run(cli + args, cwd=REPO, env=env, check=True, capture_output=True,
+                       timeout=120)
+    from bearing_loc_ros.processes import ChildProcess
+    origin = [str(v) for v in ORIGIN]
+    with ChildProcess(cli + ['view', '--bag', str(tmp_path / 'sim'), str(tmp_path / 'fix'),
+                             '--port', '0', '--rate', '2', '--origin', *origin],
+                      env=env, cwd=REPO) as view:
+        deadline = 20.0
+        while deadline > 0 and not re.search(r'ws://127\.0\.0\.1:(\d+)', view.output()):
+            threading.Event().wait(0.1)
+            deadline -= 0.1
+        port = int(re.search(r'ws://127\.0\.0\.1:(\d+)', view.output()).group(1))
+
+        async def watch():
+            c = await FoxgloveClient(f'ws://127.0.0.1:{port}').connect()
+            await c.pump(5.0, lambda c: '/fix' in c.by_topic)
+            await c.subscribe(list(c.by_topic) + ['/map_geojson'])
+            await c.pump(15.0, lambda c: 'replay done' in view.output())
+            await c.pump(0.5)
+            await c.close()
+            return c
+        c = asyncio.run(watch())
+        assert view.running()
+    assert c.messages['/fix'] and c.times
+    fc = json.loads(geojson_payload(c.messages['/map_geojson'][-1][1]))
+    last = deserialize_message(c.messages['/fix'][-1][1], PoseWithCovarianceStamped)
+    fix = [f for f in fc['features'] if f['properties']['kind'] == 'fix'][0]
+    assert fix['properties']['stamp_ns'] == fix_from_msg(last)[0]
+    assert max(c.times) <= max(t for t, _ in c.messages['/fix']) + 10**9
