@@ -343,11 +343,12 @@ def test_ctls_never_reports_a_correct_fix_as_not_converged(sigma_deg):
             assert not np.any(again.status == 'ok'), (method, bad[again.status == 'ok'])
 
 
-@pytest.mark.parametrize('method', ['mle', 'wmle'])
+@pytest.mark.parametrize('method', ['mle', 'wmle', 'ctls_am'])
 def test_one_problem_path_gives_the_batch_paths_results(method):
-    # M = 1 runs the iteration on Python floats (core/ml_single.py); the same problem twice
-    # in one batch runs the vectorised iteration. Same statuses, iterations and fixes to
-    # rounding, also for starts, iteration limits, azimuth-only stations and N = 2-12.
+    # M = 1 runs the iteration on Python floats (core/ml_single.py, core/ctls_single.py); the
+    # same problem twice in one batch runs the vectorised iteration. Same statuses,
+    # iterations and fixes to rounding, also for starts, iteration limits, azimuth-only
+    # stations and N = 2-12.
     rng = np.random.default_rng(21)
     cases = []
     for N in (2, 3, 5, 8, 12):
@@ -359,18 +360,28 @@ def test_one_problem_path_gives_the_batch_paths_results(method):
               for m in range(5, 10)]
     if method == 'wmle':
         cases = [(b, dict(o, reference_range=700.0)) for b, o in cases]
+    if method == 'ctls_am':
+        cases += [(b, dict(o, step_decay=0.8)) for b, o in cases[60:80]]     # N = 5
     statuses = set()
     for one, opts in cases:
         fast = locate(method, one, **opts)
         two = BearingSet(*(np.concatenate([a, a]) for a in (
             one.positions, one.azimuth, one.elevation, one.sigma_az, one.sigma_el)))
         plain = locate(method, two, **opts)
-        assert fast.status[0] == plain.status[0] and fast.iterations[0] == plain.iterations[0]
+        if opts.get('step_decay', 1.0) < 1.0:
+            # μ^n shrinks the steps until trial costs differ only by rounding, so where the
+            # iteration ends is decided by rounding; both end at the same point, ok or not.
+            assert (fast.status[0] == 'ok') == (plain.status[0] == 'ok')
+        else:
+            assert fast.status[0] == plain.status[0]
+            assert fast.iterations[0] == plain.iterations[0]
+        # Both stop within `tolerance` of the optimum (ctls takes its last small step).
         scale = np.max(np.abs(plain.position[0]))
         np.testing.assert_allclose(fast.position[0], plain.position[0], rtol=0,
-                                   atol=1e-9 * scale)
+                                   atol=opts.get('tolerance', 1e-9) * scale)
         np.testing.assert_allclose(fast.covariance[0], plain.covariance[0], rtol=0,
-                                   atol=1e-9 * np.max(np.abs(plain.covariance[0])))
+                                   atol=10 * opts.get('tolerance', 1e-10)
+                                   * np.max(np.abs(plain.covariance[0])))
         statuses.add(str(fast.status[0]))
     assert {'ok', 'max_iterations'} <= statuses
 
@@ -380,7 +391,7 @@ def test_one_problem_path_hands_ieee_cases_to_the_batch_path():
     # and NaN arithmetic) answers instead, identically to a batch of two.
     st = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0], [0.0, 1000.0, 0.0]])
     bs = simulate_bearings([[300.0, 400.0, 500.0]], st, 1e-3, rng=np.random.default_rng(2))
-    for method in ('mle', 'wmle'):
+    for method in ('mle', 'wmle', 'ctls', 'ctls_am'):
         one = locate(method, bs, initial=[0.0, 0.0, 700.0])
         two = locate(method, BearingSet(*(np.concatenate([a, a]) for a in (
             bs.positions, bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el))),

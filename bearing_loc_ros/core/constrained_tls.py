@@ -42,6 +42,7 @@ import numpy as np
 from .bearings import BearingSet
 from .conventions import azimuth_elevation
 from .crlb import safe_inverse
+from .ctls_single import solve_one
 from .estimator_spec import BEARING_SIGMA, declare, ITERATIVE_OPTIONS, MULTISTATION, STEP_DECAY
 from .fix import iterative_result
 from .pseudo_linear import pseudo_linear_system, start
@@ -216,7 +217,10 @@ def constrained_tls(bearings, weighting='paper', **options):
     the residual scatter; dof = measurements − 3) or below 1e-12 × f (the cost's rounding):
     the stop the maximum likelihood iteration uses (core/estimators.py). Otherwise no
     descent step is ``diverged`` and the limit is ``max_iterations``.
-    Covariance: eq. (30) at the estimate (:meth:`_CTLSProblem.covariance`).
+    Covariance: eq. (30) at the estimate (:meth:`_CTLSProblem.covariance`). One ``ctls_am``
+    problem (M = 1) runs the same iteration on Python floats (core/ctls_single.py, same
+    results to rounding). ``ctls`` keeps the batch path: its G holds the station coordinates,
+    so with coordinates of tens of km a rounding difference grows to ~1e-9 of the covariance.
 
     ``weighting``: ``'paper'`` (estimator ``ctls``) or ``'am'`` (``ctls_am``), see module doc.
     Options: ``step_decay``, ``max_iterations``, ``tolerance``, ``initial``.
@@ -225,7 +229,12 @@ def constrained_tls(bearings, weighting='paper', **options):
         raise ValueError(f'weighting: must be one of {WEIGHTINGS}, got {weighting!r}')
     spec = (ctls if weighting == 'paper' else ctls_am).spec
     name = spec.name
-    opts, x0 = start(spec, bearings, options)
+    bearings.validate()
+    if bearings.M == 1 and weighting == 'am':
+        res = solve_one(name, bearings, spec.parse(options, 1))
+        if res is not None:
+            return res
+    opts, x0 = start(spec, bearings, options, validated=True)
     problem = _CTLSProblem(bearings, weighting)
     M = bearings.M
     X = x0.copy()
