@@ -34,7 +34,10 @@ def main():
     t0 = time.perf_counter()
     tr = ev.trials_from_scenario(sc, args.trials, args.seed)
     t_trials = time.perf_counter() - t0
-    opts = {'wmle': {'reference_range': tr.reference_range()}}
+    from bearing_loc_ros.core import registry
+    # d_ref (Zong & Cui 2015 eqs. (9)-(10)) for the estimators whose noise model uses it
+    opts = {e: registry.check(e, {'reference_range': tr.reference_range()})
+            for e in ESTIMATORS}
     affinity = len(os.sched_getaffinity(0)) if hasattr(os, 'sched_getaffinity') else '?'
     print(f'seed003: {args.trials} trials, estimators {",".join(ESTIMATORS)}, '
           f'σ {SIGMAS} deg, CPUs usable: {affinity}; trial geometry {t_trials:.3f} s')
