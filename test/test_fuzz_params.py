@@ -77,7 +77,7 @@ def test_params_file_bytes(data):
 
 
 # Values the fusion parameters' YAML path still lets escape as OverflowError (see below).
-OVERFLOWING = (10 ** 400, -10 ** 400, math.inf, -math.inf)
+OVERFLOWING = (10 ** 400, -10 ** 400)
 fusion_values = hostile.filter(lambda v: not any(v is x or v == x for x in OVERFLOWING)
                                and not (isinstance(v, int) and abs(v) > 2 ** 1000))
 
@@ -86,6 +86,8 @@ fusion_values = hostile.filter(lambda v: not any(v is x or v == x for x in OVERF
 @given(st.dictionaries(st.sampled_from(sorted(FUSION_YAML['/**']['ros__parameters'])),
                        fusion_values, min_size=1, max_size=3))
 @example({'station_timeout': math.nan})
+@example({'buffer_size': math.inf})
+@example({'min_stations': -math.inf})
 @example({'buffer_size': 'many'})
 def test_params_file_hostile_values(changes):
     body = dict(FUSION_YAML['/**']['ros__parameters'], **changes)
@@ -94,9 +96,8 @@ def test_params_file_hostile_values(changes):
 
 @pytest.mark.xfail(raises=OverflowError, strict=True,
                    reason='fusion_config catches TypeError and ValueError but not the '
-                          'OverflowError of float(10**400) or int(inf)')
-@pytest.mark.parametrize('changes', [{'sync_tolerance': 10 ** 400}, {'rate': 10 ** 400},
-                                     {'buffer_size': math.inf}, {'min_stations': -math.inf}])
+                          'OverflowError of float(10**400)')
+@pytest.mark.parametrize('changes', [{'sync_tolerance': 10 ** 400}, {'rate': 10 ** 400}])
 def test_params_file_numbers_beyond_float_range(changes):
     """Known defect: these must become an InputError (strict: passes once fixed)."""
     body = dict(FUSION_YAML['/**']['ros__parameters'], **changes)
