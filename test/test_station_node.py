@@ -62,7 +62,7 @@ class Harness:
         # ENU sensor on the raw topic in degrees, 2D, mounting offset +5°.
         'enu': dict(position=STATION, measures_elevation=True, input_units='deg',
                     azimuth_offset_deg=5.0, sigma_azimuth_deg=1.0, sigma_elevation_deg=2.0,
-                    diagnostics_period_s=0.1),
+                    diagnostics_period=0.1),
         # Compass receiver over UDP (and the raw topic in rad), 1D, offset −12°.
         'compass': dict(position=STATION, azimuth_reference='compass',
                         azimuth_offset_deg=-12.0, udp_port='free', position_covariance=[
@@ -70,7 +70,7 @@ class Harness:
         # Compass-referenced 2D array on a moving platform (relative bearings from the bow).
         'boat': dict(platform_odometry='/boat/odom', azimuth_reference='compass',
                      measures_elevation=True, azimuth_offset_deg=3.0, udp_port='free',
-                     odometry_tolerance_s=0.05, frame_id='map'),
+                     odometry_tolerance=0.05, frame_id='map'),
         # UDP re-stamped on receipt with the node clock.
         'restamp': dict(position=STATION, udp_port='free', udp_stamp='receive'),
     }
