@@ -57,6 +57,13 @@ def add_arguments(parser):
                         help="override the stations' σ growth reference range r_ref, m "
                              '(σ(r) = σ · r / r_ref, Zong & Cui 2015 eqs. (9)-(10)); 0: '
                              'constant σ')
+    parser.add_argument('--robust', action='store_true',
+                        help='run mle/wmle with option robust (consensus, outlier exclusion, '
+                             'full likelihood, ok/low_confidence status; as the fusion node)')
+    parser.add_argument('--outliers', default=None, metavar='F,MIN_DEG,MAX_DEG',
+                        help='outlier bearings: a fraction F of the bearings get an extra '
+                             'error of ±U(MIN_DEG, MAX_DEG) on azimuth and elevation, e.g. '
+                             '0.1,20,90 (default none)')
     parser.add_argument('--out', default=None,
                         help='output directory for CSV, JSON and PNG files (created)')
     parser.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
@@ -99,9 +106,33 @@ class Progress:
         self.stream.flush()
 
 
+#: Largest σ accepted, degrees (every σ in (0, MAX_SIGMA_DEG] completes).
+MAX_SIGMA_DEG = 10.0
+
+
+def parse_outliers(text):
+    """``F,MIN_DEG,MAX_DEG`` -> (fraction, min, max) with min/max in rad; None for None."""
+    if text is None:
+        return None
+    vals = _csv_list(text, 'outliers', float)
+    if len(vals) != 3:
+        raise InputError(f'outliers: expected F,MIN_DEG,MAX_DEG, got {text!r}')
+    f, a, b = vals
+    if not (math.isfinite(f) and 0.0 <= f <= 1.0):
+        raise InputError(f'outliers: fraction must be in [0, 1], got {f}')
+    if not (math.isfinite(a) and math.isfinite(b) and 0.0 <= a <= b <= 180.0):
+        raise InputError(f'outliers: need 0 <= MIN_DEG <= MAX_DEG <= 180, got {a}, {b}')
+    return (f, math.radians(a), math.radians(b))
+
+
 def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='both',
-                   fixed_sigma_deg=0.5, progress=None, range_ref=None):
-    """Run the study; returns (rows: list of Stats, meta: dict)."""
+                   fixed_sigma_deg=0.5, progress=None, range_ref=None, outliers=None,
+                   robust=False):
+    """Run the study; returns (rows: list of Stats, meta: dict).
+
+    ``outliers``: None or (fraction, min, max magnitude in rad) (:func:`parse_outliers`).
+    ``robust``: pass option ``robust=True`` to the estimators that accept it.
+    """
     from ..core import evaluation as ev
     from ..core import registry
     from ..core.simulation import load_scenario
@@ -132,16 +163,23 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
             scoped = registry.check(e, {'reference_range': ref})
             if scoped:
                 options[e] = scoped
+    if robust:
+        for e in estimators:
+            scoped = registry.check(e, dict(options.get(e, {}), robust=True))
+            if 'robust' in scoped:
+                options[e] = scoped
     t0 = time.perf_counter()
     rows = ev.evaluate(estimators, tr, sigmas, sweeps, seed, fixed_sigma_deg, options,
-                       progress)
+                       progress, outliers=outliers)
     elapsed = time.perf_counter() - t0
     meta = {'scenario': path, 'scenario_name': scenario.name, 'seed': seed,
             'trials': trials, 'problems_per_level': int(tr.M), 'estimators': estimators,
             'sigma_deg': sigmas, 'sweeps': list(sweeps), 'fixed_sigma_deg': fixed_sigma_deg,
             'options': options, 'elapsed_s': elapsed,
             'stations': tr.station_ids, 'reference_range_m': ref,
-            'range_ref_override_m': range_ref}
+            'range_ref_override_m': range_ref, 'robust': bool(robust),
+            'outliers': (None if outliers is None else
+                         [outliers[0], math.degrees(outliers[1]), math.degrees(outliers[2])])}
     return rows, meta
 
 
@@ -149,14 +187,19 @@ def format_table(rows):
     """The result table as text (one line per sweep × σ × estimator)."""
     head = (f'{"sweep":9s} {"σθ°":>5s} {"σψ°":>5s} {"estimator":9s} {"RMSE m":>10s} '
             f'{"bias m":>9s} {"CRLB m":>9s} {"RMSE/CRLB":>9s} {"NEES":>9s} {"conv %":>7s} '
-            f'{"µs/fix":>7s}')
+            f'{"µs/fix":>7s} {"RMSEall":>8s} {"median":>8s} {"p95 m":>8s} {"ok %":>6s} '
+            f'{"low %":>6s} '
+            f'{"RMSEok":>8s} {"NEESok":>7s} {"wrong%":>7s}')
     lines = [head, '-' * len(head)]
     for r in rows:
         lines.append(
             f'{r.sweep:9s} {r.sigma_az_deg:5.2f} {r.sigma_el_deg:5.2f} {r.estimator:9s} '
             f'{r.rmse:10.1f} {r.bias:9.1f} {r.crlb:9.1f} {r.rmse_over_crlb:9.2f} '
             f'{r.mean_nees:9.3g} {100 * r.convergence_rate:7.1f} '
-            f'{1e6 * r.time_per_fix_s:7.1f}')
+            f'{1e6 * r.time_per_fix_s:7.1f} {r.rmse_all:8.1f} {r.median_error:8.1f} '
+            f'{r.p95_error:8.1f} '
+            f'{100 * r.ok_fraction:6.1f} {100 * r.low_confidence_fraction:6.1f} '
+            f'{r.rmse_ok:8.1f} {r.nees_ok:7.3g} {100 * r.confident_wrong_fraction:7.3f}')
     return '\n'.join(lines)
 
 
@@ -257,8 +300,10 @@ def run(args):
     """``bearing_loc evaluate``."""
     estimators = _csv_list(args.estimator, 'estimator', str)
     sigmas = _csv_list(args.sigma_deg, 'sigma_deg', float)
-    if any(not math.isfinite(s) or s <= 0 for s in sigmas):
-        raise InputError(f'sigma_deg: every value must be > 0 (got {args.sigma_deg})')
+    if any(not math.isfinite(s) or s <= 0 or s > MAX_SIGMA_DEG for s in sigmas):
+        raise InputError(f'sigma_deg: every value must be in (0, {MAX_SIGMA_DEG:g}] '
+                         f'(got {args.sigma_deg})')
+    outliers = parse_outliers(args.outliers)
     if not math.isfinite(args.fixed_sigma_deg) or args.fixed_sigma_deg <= 0:
         raise InputError(f'fixed_sigma_deg: must be > 0 (got {args.fixed_sigma_deg})')
     if args.out:    # checked before the (long) run, so nothing is printed for a bad --out
@@ -271,7 +316,8 @@ def run(args):
             raise InputError(f'out: directory {args.out!r} is not writable')
     progress = Progress(enabled=not args.quiet and sys.stderr.isatty())
     rows, meta = run_evaluation(args.scenario, estimators, sigmas, args.trials, args.seed,
-                                args.sweep, args.fixed_sigma_deg, progress, args.range_ref)
+                                args.sweep, args.fixed_sigma_deg, progress, args.range_ref,
+                                outliers, args.robust)
     print(f'{meta["scenario"]}: {args.trials} trials x {len(sigmas)} σ x '
           f'{len(meta["sweeps"])} sweeps x {len(estimators)} estimators, seed {args.seed}, '
           f'{meta["elapsed_s"]:.2f} s')

@@ -106,6 +106,9 @@ REFERENCE_RANGE = Option('reference_range', DEFAULT_REFERENCE_RANGE, 'positive',
                          'd_ref of the range-grown noise model, m')
 STEP_DECAY = Option('step_decay', 1.0, 'positive', 'mu of the Newton step decay mu^n',
                     upper=1.0)
+ROBUST = Option('robust', False, 'flag',
+                'screen the fix; on doubt, consensus over station subsets and a full-likelihood '
+                'refit without outlier bearings; status ok or low_confidence (core.robust)')
 
 #: Options of the closed-form multi-station estimators (accepted and ignored, so one option
 #: set serves every estimator).

@@ -46,11 +46,12 @@ from .constrained_tls import ctls, ctls_am
 from .crlb import crlb, safe_inverse
 from .estimator_spec import (BEARING_SIGMA, DEFAULT_REFERENCE_RANGE, declare, ITERATIVE_OPTIONS,
                              MULTISTATION, RANGE_GROWN_SIGMA, range_scaled_sigmas,
-                             REFERENCE_RANGE)
+                             REFERENCE_RANGE, ROBUST)
 from .ml_single import solve_one
 from .fix import (FixResult, iterative_result, STATUS_DEGENERATE, STATUS_DIVERGED,
                   STATUS_MAX_ITERATIONS, STATUS_OK, STATUSES)
 from .pseudo_linear import ls, pseudo_linear_system, start, tls
+from .robust import confident_result
 from .solvers import CHI2_STEP_TOL, COST_RTOL, solve3_packed
 
 __all__ = ['DEFAULT_ESTIMATOR', 'DEFAULT_REFERENCE_RANGE', 'ESTIMATORS', 'FixResult', 'STATUSES',
@@ -309,7 +310,7 @@ def _levenberg_marquardt(problem, x0, max_iterations, tolerance):
     return X, _unpack_matrix(Q), iterations, converged & finite0, diverged
 
 
-@declare('mle', MULTISTATION, ITERATIVE_OPTIONS, BEARING_SIGMA)
+@declare('mle', MULTISTATION, ITERATIVE_OPTIONS + (ROBUST,), BEARING_SIGMA)
 def mle(bearings, **options):
     """Gauss-Newton maximum likelihood, Zong & Cui 2015 eqs. (3)-(8), per-bearing σ.
 
@@ -322,20 +323,29 @@ def mle(bearings, **options):
     estimate — the CRLB of crlb.py evaluated at X̂ (m²). Options: ``max_iterations``,
     ``tolerance``, ``initial``. Cost O(N) per iteration and problem. One problem (M = 1)
     runs the same iteration on Python floats (core/ml_single.py, same results to rounding).
+    Option ``robust`` (default false; the fusion node turns it on): the fix is screened and,
+    when in doubt, replaced by a
+    consensus over station subsets and a refit without outlier bearings, and assessed
+    (status ``ok`` or ``low_confidence``, fields ``excluded`` and ``nonlinearity``;
+    :mod:`~bearing_loc_ros.core.robust`); false gives the paper's estimator alone.
     """
     bearings.validate()
+    res = None
     if bearings.M == 1:
-        res = solve_one('mle', bearings, None, mle.spec.parse(options, 1))
-        if res is not None:
-            return res
-    problem = _MLProblem(bearings)
-    opts, x0 = start(mle.spec, bearings, options, problem.pseudo_linear_start, validated=True)
-    x, info, it, conv, div = _levenberg_marquardt(problem, x0, opts['max_iterations'],
-                                                  opts['tolerance'])
-    return iterative_result('mle', x, safe_inverse(info), it, conv, div)
+        opts = mle.spec.parse(options, 1)
+        res = solve_one('mle', bearings, None, opts)
+    if res is None:
+        problem = _MLProblem(bearings)
+        opts, x0 = start(mle.spec, bearings, options, problem.pseudo_linear_start,
+                         validated=True)
+        x, info, it, conv, div = _levenberg_marquardt(problem, x0, opts['max_iterations'],
+                                                      opts['tolerance'])
+        res = iterative_result('mle', x, safe_inverse(info), it, conv, div)
+    return confident_result(res, bearings) if opts['robust'] else res
 
 
-@declare('wmle', MULTISTATION, ITERATIVE_OPTIONS + (REFERENCE_RANGE,), RANGE_GROWN_SIGMA)
+@declare('wmle', MULTISTATION, ITERATIVE_OPTIONS + (REFERENCE_RANGE, ROBUST),
+         RANGE_GROWN_SIGMA)
 def wmle(bearings, **options):
     """Range-weighted maximum likelihood, Zong & Cui 2015 eqs. (9)-(11).
 
@@ -348,20 +358,24 @@ def wmle(bearings, **options):
     exact likelihood is not included, exactly as in the paper). A step is accepted when it
     does not increase the cost under W_i. Covariance: inverse Fisher information with
     σ(d̂) at the estimate (m²). Options: ``reference_range``, ``max_iterations``,
-    ``tolerance``, ``initial``.
+    ``tolerance``, ``initial``, ``robust`` (default false; as for :func:`mle`, and every fix
+    is refitted on the full likelihood, with the Σ log σ(d)² term the paper's cost
+    omits: without it the cost falls toward 0 as the range grows; core.robust).
     """
     bearings.validate()
     opts = wmle.spec.parse(options, bearings.M)
+    d_ref = opts['reference_range']
+    res = None
     if bearings.M == 1:
-        res = solve_one('wmle', bearings, opts['reference_range'], opts)
-        if res is not None:
-            return res
-    problem = _MLProblem(bearings, d_ref=opts['reference_range'])
-    opts, x0 = start(wmle.spec, bearings, options, problem.pseudo_linear_start,
-                     validated=True)
-    x, info, it, conv, div = _levenberg_marquardt(problem, x0, opts['max_iterations'],
-                                                  opts['tolerance'])
-    return iterative_result('wmle', x, safe_inverse(info), it, conv, div)
+        res = solve_one('wmle', bearings, d_ref, opts)
+    if res is None:
+        problem = _MLProblem(bearings, d_ref=d_ref)
+        opts, x0 = start(wmle.spec, bearings, options, problem.pseudo_linear_start,
+                         validated=True)
+        x, info, it, conv, div = _levenberg_marquardt(problem, x0, opts['max_iterations'],
+                                                      opts['tolerance'])
+        res = iterative_result('wmle', x, safe_inverse(info), it, conv, div)
+    return confident_result(res, bearings, d_ref) if opts['robust'] else res
 
 
 ESTIMATORS = {

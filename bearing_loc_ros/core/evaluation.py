@@ -24,6 +24,19 @@ Statistics over the trials m whose estimate converged (error e_m = X̂_m − X_m
   estimator claims more accuracy than it delivers.
 * convergence rate = fraction of trials with ``converged`` True; time per fix = wall time
   of the batched call / M.
+* the tail: median and 95th percentile of |e_m| over the same (converged) trials as the
+  RMSE; ``rmse_all``, the RMSE over every trial with a finite estimate whatever its
+  status (``ok``, ``low_confidence``, ``max_iterations``...), the fraction of each
+  estimator status, and among the ``ok`` fixes (a consumer's trusted fixes): their RMSE,
+  mean NEES and the fraction whose NEES exceeds the χ²₃ quantile 0.9999 (21.1), a
+  confidently wrong fix.
+
+Simulated elevations are clipped to |ψ| ≤ π/2 − 1e-9 (core.simulation.MAX_ELEVATION), as in
+the simulator: at large σ a Gaussian draw can cross the zenith, and the clipped value is
+still a valid bearing (the distribution of ψ is the Gaussian with its tails beyond ±90°
+moved onto ±90°). With ``outliers`` (fraction f, magnitudes a..b rad) each bearing is, with
+probability f, replaced by an outlier: its azimuth and its elevation each get an extra
+error ±U(a, b) with a random sign (elevation clipped as above).
 * standard errors for comparing rows: SE(RMSE) = sd_m(|e_m|²) / (2 RMSE sqrt(n)) (delta
   method on the mean of |e|²) and SE(mean NEES) = sd_m(NEES_m) / sqrt(n). They describe the
   Monte Carlo spread of the statistic itself, so tests and plots can say whether two curves
@@ -35,7 +48,6 @@ import time
 
 import numpy as np
 
-from .bearings import simulate_bearings
 from .crlb import crlb as crlb_matrix
 from .crlb import safe_inverse
 
@@ -76,6 +88,14 @@ class Stats:
     convergence_rate: float
     time_per_fix_s: float
     median_error: float
+    p95_error: float = float('nan')
+    rmse_all: float = float('nan')
+    ok_fraction: float = float('nan')
+    low_confidence_fraction: float = float('nan')
+    other_fraction: float = float('nan')
+    rmse_ok: float = float('nan')
+    nees_ok: float = float('nan')
+    confident_wrong_fraction: float = float('nan')
     rmse_se: float = float('nan')
     nees_se: float = float('nan')
     bias_vector: list = field(default_factory=list)
@@ -232,6 +252,7 @@ def error_statistics(estimator, sweep, level, truth, result, crlb_cov, elapsed_s
     nees = np.einsum('mi,mij,mj->m', e[ok], Pinv[ok], e[ok])
     rmse_se = (float(sq.std(ddof=1) / (2.0 * rmse * np.sqrt(n)))
                if n > 1 and rmse > 0 else float('nan'))
+    tail = _tail_statistics(truth, est, result, M)
     nees_se = float(nees.std(ddof=1) / np.sqrt(nees.size)) if nees.size > 1 else float('nan')
     return Stats(
         estimator=estimator, sweep=sweep,
@@ -243,12 +264,69 @@ def error_statistics(estimator, sweep, level, truth, result, crlb_cov, elapsed_s
         convergence_rate=n / M if M else float('nan'),
         time_per_fix_s=float(elapsed_s) / M if M else float('nan'),
         median_error=float(np.sqrt(np.median(sq))) if n else float('nan'),
-        rmse_se=rmse_se, nees_se=nees_se,
+        p95_error=float(np.sqrt(np.percentile(sq, 95))) if n else float('nan'),
+        rmse_se=rmse_se, nees_se=nees_se, **tail,
         bias_vector=[float(v) for v in bias_vec])
 
 
+#: NEES above which an ``ok`` fix is confidently wrong: the χ²₃ quantile 0.9999.
+CONFIDENT_WRONG_NEES = 21.107513
+
+
+def _tail_statistics(truth, est, result, M):
+    """rmse_all, status fractions and the ``ok`` fixes' RMSE, NEES and confident-wrong share."""
+    nan = float('nan')
+    status = np.asarray(result.status).astype(str)
+    finite = np.all(np.isfinite(est), axis=1)
+    e_all = est[finite] - truth[finite]
+    ok = finite & (status == 'ok')
+    e = est[ok] - truth[ok]
+    Pinv = safe_inverse(np.asarray(result.position_covariance, dtype=float)[ok]) if ok.any() \
+        else np.zeros((0, 3, 3))
+    good = np.all(np.isfinite(Pinv), axis=(-2, -1))
+    nees = np.einsum('mi,mij,mj->m', e[good], Pinv[good], e[good])
+    n_ok, n_lc = int(ok.sum()), int(np.count_nonzero(status == 'low_confidence'))
+    return dict(
+        rmse_all=float(np.sqrt(np.mean(np.sum(e_all ** 2, axis=1)))) if e_all.size else nan,
+        ok_fraction=n_ok / M if M else nan,
+        low_confidence_fraction=n_lc / M if M else nan,
+        other_fraction=(M - n_ok - n_lc) / M if M else nan,
+        rmse_ok=float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))) if n_ok else nan,
+        nees_ok=float(nees.mean()) if nees.size else nan,
+        confident_wrong_fraction=(float(np.count_nonzero(nees > CONFIDENT_WRONG_NEES)) / n_ok
+                                  if n_ok else nan))
+
+
+def noisy_bearings(trials, sigma_az, sigma_el, rng, outliers=None):
+    """Noisy bearings of :class:`Trials` with true σ (M, N) rad: a validated BearingSet.
+
+    θ = θ* + σ_θ n, ψ = clip(ψ* + σ_ψ m, ±(π/2 − 1e-9)) (module docstring), n, m ~ N(0, 1)
+    drawn from ``rng`` (azimuth block, then elevation block). ``outliers`` = (f, a, b):
+    fraction and magnitude range (rad) of the outlier bearings, drawn after the noise so that
+    the Gaussian part does not change with them. σ reported: as drawn (the caller replaces it).
+    """
+    from .bearings import BearingSet
+    from .conventions import azimuth_elevation, wrap_angle
+    from .simulation import MAX_ELEVATION
+    M, N = trials.stations.shape[:2]
+    az, el = azimuth_elevation(trials.targets[:, None, :] - trials.stations)
+    az = az + sigma_az * rng.standard_normal((M, N))
+    el = el + sigma_el * rng.standard_normal((M, N))
+    if outliers is not None and outliers[0] > 0:
+        f, a, b = (float(v) for v in outliers)
+        hit = rng.random((M, N)) < f
+        mag = rng.uniform(a, b, (2, M, N)) * np.where(rng.random((2, M, N)) < 0.5, -1.0, 1.0)
+        az = az + hit * mag[0]
+        el = el + hit * mag[1]
+    el = np.clip(el, -MAX_ELEVATION, MAX_ELEVATION)
+    el = np.where(trials.has_elevation[None, :], el, np.nan)
+    return BearingSet.from_arrays(trials.stations, wrap_angle(az), el,
+                                  np.broadcast_to(sigma_az, (M, N)),
+                                  np.broadcast_to(sigma_el, (M, N)))
+
+
 def run_level(estimators, trials, level, rng, sweep='joint', options=None, locate=None,
-              on_run=None):
+              on_run=None, outliers=None):
     """Evaluate ``estimators`` at one noise level on :class:`Trials`; returns [Stats].
 
     One noisy bearing batch (M = trials.M problems) is drawn from ``rng`` with the true
@@ -256,15 +334,15 @@ def run_level(estimators, trials, level, rng, sweep='joint', options=None, locat
     random numbers: differences between estimators are not blurred by different noise
     draws). The bearings report σ (or σ · f for stations with ``report: actual``). Each
     estimator is one vectorised ``locate(name, bearings, **options[name])`` call, timed with
-    ``time.perf_counter``. The CRLB uses the true σ at the true targets.
+    ``time.perf_counter``. The CRLB uses the true σ at the true targets. ``outliers``
+    (fraction, min, max magnitude in rad) adds outlier bearings (:func:`noisy_bearings`).
     """
     if locate is None:
         from .estimators import locate
     options = options or {}
     f = trials.sigma_factor()
     saz, sel = level.sigma_az * f, level.sigma_el * f
-    noisy = simulate_bearings(trials.targets, trials.stations, saz, sel,
-                              has_elevation=trials.has_elevation, rng=rng)
+    noisy = noisy_bearings(trials, saz, sel, rng, outliers)
     rep = trials.report_actual[None, :]
     noisy.sigma_az = np.where(rep, saz, level.sigma_az)
     noisy.sigma_el = np.where(noisy.has_elevation, np.where(rep, sel, level.sigma_el), np.nan)
@@ -296,7 +374,7 @@ def targets_rng(seed):
 
 
 def evaluate(estimators, trials, sigmas_deg, sweeps=('joint',), seed=0, fixed_sigma_deg=0.5,
-             options=None, progress=None, locate=None):
+             options=None, progress=None, locate=None, outliers=None):
     """Full Monte Carlo study: every sweep × σ level × estimator; returns a list of Stats.
 
     ``trials`` (:class:`Trials`) are used for every level. ``progress(done, total)`` is
@@ -321,7 +399,7 @@ def evaluate(estimators, trials, sigmas_deg, sweeps=('joint',), seed=0, fixed_si
 
     for sw, k, lv in all_levels:
         rows.extend(run_level(estimators, trials, lv, level_rng(seed, sw, k), sw, options,
-                              locate, on_run))
+                              locate, on_run, outliers))
     return rows
 
 

@@ -27,8 +27,13 @@ STATUS_MAX_ITERATIONS = 'max_iterations'
 STATUS_DIVERGED = 'diverged'
 STATUS_DEGENERATE = 'degenerate_geometry'
 STATUS_UNOBSERVABLE = 'unobservable'
+#: A fix that failed its consistency checks (residual chi-square, nonlinearity, too many
+#: excluded bearings; core.robust): position and covariance are given, but it is not
+#: trusted (the fusion node never publishes it on ``fix``).
+STATUS_LOW_CONFIDENCE = 'low_confidence'
 #: Statuses of the multi-station estimators.
-STATUSES = (STATUS_OK, STATUS_MAX_ITERATIONS, STATUS_DIVERGED, STATUS_DEGENERATE)
+STATUSES = (STATUS_OK, STATUS_MAX_ITERATIONS, STATUS_DIVERGED, STATUS_DEGENERATE,
+            STATUS_LOW_CONFIDENCE)
 #: Statuses of the TMA estimators.
 TMA_STATUSES = (STATUS_OK, STATUS_UNOBSERVABLE, STATUS_DEGENERATE, STATUS_MAX_ITERATIONS)
 
@@ -57,6 +62,10 @@ class FixResult:
         the state relative to the observer's fitted track (m, m/s). observer_velocity: (M, 3)
         v_o, m/s. range: (M,) target-observer distance at ``t``, m. reason: (M,) str, ''
         when ok, else why not.
+
+    Robust multi-station fixes only (``mle``, ``wmle``; core.robust), else None:
+        excluded: (M, N, 2) bool, the (azimuth, elevation) of each bearing left out of the
+        fix as an outlier. nonlinearity: (M,) range σ / range seen from the worst station.
     """
 
     position: np.ndarray
@@ -74,6 +83,8 @@ class FixResult:
     observer_velocity: typing.Optional[np.ndarray] = None
     range: typing.Optional[np.ndarray] = None
     reason: typing.Optional[np.ndarray] = None
+    excluded: typing.Optional[np.ndarray] = None
+    nonlinearity: typing.Optional[np.ndarray] = None
 
     @property
     def M(self):

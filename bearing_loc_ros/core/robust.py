@@ -1,0 +1,459 @@
+"""Confidence and robustness of a maximum likelihood fix: consensus, full likelihood, status.
+
+One mechanism serves three purposes: low-SNR bearings (no range run-away, an honest status),
+outlier bearings (multipath: tens of degrees off) and a station whose σ claim is wrong (the
+fusion's per-station trust, :mod:`~bearing_loc_ros.core.station_trust`, feeds it σ it does
+not take on trust). It runs after the Gauss-Newton maximum likelihood estimate X̂ of
+Zong & Cui 2015 eqs. (3)-(11) (``mle``, ``wmle``):
+
+1. **Screen** (cheap, every fix). With the σ the estimator assumes at X̂ (σ_j, grown with
+   range for ``wmle``: σ_j = σ_ref,j d_k / d_ref, eqs. (9)-(10)), the whitened residuals
+   r_j = e_j / σ_j of the M_meas angles are computed. The fix is kept as it is when every
+   |r_j| ≤ c (c² = χ²₁ quantile of :data:`OUTLIER_PROBABILITY`), the residual χ² = Σ r_j²
+   lies inside the two-sided χ²_dof band (dof = M_meas − 3) and the nonlinearity ν (below)
+   is at most :data:`MAX_NONLINEARITY`. At high SNR this is every fix but a fraction of
+   1e-3, so the estimator stays the efficient ML of the paper.
+2. **Consensus** (screened-out fixes only). Candidate points: X̂, the pseudo-linear ``ls``
+   fix of all bearings (Wang, Zhang & Wu eq. (4)) and the ``ls`` fixes leaving out one
+   station and, for N ≥ 5, every pair of stations. Each is scored by the truncated
+   (mixture) negative log-likelihood S(X) = Σ_j min(r_j², c²) + Σ_{inliers} log σ_j², the
+   MSAC score (Torr & Zisserman 2000) with the log σ term of the exact Gaussian likelihood,
+   so that a range-grown σ cannot buy a small score by running away in range. The best
+   candidate starts step 3. With range-grown σ (``wmle``) steps 2-3 run for every fix.
+3. **Refit.** Maximum likelihood on the inliers (|r_j| ≤ c), Levenberg-Marquardt on the
+   *full* negative log-likelihood L(X) = Σ_j w_j (r_j² + log σ_j²), w_j ∈ {0, 1}: for
+   ``wmle`` the log σ(d) term the paper's cost omits is included, whose absence makes the
+   paper's cost fall toward 0 as the range grows (an attractor at infinity). Inliers are
+   recomputed at the new estimate and the fit repeated until the set is stable (at most
+   :data:`REFIT_ROUNDS`). Excluded bearings are reported per angle.
+4. **Assess** (every fix). The covariance is the inverse Fisher information over the
+   inliers at the estimate (for range-grown σ inflated by (1 + 2ν)², since σ(d̂) and hence
+   the covariance scale with the estimated range); the fix
+   is ``ok`` only when (a) the residual χ² ≤ the χ²_dof quantile of
+   :data:`CONSISTENCY_PROBABILITY`, (b) ν ≤ :data:`MAX_NONLINEARITY` and (c) at most
+   ⌊(M_meas − 3)/2⌋ angles were excluded; otherwise ``low_confidence`` (position and
+   covariance kept, ``converged`` False).
+
+Nonlinearity ν = max_k sqrt(u_kᵀ P u_k) / d_k: the standard deviation of the range seen
+from station k (u_k the unit line of sight, P the covariance) relative to that range. The
+angles are functions of X / d_k, so their second-order terms over the confidence region are
+ν times the first-order ones (the parameter-effects curvature of Bates & Watts 1980 for a
+bearing); with ν small the error ellipsoid describes the confidence region, with ν ≳ 0.1
+the region is a banana elongated in range and a Gaussian covariance understates its tail.
+
+Units: m, rad; ENU, azimuth θ CCW from East, elevation ψ above the horizontal.
+"""
+
+from itertools import combinations
+import math
+
+import numpy as np
+from scipy.stats import chi2 as _chi2
+
+from .crlb import safe_inverse
+
+#: Probability of the per-angle outlier threshold c² = χ²₁ quantile (3.89 σ).
+OUTLIER_PROBABILITY = 0.9999
+#: Probability of the residual χ² consistency test of an ``ok`` fix.
+CONSISTENCY_PROBABILITY = 0.999
+#: Largest nonlinearity ν of an ``ok`` fix (range σ / range seen from any station).
+MAX_NONLINEARITY = 0.1
+#: Rounds of inlier recomputation and refit.
+REFIT_ROUNDS = 3
+#: Levenberg-Marquardt iterations per refit.
+REFIT_ITERATIONS = 40
+
+
+def _c2(p=OUTLIER_PROBABILITY):
+    return float(_chi2.ppf(p, 1))
+
+
+class Data:
+    """Per-angle arrays of M problems of N bearings (the σ are σ_ref for range growth).
+
+    ``pos`` (M, N, 3) m; ``az``, ``el`` (M, N) rad (el 0 where absent); ``ia``, ``ie``
+    (M, N) inverse σ_ref, 1/rad (ie 0 where there is no elevation); ``d_ref`` m or None.
+    """
+
+    def __init__(self, bearings, d_ref=None):
+        self.pos = bearings.positions
+        has_el = bearings.has_elevation
+        self.az = bearings.azimuth
+        self.el = np.where(has_el, bearings.elevation, 0.0)
+        self.ia = 1.0 / bearings.sigma_az
+        self.ie = np.where(has_el, 1.0 / np.where(has_el, bearings.sigma_el, 1.0), 0.0)
+        self.has_el = has_el
+        self.d_ref = None if d_ref is None else float(d_ref)
+
+    def take(self, idx):
+        """The problems ``idx`` only."""
+        out = object.__new__(Data)
+        for k in ('pos', 'az', 'el', 'ia', 'ie', 'has_el'):
+            setattr(out, k, getattr(self, k)[idx])
+        out.d_ref = self.d_ref
+        return out
+
+    def evaluate(self, X):
+        """Whitened residuals and gradients at X (M, 3) (or (M, K, 3) candidates).
+
+        Returns ra, re (…, N) whitened residuals r = (measured − predicted)/σ (azimuth
+        wrapped to (−π, π]); ga, ge (…, N, 3) whitened gradients ∇h/σ, 1/m (the angle
+        gradients of Zong & Cui 2015 eq. (6)); u (…, N, 3) unit lines of sight; d (…, N)
+        ranges, m; log_s2 (…, N) log σ_j² up to a constant (2 log(d/d_ref) with range
+        growth, 0 otherwise).
+        """
+        if X.ndim == 3:              # (M, K, 3) candidates: broadcast over K
+            pos, az, el = self.pos[:, None], self.az[:, None], self.el[:, None]
+            ia, ie = self.ia[:, None], self.ie[:, None]
+        else:
+            pos, az, el, ia, ie = self.pos, self.az, self.el, self.ia, self.ie
+        with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+            dv = X[..., None, :] - pos
+            dx, dy, dz = dv[..., 0], dv[..., 1], dv[..., 2]
+            rho2 = dx * dx + dy * dy
+            r2 = rho2 + dz * dz
+            rho = np.sqrt(rho2)
+            d = np.sqrt(r2)
+            e_az = az - np.arctan2(dy, dx)
+            e_az -= 2.0 * np.pi * np.ceil((e_az - np.pi) / (2.0 * np.pi))
+            e_el = el - np.arctan2(dz, rho)
+            if self.d_ref is not None:
+                f = self.d_ref / d
+                ia, ie = ia * f, ie * f
+                log_s2 = 2.0 * np.log(d / self.d_ref)
+            else:
+                log_s2 = np.zeros_like(d)
+            ra, re = ia * e_az, ie * e_el
+            ga = np.stack([-dy, dx, np.zeros_like(dx)], axis=-1) * (ia / rho2)[..., None]
+            t = dz / (rho * r2)
+            ge = np.stack([-dx * t, -dy * t, rho / r2], axis=-1) * ie[..., None]
+            u = dv / d[..., None]
+        return ra, re, ga, ge, u, d, log_s2
+
+
+def whitened_residuals(bearings, X, d_ref=None):
+    """(ra, re) (M, N): residuals / σ at X (M, 3), σ grown with range when ``d_ref`` is set.
+
+    re is 0 for azimuth-only bearings. Zong & Cui 2015 eq. (5) with W of eq. (4) or (11).
+    """
+    ra, re, *_ = Data(bearings, d_ref).evaluate(np.asarray(X, dtype=float))
+    return ra, re
+
+
+def fisher(ga, ge, wa, we):
+    """Fisher information Σ_j w_j g_j g_jᵀ (…, 3, 3), 1/m², of the (weighted) angles."""
+    return (np.einsum('...n,...ni,...nj->...ij', wa, ga, ga)
+            + np.einsum('...n,...ni,...nj->...ij', we, ge, ge))
+
+
+def nonlinearity(P, u, d, present):
+    """ν = max_k sqrt(u_kᵀ P u_k) / d_k over stations ``present`` (…, N); NaN if none.
+
+    P (…, 3, 3) m², u (…, N, 3) unit lines of sight, d (…, N) ranges, m (module docstring).
+    """
+    with np.errstate(invalid='ignore', divide='ignore'):
+        v = np.einsum('...ni,...ij,...nj->...n', u, P, u)
+        nu = np.sqrt(np.maximum(v, 0.0)) / d
+    nu = np.where(present, nu, -np.inf)
+    out = nu.max(axis=-1)
+    return np.where(np.isfinite(out), out, np.nan)
+
+
+def chi2_band(dof, probability=CONSISTENCY_PROBABILITY):
+    """(lower, upper) quantiles of χ²_dof: (1 − p)/2 and (1 + p)/2 (dof ≥ 1; (0, inf) else)."""
+    dof = np.asarray(dof)
+    ok = dof >= 1
+    safe = np.where(ok, dof, 1)
+    lo = np.where(ok, _chi2.ppf(0.5 * (1.0 - probability), safe), 0.0)
+    hi = np.where(ok, _chi2.ppf(0.5 * (1.0 + probability), safe), np.inf)
+    return lo, hi
+
+
+def chi2_upper(dof, probability=CONSISTENCY_PROBABILITY):
+    """The ``probability`` quantile of χ²_dof (inf for dof < 1: nothing to test)."""
+    dof = np.asarray(dof)
+    ok = dof >= 1
+    return np.where(ok, _chi2.ppf(probability, np.where(ok, dof, 1)), np.inf)
+
+
+def _ls_candidates(data, masks):
+    """Pseudo-linear LS (Wang, Zhang & Wu eq. (4)) for station masks (K, N) -> (M, K, 3)."""
+    az, el, has = data.az, data.el, data.has_el
+    s, c = np.sin(az), np.cos(az)
+    sp, cp = np.sin(el), np.cos(el)
+    m = has.astype(float)
+    rows = np.stack([np.stack([s, -c, np.zeros_like(s)], -1),
+                     np.stack([m * c * sp, m * s * sp, -m * cp], -1)], axis=-2)  # (M,N,2,3)
+    y = np.einsum('mnkj,mnj->mnk', rows, data.pos)
+    A = np.einsum('mnki,mnkj->mnij', rows, rows)
+    b = np.einsum('mnki,mnk->mni', rows, y)
+    Ak = np.einsum('kn,mnij->mkij', masks, A)
+    bk = np.einsum('kn,mni->mki', masks, b)
+    inv = safe_inverse(Ak.reshape(-1, 3, 3)).reshape(Ak.shape)
+    return np.einsum('mkij,mkj->mki', inv, bk)
+
+
+def _station_masks(N):
+    """Station subsets of the consensus: all, leave one out, leave two out (N ≥ 5)."""
+    rows = [np.ones(N)]
+    for k in range(N):
+        m = np.ones(N)
+        m[k] = 0.0
+        rows.append(m)
+    if N >= 5:
+        for i, j in combinations(range(N), 2):
+            m = np.ones(N)
+            m[[i, j]] = 0.0
+            rows.append(m)
+    return np.array(rows)
+
+
+def _score(data, X, c2):
+    """MSAC score with the log σ² of the inliers (module docstring step 2), (M, K)."""
+    ra, re, _, _, _, _, log_s2 = data.evaluate(X)
+    has = data.has_el if X.ndim == 2 else data.has_el[:, None]
+    qa, qe = ra * ra, np.where(has, re * re, 0.0)
+    ina, ine = qa <= c2, has & (qe <= c2)
+    s = (np.minimum(qa, c2) + np.minimum(qe, c2) + log_s2 * (ina + ine.astype(float)))
+    s = s.sum(axis=-1)
+    return np.where(np.isfinite(s), s, np.inf)
+
+
+def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
+    """Levenberg-Marquardt on L(X) = Σ w_j (r_j² + log σ_j²) over M problems -> X (M, 3).
+
+    Fisher scoring step: (F + λ diag F) Δ = −½∇L with F = Σ w_j g_j g_jᵀ (+ Σ w_j 2 u uᵀ/d²,
+    the information of σ(d) under range growth), ½∇L = Σ_j w_j [−r_j g_j + (1 − r_j²) u_k/d_k]
+    with range growth (the σ(d) and log σ(d) derivatives) and −Σ w_j r_j g_j without. A step
+    is taken when L does not increase; λ ×10 on rejection, ÷10 on acceptance.
+    """
+    grow = data.d_ref is not None
+    X = X0.copy()
+    lam = np.zeros(X.shape[0])
+
+    def parts(X):
+        ra, re, ga, ge, u, d, log_s2 = data.evaluate(X)
+        cost = (wa * (ra * ra + log_s2) + we * (re * re + log_s2)).sum(axis=-1)
+        return cost, ra, re, ga, ge, u, d
+
+    cost, ra, re, ga, ge, u, d = parts(X)
+    cost = np.where(np.isfinite(cost), cost, np.inf)
+    for _ in range(iterations):
+        F = fisher(ga, ge, wa, we)
+        grad = -(np.einsum('mn,mni->mi', wa * ra, ga) + np.einsum('mn,mni->mi', we * re, ge))
+        if grow:
+            k = (wa * (1.0 - ra * ra) + we * (1.0 - re * re)) / d
+            grad = grad + np.einsum('mn,mni->mi', k, u)
+            F = F + np.einsum('mn,mni,mnj->mij', 2.0 * (wa + we) / (d * d), u, u)
+        diag = np.einsum('mii->mi', F)
+        Fd = F + lam[:, None, None] * np.einsum('mi,ij->mij', diag, np.eye(3))
+        with np.errstate(all='ignore'):
+            try:
+                step = -np.linalg.solve(Fd, grad[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                step = -np.einsum('mij,mj->mi', safe_inverse(Fd), grad)
+        step = np.where(np.isfinite(step), step, 0.0)
+        Xt = X + step
+        ct, rat, ret, gat, get, ut, dt = parts(Xt)
+        acc = np.isfinite(ct) & (ct <= cost)
+        X = np.where(acc[:, None], Xt, X)
+        cost = np.where(acc, ct, cost)
+        ra, re = np.where(acc[:, None], rat, ra), np.where(acc[:, None], ret, re)
+        ga = np.where(acc[:, None, None], gat, ga)
+        ge = np.where(acc[:, None, None], get, ge)
+        u = np.where(acc[:, None, None], ut, u)
+        d = np.where(acc[:, None], dt, d)
+        lam = np.where(acc, 0.1 * lam * (lam > 1e-6), np.maximum(10.0 * lam, 1e-3))
+        scale = np.sqrt(np.mean(d * d, axis=-1))
+        if np.all((np.linalg.norm(step, axis=-1) <= 1e-10 * scale) | (lam > 1e10)):
+            break
+    return X
+
+
+def _inliers(data, X, c2):
+    ra, re, *_ = data.evaluate(X)
+    wa = (ra * ra <= c2).astype(float)
+    we = (data.has_el & (re * re <= c2)).astype(float)
+    return wa, we
+
+
+def _solvable(data, wa, we):
+    """At least two stations with a kept angle, one kept elevation, three kept angles."""
+    st = ((wa + we) > 0).sum(axis=-1)
+    return (st >= 2) & (we.sum(axis=-1) >= 1) & ((wa + we).sum(axis=-1) >= 3)
+
+
+def consensus_fit(data, X_ml, c2=None):
+    """Steps 2-3 of the module docstring for M problems: (X (M, 3), wa, we (M, N)).
+
+    ``X_ml`` (M, 3) is the estimator's own fix (a candidate; NaN allowed). wa, we are the
+    inlier indicators of the azimuths and elevations (1 kept, 0 excluded).
+    """
+    c2 = _c2() if c2 is None else c2
+    M, N = data.az.shape
+    masks = _station_masks(N)
+    cand = _ls_candidates(data, masks)                       # (M, K, 3)
+    cand = np.concatenate([np.where(np.isfinite(X_ml), X_ml, np.nan)[:, None], cand], axis=1)
+    score = _score(data, np.where(np.isfinite(cand), cand, 0.0), c2)
+    score = np.where(np.all(np.isfinite(cand), axis=-1), score, np.inf)
+    best = np.argmin(score, axis=1)
+    X = cand[np.arange(M), best]
+    X = np.where(np.isfinite(X), X, 0.0)
+    wa, we = _inliers(data, X, c2)
+    for _ in range(REFIT_ROUNDS):
+        good = _solvable(data, wa, we)
+        wa = np.where(good[:, None], wa, 1.0)
+        we = np.where(good[:, None], we, data.has_el.astype(float))
+        X = _refit(data, X, wa, we)
+        na, ne = _inliers(data, X, c2)
+        na = np.where(_solvable(data, na, ne)[:, None], na, wa)
+        ne = np.where(_solvable(data, na, ne)[:, None], ne, we)
+        same = np.all((na == wa) & (ne == we), axis=-1)
+        wa, we = na, ne
+        if np.all(same):
+            break
+    return X, wa, we
+
+
+def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY,
+           max_nonlinearity=MAX_NONLINEARITY):
+    """Step 4 of the module docstring: (covariance (M, 3, 3), ok (M,), chi2, dof, ν).
+
+    ``ok``: χ² ≤ the χ²_dof ``probability`` quantile, ν ≤ ``max_nonlinearity`` and at most
+    ⌊(M_meas − 3)/2⌋ angles excluded. The covariance is (Σ w g gᵀ)⁻¹, m², times (1 + 2ν)²
+    for range-grown σ.
+    """
+    ra, re, ga, ge, u, d, _ = data.evaluate(X)
+    P = safe_inverse(fisher(ga, ge, wa, we))
+    chi2 = (wa * ra * ra + we * re * re).sum(axis=-1)
+    n_kept = (wa + we).sum(axis=-1)
+    n_all = data.az.shape[1] + data.has_el.sum(axis=-1)
+    dof = (n_kept - 3).astype(int)
+    present = (wa + we) > 0
+    nu = nonlinearity(P, u, d, present)
+    excluded = n_all - n_kept
+    ok = ((chi2 <= chi2_upper(dof, probability)) & (nu <= max_nonlinearity)
+          & (excluded <= np.floor((n_all - 3) / 2.0)) & np.all(np.isfinite(P), axis=(-2, -1)))
+    if data.d_ref is not None:
+        # σ(d̂) ∝ d̂: the covariance scales with d̂², so a range off by 2ν makes it too small
+        # by (1 + 2ν)²; the covariance is inflated by that factor (range-grown σ only).
+        P = P * ((1.0 + 2.0 * np.nan_to_num(nu, nan=0.0)) ** 2)[:, None, None]
+    return P, ok, chi2, dof, nu
+
+
+def screen(data, X, P, probability=CONSISTENCY_PROBABILITY, c2=None,
+           max_nonlinearity=MAX_NONLINEARITY):
+    """Step 1: (M,) True where the fix needs the consensus and refit (module docstring)."""
+    c2 = _c2() if c2 is None else c2
+    ra, re, _, _, u, d, _ = data.evaluate(X)
+    qa, qe = ra * ra, re * re
+    chi2 = (qa + qe).sum(axis=-1)
+    dof = data.az.shape[1] + data.has_el.sum(axis=-1) - 3
+    lo, hi = chi2_band(dof, probability)
+    nu = nonlinearity(P, u, d, np.ones_like(d, dtype=bool))
+    calm = ((qa.max(axis=-1) <= c2) & (qe.max(axis=-1) <= c2) & (chi2 >= lo) & (chi2 <= hi)
+            & (nu <= max_nonlinearity))
+    return ~calm
+
+
+def screen_one(bearings, x, d_ref, P, c2=None, probability=CONSISTENCY_PROBABILITY,
+               max_nonlinearity=MAX_NONLINEARITY):
+    """:func:`screen` for one problem on Python floats (the fusion's one-fix path)."""
+    c2 = _c2() if c2 is None else c2
+    pos = bearings.positions[0].tolist()
+    az = bearings.azimuth[0].tolist()
+    el = bearings.elevation[0].tolist()
+    sa = bearings.sigma_az[0].tolist()
+    se = bearings.sigma_el[0].tolist()
+    x0, x1, x2 = x
+    chi2 = 0.0
+    n = 0
+    nu = 0.0
+    p = P.tolist()
+    for (px, py, pz), a, e, s1, s2 in zip(pos, az, el, sa, se):
+        dx, dy, dz = x0 - px, x1 - py, x2 - pz
+        rho = math.hypot(dx, dy)
+        d = math.sqrt(dx * dx + dy * dy + dz * dz)
+        f = d / d_ref if d_ref is not None else 1.0
+        ea = a - math.atan2(dy, dx)
+        ea -= 2.0 * math.pi * math.ceil((ea - math.pi) / (2.0 * math.pi))
+        q = (ea / (s1 * f)) ** 2
+        if q > c2:
+            return True
+        chi2 += q
+        n += 1
+        if e == e:
+            q = ((e - math.atan2(dz, rho)) / (s2 * f)) ** 2
+            if q > c2:
+                return True
+            chi2 += q
+            n += 1
+        ux, uy, uz = dx / d, dy / d, dz / d
+        v = (ux * (p[0][0] * ux + p[0][1] * uy + p[0][2] * uz)
+             + uy * (p[1][0] * ux + p[1][1] * uy + p[1][2] * uz)
+             + uz * (p[2][0] * ux + p[2][1] * uy + p[2][2] * uz))
+        nu = max(nu, math.sqrt(max(v, 0.0)) / d)
+    lo, hi = _band_cached(n - 3, probability)
+    return not (lo <= chi2 <= hi and nu <= max_nonlinearity)
+
+
+_BANDS = {}
+
+
+def _band_cached(dof, probability):
+    key = (dof, probability)
+    if key not in _BANDS:
+        lo, hi = chi2_band(dof, probability)
+        _BANDS[key] = (float(lo), float(hi))
+    return _BANDS[key]
+
+
+def confident_result(result, bearings, d_ref=None):
+    """The estimator's FixResult after screen, consensus, refit and assessment (module doc).
+
+    ``result``: an ``mle`` (``d_ref`` None) or ``wmle`` (``d_ref`` = reference range, m)
+    FixResult of ``bearings``. Problems with ``degenerate_geometry`` are returned unchanged.
+    Every other problem ends ``ok`` or ``low_confidence`` with a finite position, or
+    ``degenerate_geometry`` when no usable fix exists; ``excluded`` (M, N, 2) and
+    ``nonlinearity`` (M,) are filled. A problem that passes the screen keeps the
+    estimator's own position, covariance and status.
+    """
+    from .fix import FixResult, STATUS_DEGENERATE, STATUS_LOW_CONFIDENCE, STATUS_OK
+    M, N = bearings.M, bearings.N
+    pos = np.array(result.position, dtype=float)
+    cov = np.array(result.covariance, dtype=float)
+    status = np.array(result.status, dtype=object)
+    conv = np.array(result.converged, dtype=bool)
+    excluded = np.zeros((M, N, 2), dtype=bool)
+    nu = np.full(M, np.nan)
+    usable = np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
+    if d_ref is not None:
+        # Range-grown σ: the paper's cost has its attractor at infinite range, so every fix
+        # is refitted on the full likelihood (the screen would keep the paper's estimate).
+        trigger = np.ones(M, dtype=bool)
+    elif M == 1 and usable[0] and status[0] == STATUS_OK:
+        trigger = np.array([screen_one(bearings, pos[0].tolist(), d_ref, cov[0])])
+    else:
+        data = Data(bearings, d_ref)
+        trigger = np.ones(M, dtype=bool)
+        calm_idx = np.flatnonzero(usable & (status == STATUS_OK))
+        if calm_idx.size:
+            sub = data.take(calm_idx)
+            trigger[calm_idx] = screen(sub, pos[calm_idx], cov[calm_idx])
+    trigger &= status != STATUS_DEGENERATE
+    idx = np.flatnonzero(trigger)
+    if idx.size:
+        data = Data(bearings, d_ref).take(idx)
+        X, wa, we = consensus_fit(data, pos[idx])
+        P, ok, _, _, nux = assess(data, X, wa, we)
+        finite = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
+        pos[idx] = np.where(finite[:, None], X, np.nan)
+        cov[idx] = np.where(finite[:, None, None], P, np.inf)
+        status[idx] = np.where(finite, np.where(ok, STATUS_OK, STATUS_LOW_CONFIDENCE),
+                               STATUS_DEGENERATE)
+        conv[idx] = finite & ok
+        excluded[idx, :, 0] = wa == 0
+        excluded[idx, :, 1] = data.has_el & (we == 0)
+        nu[idx] = nux
+    return FixResult(pos, cov, result.iterations, conv, status.astype(str), result.method,
+                     excluded=excluded, nonlinearity=nu)
