@@ -132,6 +132,10 @@ def test_schema_check_rules():
     with pytest.raises(ValueError, match='below the minimum'):
         schema.param('simulator_node', 'time_scale').check(0.0)
     assert schema.param('station_node', 'position').check([1, 2, 3]) == [1.0, 2.0, 3.0]
+    with pytest.raises(ValueError, match='^rate: .* beyond the float range'):
+        schema.param('fusion_node', 'rate').check(10 ** 400)
+    with pytest.raises(ValueError, match='^buffer_size: .* beyond the int64 range'):
+        schema.param('fusion_node', 'buffer_size').check(10 ** 30)
 
 
 def test_fusion_config_is_built_from_the_schema_for_node_and_bag_process(ros):

@@ -79,13 +79,19 @@ class Param:
         types = PY_TYPES[self.type]
         if isinstance(value, bool) and self.type != BOOL or not isinstance(value, types):
             raise ValueError(f'{self.name}: expected {self.type}, got {value!r}'[:200])
-        if self.type == DOUBLE:
-            value = float(value)
-        if self.type in (DOUBLE_ARRAY, STRING_ARRAY):
-            item = (float, int) if self.type == DOUBLE_ARRAY else (str,)
-            if not all(isinstance(v, item) and not isinstance(v, bool) for v in value):
-                raise ValueError(f'{self.name}: expected {self.type}, got {value!r}'[:200])
-            value = [float(v) for v in value] if self.type == DOUBLE_ARRAY else list(value)
+        try:
+            if self.type == DOUBLE:
+                value = float(value)
+            if self.type in (DOUBLE_ARRAY, STRING_ARRAY):
+                item = (float, int) if self.type == DOUBLE_ARRAY else (str,)
+                if not all(isinstance(v, item) and not isinstance(v, bool) for v in value):
+                    raise ValueError(f'{self.name}: expected {self.type}, got {value!r}'[:200])
+                value = [float(v) for v in value] if self.type == DOUBLE_ARRAY else list(value)
+        except OverflowError:
+            raise ValueError(f'{self.name}: {str(value)[:40]} is beyond the float range') \
+                from None
+        if self.type == INTEGER and not -2 ** 63 <= value < 2 ** 63:
+            raise ValueError(f'{self.name}: {str(value)[:40]} is beyond the int64 range')
         if self.type in (INTEGER, DOUBLE):
             if self.type == DOUBLE and not math.isfinite(value):
                 raise ValueError(f'{self.name}: must be finite, got {value}')
