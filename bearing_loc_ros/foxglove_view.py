@@ -314,6 +314,10 @@ def serve_bag(view, paths, rate=1.0, loop=False, stop=None, topics=None, log=pri
             for r in readers:
                 r.open()
             has_clock = any(bagio.CLOCK_TOPIC in r.topics for r in readers)
+            for r in readers:
+                for name, info in r.topics.items():
+                    if not topics or name in topics:
+                        view.advertise(name, info.msgtype)
             streams = [r.messages() for r in readers]
             merged = heapq.merge(*streams, key=lambda m: m.log_time_ns)
             t0_bag = t0_wall = None
