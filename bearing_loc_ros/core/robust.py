@@ -412,8 +412,8 @@ def confident_result(result, bearings, d_ref=None):
     """The estimator's FixResult after screen, consensus, refit and assessment (module doc).
 
     ``result``: an ``mle`` (``d_ref`` None) or ``wmle`` (``d_ref`` = reference range, m)
-    FixResult of ``bearings``. Problems with ``degenerate_geometry`` are returned unchanged.
-    Every other problem ends ``ok`` or ``low_confidence`` with a finite position, or
+    FixResult of ``bearings``. Problems whose status is not ``ok`` are returned unchanged.
+    Every ``ok`` problem ends ``ok`` or ``low_confidence`` with a finite position, or
     ``degenerate_geometry`` when no usable fix exists; ``excluded`` (M, N, 2) and
     ``nonlinearity`` (M,) are filled. A problem that passes the screen keeps the
     estimator's own position, covariance and status.
@@ -440,7 +440,9 @@ def confident_result(result, bearings, d_ref=None):
         if calm_idx.size:
             sub = data.take(calm_idx)
             trigger[calm_idx] = screen(sub, pos[calm_idx], cov[calm_idx])
-    trigger &= status != STATUS_DEGENERATE
+    # Only converged fixes are screened: max_iterations/diverged keep the estimator's
+    # status (its iteration limit and run-away tests stand).
+    trigger &= usable & (status == STATUS_OK)
     idx = np.flatnonzero(trigger)
     if idx.size:
         data = Data(bearings, d_ref).take(idx)

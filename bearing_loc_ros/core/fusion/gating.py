@@ -22,8 +22,13 @@ from .. import registry as _registry
 from ..bearings import BearingSet
 from ..conventions import azimuth_elevation, wrap_angle
 from ..crlb import angle_jacobians
+from ..fix import STATUS_LOW_CONFIDENCE
 from .results import (BAD_COVARIANCE, DEGENERATE_GEOMETRY, Epoch, ESTIMATOR_ERROR,
                       INCONSISTENT_BEARINGS, NO_ELEVATION, NOT_CONVERGED, OK, TOO_FEW_STATIONS)
+
+#: Epoch reason of a fix that failed its consistency checks (estimator status
+#: ``low_confidence``, core.robust): position and covariance are set, but it is no fix.
+LOW_CONFIDENCE = 'low_confidence'
 
 
 @lru_cache(maxsize=64)
@@ -119,7 +124,7 @@ def _trusted_set(bearings):
 
 
 def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=0.999,
-                validated=False):
+                validated=False, trust=None):
     """Fix from aligned bearings (one per station) with χ² outlier gating -> :class:`Epoch`.
 
     Loop: check the counts (at least ``min_stations`` stations, one elevation, three angles:
@@ -137,11 +142,26 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     pipeline, whose bearings passed Bearing.validate on arrival) skips a second check of the
     same fields, builds the BearingSet directly and calls the estimator function directly:
     same result, ~60 µs less per estimation at N = 10.
+
+    Robustness (core.robust, core.station_trust): an estimator that declares option
+    ``robust`` runs with it on (off when ``outlier_gate`` is 1, which disables every outlier
+    test) unless ``options`` says otherwise; its outlier bearings (both
+    angles excluded) count as rejected, and a fix it assesses ``low_confidence`` becomes an
+    Epoch of reason ``low_confidence`` that carries position and covariance. With ``trust``
+    (a :class:`~bearing_loc_ros.core.station_trust.StationTrust`) every bearing is used with
+    its σ_eff and the deletion residuals of the final solve update the trust.
     """
     options = dict(options or {})
     used = list(bearings)
+    claims = {}
+    if trust is not None:
+        claims = {b.station: (b.sigma_azimuth, b.sigma_elevation) for b in used}
+        peer = float(np.median([b.sigma_azimuth for b in used])) if used else 0.0
+        used = [trust.effective(b, peer) for b in used]
     rejected = []
     kwargs = _registry.scoped_options(estimator, options)
+    if 'robust' not in kwargs and _registry.spec(estimator).accepts('robust'):
+        kwargs['robust'] = float(outlier_gate) < 1.0     # gate 1: no outlier handling
     if validated:
         make_set = _trusted_set
 
@@ -174,6 +194,21 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
                       iterations=int(res.iterations[0]), result=res)
         if status == _estimators.STATUS_DEGENERATE:
             return Epoch(DEGENERATE_GEOMETRY, **common)
+        excluded = getattr(res, 'excluded', None)
+        if excluded is not None and np.all(np.isfinite(pos)):
+            out = np.flatnonzero(excluded[0, :, 0] & (excluded[0, :, 1]
+                                                      | np.isnan(bs.elevation[0])))
+            if out.size:
+                rejected = rejected + [used[i] for i in out]
+                drop = set(out.tolist())
+                used = [b for i, b in enumerate(used) if i not in drop]
+                common.update(bearings=used, rejected=rejected)
+                bs = make_set(used)
+        if status == STATUS_LOW_CONFIDENCE:
+            if trust is not None:
+                trust.update(used, claims, pos, cov, rejected)
+            return Epoch(LOW_CONFIDENCE, position=pos, covariance=0.5 * (cov + cov.T),
+                         detail='failed the consistency checks (core.robust)', **common)
         if status != _estimators.STATUS_OK or not bool(res.converged[0]):
             return Epoch(NOT_CONVERGED, **common)
         if not np.all(np.isfinite(pos)):
@@ -200,6 +235,8 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
             return Epoch(INCONSISTENT_BEARINGS,
                          detail=f'{used[worst].station} d2={d2[worst]:.3g} but too few '
                                 f'stations left to drop it', **common)
+        if trust is not None:
+            trust.update(used, claims, pos, cov, rejected)
         residuals = {b.station: float(v) for b, v in zip(used, d2)}
         return Epoch(OK, position=pos, covariance=0.5 * (cov + cov.T), residuals=residuals,
                      chi2=float(np.nansum(d2)), dof=int(np.sum(dof)) - 3, **common)

@@ -8,7 +8,11 @@ Per epoch (epoch time t from :mod:`.triggers`):
    stay independent); interpolation may reuse a bracketing pair for several epochs.
 2. Estimation and outlier gating (:func:`.gating.solve_epoch`, the configured estimator,
    for example the pseudo-linear LS of Wang, Zhang & Wu eq. (4) for ``ls`` or the MLE of
-   Zong & Cui 2015 eqs. (3)-(8) for ``mle``).
+   Zong & Cui 2015 eqs. (3)-(8) for ``mle``), robust where the estimator supports it
+   (core.robust), with each station's σ as its trust allows
+   (:class:`~bearing_loc_ros.core.station_trust.StationTrust`: leave-one-out residual
+   history, σ floor). Fixes that fail their consistency checks are epochs of reason
+   ``low_confidence`` (counted, never a fix).
 
 The strategy reads the :class:`~.stations.StationRegistry` and returns :class:`Epoch` results;
 the pipeline (:class:`~.pipeline.FusionCore`) counts them and advances the registry's
@@ -17,7 +21,8 @@ the pipeline (:class:`~.pipeline.FusionCore`) counts them and advances the regis
 
 from ..alignment import align, NEAREST
 from .config import MODE_MULTISTATION, TRIGGER_EVENT
-from .gating import solve_epoch
+from ..station_trust import StationTrust
+from .gating import LOW_CONFIDENCE, solve_epoch
 from .results import LEVEL_ERROR, LEVEL_OK, LEVEL_WARN
 from .triggers import event_epoch_time, timer_epoch_times
 
@@ -27,9 +32,11 @@ class MultiStationStrategy:
 
     mode = MODE_MULTISTATION
 
-    def __init__(self, registry):
+    def __init__(self, registry, trust=None):
         self.registry = registry
         self._used_until = {}     # nearest mode: station -> stamp of its last used bearing
+        self.trust = trust if trust is not None else StationTrust()
+        self.low_confidence = 0
 
     # ----------------------------------------------------------------- pipeline hooks
     def reconfigure(self, config):
@@ -42,10 +49,12 @@ class MultiStationStrategy:
     def station_removed(self, station):
         """Forget the alignment history of ``station``."""
         self._used_until.pop(station, None)
+        self.trust.forget(station)
 
     def reset(self, now):
         """After a backward time jump: forget the alignment history."""
         self._used_until.clear()
+        self.trust.reset()
 
     def on_bearing(self, bearing, now):
         """A bearing was buffered: the event trigger may complete an epoch."""
@@ -67,8 +76,15 @@ class MultiStationStrategy:
         return self.registry.geometry()
 
     def diagnostic_values(self):
-        """No values beyond the pipeline's."""
-        return {}
+        """low_confidence_fixes, suspect_stations (σ claim inconsistent with their
+        leave-one-out residuals) and trust_scale.<station> (s_k > 1 only)."""
+        out = {'low_confidence_fixes': self.low_confidence,
+               'suspect_stations': ','.join(self.trust.suspects())}
+        for s in self.registry.stations:
+            k = self.trust.scale(s)
+            if k > 1.0:
+                out[f'trust_scale.{s}'] = f'{k:.3g}'
+        return out
 
     def overall_status(self, live, stale, fixes, last_epoch):
         """(level, message) of the overall diagnostic entry."""
@@ -107,7 +123,9 @@ class MultiStationStrategy:
             if kind == NEAREST and nearest_only:
                 used_until[s] = int(b.stamp_ns)
         ep = solve_epoch(aligned, cfg.estimator, cfg.estimator_options, cfg.min_stations,
-                         cfg.outlier_gate, validated=True)
+                         cfg.outlier_gate, validated=True, trust=self.trust)
+        if ep.reason == LOW_CONFIDENCE:
+            self.low_confidence += 1
         ep.stamp_ns, ep.produced_ns = int(t), int(now)
         ep.how, ep.missing, ep.stale = how, missing, reg.stale_stations()
         return ep

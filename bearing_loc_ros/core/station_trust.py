@@ -1,0 +1,191 @@
+"""Per-station trust: each station's real bearing error scale, estimated from its residuals.
+
+A station's σ claim is not taken on trust. After every fix, each station k in it is tested
+against the fix of the *others* (leave-one-out, computed exactly for the linearised model
+from the full fix, without re-solving; Cook 1977's deletion residual): with J_k its (1 or
+2) × 3 angle Jacobian, e_k its residual at the fix X̂ and P the fix covariance,
+
+    δ_k = (I − J_k P J_kᵀ R_k⁻¹)⁻¹ e_k,   var(δ_k) = R_k + J_k P_(−k) J_kᵀ,
+    P_(−k) = (P⁻¹ − J_kᵀ R_k⁻¹ J_k)⁻¹,
+
+δ_k being station k's residual at the fix of the others and R_k = diag(σ²) the variance
+the fix weighted it with. Over a window of recent fixes the excess of δ_k² beyond what the
+others' uncertainty explains estimates the station's own error variance,
+
+    σ̂_k² = mean(δ_k² − [J_k P_(−k) J_kᵀ]_diag)      (per angle, over the window),
+
+and the station's σ is used as σ_eff = max(σ_claim · s_k, σ_floor) with the scale
+s_k = sqrt(max(1, σ̂_k² / σ_claim²)) (never below the claim). Until a station has
+:data:`MIN_SAMPLES` residuals its σ is also floored at the median σ its peers claim: an
+unverified claim better than the rest of the network is not believed. A station whose window
+statistic Σ d_k² (d_k² = δ_kᵀ (R_claim + J_k P_(−k) J_kᵀ)⁻¹ δ_k, with the *claimed* σ)
+exceeds the χ² quantile of
+:data:`SUSPECT_PROBABILITY` with Σ dof degrees of freedom is *suspect* and named in the
+diagnostics. Pure Python/numpy; the fusion keeps one :class:`StationTrust` per pipeline.
+Angles in rad, positions in m; ENU, azimuth CCW from East, elevation above the horizontal.
+"""
+
+from collections import deque
+from dataclasses import replace
+import math
+
+import numpy as np
+from scipy.stats import chi2 as _chi2
+
+#: Fixes in a station's residual window.
+DEFAULT_WINDOW = 20
+#: A station is suspect when its windowed deletion χ² exceeds this quantile.
+SUSPECT_PROBABILITY = 0.9999
+#: Samples before a station's scale is used (fewer: its claim, floored).
+MIN_SAMPLES = 3
+
+
+class StationTrust:
+    """Error scales of stations from their leave-one-out residual history (module doc).
+
+    ``sigma_floor``: rad, the smallest σ any bearing is used with (0: none); ``floors``:
+    per-station floors {station: rad} overriding it. ``window``: fixes remembered.
+    """
+
+    def __init__(self, window=DEFAULT_WINDOW, sigma_floor=0.0, floors=None,
+                 probability=SUSPECT_PROBABILITY):
+        if int(window) < 1:
+            raise ValueError(f'window: must be >= 1, got {window}')
+        f = float(sigma_floor)
+        if not (math.isfinite(f) and f >= 0.0):
+            raise ValueError(f'sigma_floor: must be finite and >= 0 rad, got {sigma_floor}')
+        self.window = int(window)
+        self.sigma_floor = f
+        self.floors = {str(k): float(v) for k, v in (floors or {}).items()}
+        self.probability = float(probability)
+        self._hist = {}
+
+    # ------------------------------------------------------------------ use
+    def scale(self, station):
+        """s_k ≥ 1 (module docstring); 1 until :data:`MIN_SAMPLES` fixes were seen."""
+        h = self._hist.get(station)
+        if not h or len(h) < MIN_SAMPLES:
+            return 1.0
+        excess = sum(x for x, _, _, _ in h) / sum(n for _, n, _, _ in h)
+        return math.sqrt(max(1.0, excess))
+
+    def floor(self, station):
+        """σ floor of ``station``, rad."""
+        return self.floors.get(station, self.sigma_floor)
+
+    def verified(self, station):
+        """True once ``station`` has :data:`MIN_SAMPLES` leave-one-out residuals."""
+        h = self._hist.get(station)
+        return bool(h) and len(h) >= MIN_SAMPLES
+
+    def effective(self, bearing, peer_sigma=0.0):
+        """``bearing`` with σ_eff = max(σ_claim · s_k, floor) (the same object if unchanged).
+
+        A station not yet :meth:`verified` is also floored at ``peer_sigma`` (rad; the
+        fusion passes the median σ claimed by the other stations of the epoch): a claim
+        better than its peers' is used only once the residual history supports it.
+        """
+        s = self.scale(bearing.station)
+        fl = self.floor(bearing.station)
+        if not self.verified(bearing.station):
+            fl = max(fl, float(peer_sigma))
+        saz = max(bearing.sigma_azimuth * s, fl)
+        sel = bearing.sigma_elevation
+        if sel == sel:
+            sel = max(sel * s, fl)
+        if saz == bearing.sigma_azimuth and (sel == bearing.sigma_elevation or sel != sel):
+            return bearing
+        return replace(bearing, sigma_azimuth=saz, sigma_elevation=sel)
+
+    def suspects(self):
+        """Stations whose windowed deletion χ² is inconsistent with their σ (sorted)."""
+        out = []
+        for st, h in self._hist.items():
+            if len(h) < MIN_SAMPLES:
+                continue
+            d2 = sum(x for _, _, x, _ in h)
+            dof = sum(n for _, n, _, _ in h)
+            if d2 > _chi2.ppf(self.probability, dof):
+                out.append(st)
+        return sorted(out)
+
+    def forget(self, station):
+        """Drop the history of ``station``."""
+        self._hist.pop(station, None)
+
+    def reset(self):
+        """Drop every history (a time jump)."""
+        self._hist.clear()
+
+    # ------------------------------------------------------------------ update
+    def update(self, bearings, claims, position, covariance, outside=()):
+        """Record the deletion residuals of a fix.
+
+        ``bearings``: the Bearings in the fix, with the σ it weighted them with; ``outside``:
+        Bearings of the epoch left out of it (their residual at the fix is already a
+        leave-one-out residual: δ = e, P_(−k) = P); ``claims``:
+        {station: (σ_θ, σ_ψ)} the stations' own claims, rad; ``position`` (3,) m and
+        ``covariance`` (3, 3) m² of the fix (the estimator's, before any inflation).
+        Returns {station: d_k²} of the stations that could be tested (a station whose
+        removal leaves the fix undetermined is not testable).
+        """
+        x = np.asarray(position, dtype=float)
+        P = np.asarray(covariance, dtype=float)
+        try:
+            F = np.linalg.inv(P)
+        except np.linalg.LinAlgError:
+            return {}
+        out = {}
+        items = [(b, True) for b in bearings] + [(b, False) for b in outside]
+        for b, inside in items:
+            J, e, R = _angles(b, x)
+            if J is None:
+                continue
+            Rinv = np.diag(1.0 / R)
+            if inside:
+                try:
+                    P_others = np.linalg.inv(F - J.T @ Rinv @ J)
+                except np.linalg.LinAlgError:
+                    continue
+                w = np.linalg.eigvalsh(0.5 * (P_others + P_others.T))
+                if not (np.all(np.isfinite(w)) and w[0] > 0):
+                    continue
+                A = np.eye(len(R)) - J @ P @ J.T @ Rinv
+            else:
+                P_others, A = P, np.eye(len(R))
+            V = J @ P_others @ J.T
+            c = claims.get(b.station, (b.sigma_azimuth, b.sigma_elevation))
+            c2 = np.array([c[0] ** 2] + ([c[1] ** 2] if len(R) == 2 else []))
+            try:
+                delta = np.linalg.solve(A, e)
+                d2 = float(delta @ np.linalg.solve(np.diag(c2) + V, delta))
+            except np.linalg.LinAlgError:
+                continue
+            if not math.isfinite(d2):
+                continue
+            excess = float(np.sum((delta ** 2 - np.diag(V)) / c2))
+            h = self._hist.setdefault(b.station, deque(maxlen=self.window))
+            h.append((excess, len(R), d2, len(R)))
+            out[b.station] = d2
+        return out
+
+
+def _angles(b, x):
+    """(J (k, 3), e (k,), R (k,)) of bearing ``b`` at ``x``: angle gradients, residuals
+    (measured − predicted, azimuth wrapped), variances; (None, None, None) on the axis."""
+    d = x - np.asarray(b.position, dtype=float)
+    rho2 = d[0] * d[0] + d[1] * d[1]
+    if not rho2 > 0.0:
+        return None, None, None
+    r2 = rho2 + d[2] * d[2]
+    rho = math.sqrt(rho2)
+    ea = b.azimuth - math.atan2(d[1], d[0])
+    ea -= 2.0 * math.pi * math.ceil((ea - math.pi) / (2.0 * math.pi))
+    J = [[-d[1] / rho2, d[0] / rho2, 0.0]]
+    e = [ea]
+    R = [b.sigma_azimuth ** 2]
+    if b.elevation == b.elevation:
+        J.append([-d[0] * d[2] / (rho * r2), -d[1] * d[2] / (rho * r2), rho / r2])
+        e.append(b.elevation - math.atan2(d[2], rho))
+        R.append(b.sigma_elevation ** 2)
+    return np.array(J), np.array(e), np.array(R)

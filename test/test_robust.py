@@ -1,0 +1,185 @@
+"""Robust fixes (core.robust), station trust (core.station_trust) and their fusion wiring.
+
+Statistical checks use fixed seeds; bounds come from the statistics (χ² bands, binomial
+counts), not from one run.
+"""
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from bearing_loc_ros.core import evaluation as ev
+from bearing_loc_ros.core import robust
+from bearing_loc_ros.core.bearings import Bearing
+from bearing_loc_ros.core.conventions import azimuth_elevation
+from bearing_loc_ros.core.estimators import locate
+from bearing_loc_ros.core.fusion import FusionConfig
+from bearing_loc_ros.core.fusion.pipeline import make_core, replay
+from bearing_loc_ros.core.simulation import load_scenario
+from bearing_loc_ros.core.station_trust import StationTrust
+from bearing_loc_ros.scenarios import resolve_scenario
+
+S = 1_000_000_000
+Q9999 = stats.chi2.ppf(0.9999, 3)
+
+
+def trials(name, n, seed=0):
+    return ev.trials_from_scenario(load_scenario(resolve_scenario(name)), n, seed)
+
+
+def noisy(tr, sigma, seed, outliers=None):
+    f = tr.sigma_factor()
+    b = ev.noisy_bearings(tr, sigma * f, sigma * f, np.random.default_rng(seed), outliers)
+    b.sigma_az = np.full_like(b.sigma_az, sigma)
+    b.sigma_el = np.where(b.has_elevation, sigma, np.nan)
+    return b
+
+
+def nees(res, truth, mask):
+    e = res.position[mask] - truth[mask]
+    return np.einsum('mi,mij,mj->m', e, np.linalg.inv(res.covariance[mask]), e)
+
+
+def test_calm_fixes_are_the_paper_estimate_and_ok():
+    tr = trials('config/scenarios/six_station_const.yaml', 400)
+    b = noisy(tr, math.radians(1.0), 1)
+    plain = locate('mle', b)
+    rob = locate('mle', b, robust=True)
+    ok = rob.status == 'ok'
+    # a consistent fix fails the 0.999 chi-square test with probability 1e-3: binomial bound
+    assert ok.mean() >= 1 - stats.binom.ppf(0.9999, 400, 0.002) / 400
+    calm = ok & ~np.any(rob.excluded, axis=(1, 2))
+    same = np.all(rob.position[calm] == plain.position[calm], axis=1)
+    assert same.mean() > 0.95
+    n = nees(rob, tr.targets, ok)
+    half = stats.norm.ppf(0.995) * math.sqrt(6.0 / n.size)
+    assert abs(n.mean() - 3.0) < half * 1.5        # chi2_3 mean band (x1.5: nonlinearity)
+    assert np.mean(n > Q9999) < 0.003
+
+
+def test_outlier_bearings_are_excluded_and_named():
+    tr = trials('config/scenarios/six_station_const.yaml', 300)
+    sigma = math.radians(1.0)
+    clean = locate('mle', noisy(tr, sigma, 2), robust=True)
+    b = noisy(tr, sigma, 2, (0.1, math.radians(20), math.radians(90)))
+    rob = locate('mle', b, robust=True)
+    plain = locate('mle', b)
+    ok = rob.status == 'ok'
+    rmse_ok = np.sqrt(np.mean(np.sum((rob.position[ok] - tr.targets[ok]) ** 2, axis=1)))
+    rmse_clean = np.sqrt(np.mean(np.sum((clean.position - tr.targets) ** 2, axis=1)))
+    rmse_plain = np.sqrt(np.nanmean(np.sum((plain.position - tr.targets) ** 2, axis=1)))
+    assert ok.mean() > 0.9
+    assert rmse_ok < 1.3 * rmse_clean < rmse_plain
+    # the excluded azimuths are the outliers: truth residual > 20 deg
+    az_true, _ = azimuth_elevation(tr.targets[:, None, :] - tr.stations)
+    big = np.abs(np.angle(np.exp(1j * (b.azimuth - az_true)))) > math.radians(15)
+    exc = rob.excluded[..., 0][ok]
+    assert np.all(exc[big[ok]])                     # every gross azimuth outlier excluded
+    assert exc[~big[ok]].mean() < 0.01              # few good azimuths lost
+
+
+def test_wmle_never_runs_away_in_range():
+    tr = trials('config/scenarios/seed003.yaml', 300)
+    b = noisy(tr, math.radians(4.0), 3)
+    plain = locate('wmle', b)
+    rob = locate('wmle', b, robust=True)
+    err_p = np.linalg.norm(plain.position - tr.targets, axis=1)
+    err_r = np.linalg.norm(rob.position - tr.targets, axis=1)
+    fixed = np.isin(rob.status, ('ok', 'low_confidence'))
+    assert fixed.mean() > 0.95 and np.all(np.isfinite(err_r[fixed]))
+    assert np.sqrt(np.mean(err_r[fixed] ** 2)) < np.sqrt(np.mean(err_p[fixed] ** 2))
+    assert err_r[fixed].max() < 15e3          # the box spans ~9 km from the farthest station
+    ok = rob.status == 'ok'
+    if ok.any():
+        assert np.mean(nees(rob, tr.targets, ok) > Q9999) < 0.05
+
+
+def test_assess_flags_inconsistent_residuals():
+    tr = trials('config/scenarios/six_station_const.yaml', 50)
+    b = noisy(tr, math.radians(1.0), 4)
+    b.sigma_az = b.sigma_az / 10.0         # a claim 10x too good: chi2 ~ 100 x dof
+    b.sigma_el = b.sigma_el / 10.0
+    rob = locate('mle', b, robust=True)
+    assert np.mean(rob.status != 'ok') >= 0.85     # single fixes; the trust learns the rest
+
+
+def test_nonlinearity_is_range_sigma_over_range():
+    P = np.diag([1.0, 100.0 ** 2, 1.0])[None]
+    u = np.array([[[0.0, 1.0, 0.0], [1.0, 0.0, 0.0]]])
+    d = np.array([[1000.0, 2000.0]])
+    nu = robust.nonlinearity(P, u, d, np.ones((1, 2), dtype=bool))
+    assert nu[0] == pytest.approx(0.1)
+
+
+def test_station_trust_inputs():
+    with pytest.raises(ValueError, match='window'):
+        StationTrust(window=0)
+    with pytest.raises(ValueError, match='sigma_floor'):
+        StationTrust(sigma_floor=-1.0)
+    t = StationTrust(sigma_floor=1e-3, floors={'a': 5e-3})
+    b = Bearing(station='a', stamp_ns=0, position=np.zeros(3), azimuth=0.1, elevation=0.1,
+                sigma_azimuth=1e-4, sigma_elevation=1e-4)
+    e = t.effective(b)
+    assert e.sigma_azimuth == 5e-3 and e.sigma_elevation == 5e-3
+    assert t.effective(b, 0.0).sigma_azimuth == 5e-3
+
+
+TARGET = np.array([2500.0, 3000.0, 800.0])
+POS = np.array([[0.0, 0.0, 0.0], [5000.0, 0.0, 20.0], [0.0, 6000.0, 40.0],
+                [6000.0, 6000.0, 10.0], [-2000.0, 3000.0, 0.0]])
+SIG = 3e-3
+
+
+def spoof(off_deg, claim, fake=0.0, epochs=30, seed=0):
+    """Four honest stations (σ = 3 mrad) and a liar s5 (bias, tiny claimed σ, fake position)."""
+    rng = np.random.default_rng(seed)
+    names = [f's{i + 1}' for i in range(5)]
+    core = make_core(FusionConfig(trigger='timer', rate=1.0, max_latency=0.5), stations=names)
+    items = []
+    for k in range(epochs):
+        t = (k + 1) * S
+        for i, p in enumerate(POS):
+            az, el = azimuth_elevation(TARGET - p)
+            az, el = az + SIG * rng.standard_normal(), el + SIG * rng.standard_normal()
+            liar = i == 4
+            pos = p + np.array([fake, 0.0, 0.0]) if liar else p.copy()
+            az += math.radians(off_deg) if liar else 0.0
+            s = claim if liar else SIG
+            items.append((t, Bearing(station=names[i], stamp_ns=t, position=pos,
+                                     azimuth=float(az), elevation=float(el), sigma_azimuth=s,
+                                     sigma_elevation=s)))
+    items.append(((epochs + 3) * S, None))
+    eps = list(replay(core, items))
+    return eps, core.diagnostics((epochs + 3) * S)[0].values
+
+
+@pytest.mark.parametrize('off_deg,claim,fake', [(0.5, 3e-4, 0.0), (1.0, 1e-5, 0.0),
+                                                (5.0, 1e-6, 0.0), (0.0, 1e-5, 600.0)])
+def test_a_lying_station_is_named_and_never_makes_a_confident_wrong_fix(off_deg, claim, fake):
+    eps, diag = spoof(off_deg, claim, fake)
+    ok = [e for e in eps if e.ok]
+    assert len(ok) >= 25                                    # the honest four keep fixing
+    for e in ok:
+        d = e.position - TARGET
+        assert d @ np.linalg.solve(e.covariance, d) < Q9999
+        assert {'s1', 's2', 's3', 's4'} <= set(e.stations)  # honest stations never dropped
+    assert diag['suspect_stations'] == 's5'
+
+
+def test_honest_network_names_no_suspect():
+    eps, diag = spoof(0.0, SIG)
+    assert diag['suspect_stations'] == ''
+    assert sum(e.ok for e in eps) >= 28
+
+
+def test_evaluate_completes_at_ten_degrees_and_reports_statuses():
+    from bearing_loc_ros.cli.evaluate import run_evaluation
+    rows, meta = run_evaluation('config/scenarios/seed003.yaml', ['ls', 'wmle'], [10.0], 40,
+                                sweep='none', robust=True, outliers=(0.1, 0.35, 1.57))
+    assert meta['robust'] and len(rows) == 2
+    for r in rows:
+        total = r.ok_fraction + r.low_confidence_fraction + r.other_fraction
+        assert total == pytest.approx(1.0)
+        assert math.isfinite(r.p95_error) or r.converged == 0
