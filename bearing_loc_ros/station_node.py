@@ -12,9 +12,18 @@ Runs on a station computer (``ros2 run bearing_loc_ros station_node --ros-args
 * ``platform_odometry`` (nav_msgs/Odometry topic, optional): the station is on a moving
   platform; readings are in the body frame and rotated into the world frame with the pose
   interpolated to each reading's stamp.
+* A KrakenSDR receiver (``input``: ``kraken_xml_http``, ``kraken_csv_http``,
+  ``kraken_json_post`` or ``kraken_csv_file``, parameters ``kraken.*``): it replaces the
+  raw topic and UDP. The source runs in a worker thread or is read non-blocking
+  (:mod:`bearing_loc_ros.receiver_inputs`); a steady-clock timer drains it through
+  :class:`~bearing_loc_ros.receiver_inputs.KrakenInput` (parsing, channel bands, time
+  checks, heading and position: :mod:`bearing_loc_ros.core.receiver`).
 
-Outputs: ``bearing`` (geometry_msgs/PoseWithCovarianceStamped, DESIGN.md contract) and
-``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every ``diagnostics_period``).
+Outputs: ``bearing`` (geometry_msgs/PoseWithCovarianceStamped, DESIGN.md contract) — or,
+with ``kraken.channels``, ``/<channel>/<station>/bearing`` per channel (the simulator's
+target namespace scheme) — and ``/diagnostics`` (diagnostic_msgs/DiagnosticArray, every
+``diagnostics_period``; a receiver input adds its state and ``kraken_*`` counters, WARN
+while the receiver is unreachable, slow, failing or its file missing).
 
 The node is thin: parameters (declared from the schema in core.parameters; print them with
 ``python -m bearing_loc_ros.core.parameters --markdown station_node``) ->
@@ -37,9 +46,12 @@ from rclpy.node import Node
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from . import ros_common as rcm
+from .core.receiver_params import receiver_from_params
+from .core.simulation import bearing_topic
 from .core.station import (ConfigError, parse_datagram, PoseBuffer, ReadingError,
                            station_config, to_world_bearing)
 from .core.udp import udp_drops
+from .receiver_inputs import KrakenInput, make_source
 from .ros_conversions import (bearing_to_msg, ConversionError, pose_from_odometry,
                               raw_reading_from_msg)
 
@@ -47,6 +59,10 @@ from .ros_conversions import (bearing_to_msg, ConversionError, pose_from_odometr
 UDP_POLL_PERIOD_S = 0.01
 UDP_MAX_PER_POLL = 256
 LOG_THROTTLE_S = 5.0
+#: Period of the receiver input drain (s, steady clock).
+KRAKEN_POLL_PERIOD_S = 0.02
+#: Receiver source states reported as WARN in /diagnostics.
+KRAKEN_WARN_STATES = ('unreachable', 'error', 'missing', 'slow')
 
 #: Inputs accept best-effort and reliable publishers; outputs are reliable.
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
@@ -61,21 +77,36 @@ class StationNode(Node):
     def __init__(self, **kwargs):
         super().__init__('station_node', **kwargs)
         self._sock = None
+        self.kraken = None
         p = rcm.declare_schema(self, 'station_node')
         station = p['station_id'] or rcm.station_id_from_namespace(self.get_namespace())
+        self.receiver_config, self.channels = None, None
         try:
-            self.config = station_config(
-                station, frame_id=p['frame_id'], position=p['position'],
-                geodetic_position=p['geodetic_position'], geodetic_origin=p['geodetic_origin'],
-                position_covariance=p['position_covariance'],
-                sigma_azimuth_deg=p['sigma_azimuth_deg'],
-                sigma_elevation_deg=p['sigma_elevation_deg'],
-                measures_elevation=p['measures_elevation'],
-                azimuth_reference=p['azimuth_reference'],
-                azimuth_offset_deg=p['azimuth_offset_deg'],
-                moving=bool(p['platform_odometry']))
+            if p['input']:
+                self.receiver_config, self.channels = receiver_from_params(station, p)
+                self.config = self.receiver_config.station
+            else:
+                self.config = station_config(
+                    station, frame_id=p['frame_id'], position=p['position'],
+                    geodetic_position=p['geodetic_position'],
+                    geodetic_origin=p['geodetic_origin'],
+                    position_covariance=p['position_covariance'],
+                    sigma_azimuth_deg=p['sigma_azimuth_deg'],
+                    sigma_elevation_deg=p['sigma_elevation_deg'],
+                    measures_elevation=p['measures_elevation'],
+                    azimuth_reference=p['azimuth_reference'],
+                    azimuth_offset_deg=p['azimuth_offset_deg'],
+                    moving=bool(p['platform_odometry']))
         except ConfigError as exc:
             raise rcm.ParameterError(exc.field, exc.problem) from None
+        if p['input'] and p['udp_port']:
+            raise rcm.ParameterError('udp_port', f"must be 0 with input {p['input']} (a "
+                                                 'receiver input replaces UDP and raw_bearing)')
+        needs_odometry = (self.receiver_config.needs_odometry if p['input']
+                          else self.config.moving)
+        if needs_odometry and not p['platform_odometry']:
+            raise rcm.ParameterError('platform_odometry', 'required by kraken.heading_source, '
+                                     'kraken.low_speed or kraken.position_source odometry')
         self.input_units = p['input_units']
         self.restamp_udp = p['udp_stamp'] == 'receive'
         self.published = 0
@@ -87,19 +118,26 @@ class StationNode(Node):
         self._udp_drops_reported = 0
         self.sources = []
 
-        self.pub = self.create_publisher(PoseWithCovarianceStamped, 'bearing', OUTPUT_QOS)
+        self.pubs = {ch: self.create_publisher(
+            PoseWithCovarianceStamped, '/' + bearing_topic(ch, station) if ch else 'bearing',
+            OUTPUT_QOS) for ch in (self.channels.names if self.channels else [''])}
+        self.pub = self.pubs.get('')
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
-        self.raw_sub = self.create_subscription(Vector3Stamped, 'raw_bearing', self._on_raw,
-                                                INPUT_QOS)
-        self.sources.append(f'topic {self.raw_sub.topic_name} ({self.input_units})')
+        if not p['input']:
+            self.raw_sub = self.create_subscription(Vector3Stamped, 'raw_bearing',
+                                                    self._on_raw, INPUT_QOS)
+            self.sources.append(f'topic {self.raw_sub.topic_name} ({self.input_units})')
         self.poses = None
-        if self.config.moving:
+        if p['platform_odometry']:
             self.poses = PoseBuffer(p['odometry_buffer_size'],
                                     int(round(p['odometry_tolerance'] * 1e9)))
             self.odom_sub = self.create_subscription(Odometry, p['platform_odometry'],
                                                      self._on_odometry, INPUT_QOS)
             self.sources.append(f'odometry {self.odom_sub.topic_name}')
         steady = Clock(clock_type=ClockType.STEADY_TIME)
+        if p['input']:
+            self._open_receiver(p)
+            self.create_timer(KRAKEN_POLL_PERIOD_S, self._poll_kraken, clock=steady)
         if p['udp_port']:
             self._open_udp(p['udp_address'], p['udp_port'])
             self.create_timer(UDP_POLL_PERIOD_S, self._poll_udp, clock=steady)
@@ -112,6 +150,8 @@ class StationNode(Node):
         self.create_timer(p['diagnostics_period'], self._publish_diagnostics, clock=steady)
         c = self.config
         where = 'moving platform' if c.moving else f'position {c.position.tolist()} m'
+        if self.receiver_config is not None and c.moving:
+            where = f'position from {self.receiver_config.position_source}'
         self.get_logger().info(
             f"station '{c.station}' in frame '{c.frame_id}', {where}, "
             f"{'2D' if c.measures_elevation else '1D'}, reference {c.azimuth_reference}, "
@@ -120,6 +160,49 @@ class StationNode(Node):
     # ------------------------------------------------------------------ parameters
 
     # ------------------------------------------------------------------ inputs
+
+    def _open_receiver(self, p):
+        """Start the receiver input ``p['input']`` (ParameterError naming a bad kraken.*)."""
+        mode = p['input']
+        try:
+            source = make_source(mode, url=p['kraken.url'],
+                                 poll_period_s=1.0 / p['kraken.poll_rate'],
+                                 timeout_s=p['kraken.timeout'],
+                                 post_address=p['kraken.post_address'],
+                                 post_port=p['kraken.post_port'], file_path=p['kraken.file'],
+                                 file_from_start=p['kraken.file_from_start'],
+                                 file_rate=p['kraken.file_rate'])
+        except ValueError as exc:
+            name, _, problem = str(exc).partition(': ')
+            raise rcm.ParameterError('kraken.' + name, problem) from None
+        self.kraken = KrakenInput(source, self.receiver_config, self.channels,
+                                  p['kraken.stamp'], p['kraken.max_age'],
+                                  p['kraken.receiver_id']).start()
+        where = {'kraken_json_post': f"{p['kraken.post_address']}:"
+                                     f"{getattr(source, 'port', p['kraken.post_port'])}",
+                 'kraken_csv_file': p['kraken.file']}.get(mode, p['kraken.url'])
+        names = self.channels.names
+        self.sources.append(f'{mode} {where} (stamp: {p["kraken.stamp"]}'
+                            + (f', channels {", ".join(names)}' if names != [''] else '')
+                            + ')')
+
+    def _poll_kraken(self):
+        """Drain the receiver input: publish its bearings, count its rejections."""
+        now = self.get_clock().now().nanoseconds
+        pose_at = self.poses.interpolate if self.poses is not None else None
+        bearings, rejected = self.kraken.poll(now, pose_at)
+        self.received['kraken'] += len(bearings) + len(rejected)
+        for channel, b in bearings:
+            try:
+                msg = bearing_to_msg(b)
+            except ValueError as exc:
+                self._reject('invalid_bearing', 'receiver', exc)
+                continue
+            self.pubs[channel].publish(msg)
+            self.published += 1
+            self.last_stamp_ns = b.stamp_ns
+        for reason, detail in rejected:
+            self._reject(reason, 'receiver', detail)
 
     def _open_udp(self, address, port):
         try:
@@ -232,17 +315,24 @@ class StationNode(Node):
         values.update({f'received_{k}': v for k, v in sorted(self.received.items())})
         values.update({f'rejected_{k}': v for k, v in sorted(self.rejected.items())})
         new_drops = 0
+        receiver = None
+        if self.kraken is not None:
+            state, last_error, kvalues = self.kraken.status()
+            values.update(kvalues)
+            if state in KRAKEN_WARN_STATES:
+                receiver = f'receiver {state}' + (f' ({last_error})' if last_error else '')
         if self._sock is not None:  # datagrams the kernel discarded: the queue was full
             drops = udp_drops(self._sock)
             values['udp_dropped_by_kernel'] = 'unsupported' if drops is None else drops
             if drops is not None:
                 new_drops, self._udp_drops_reported = drops - self._udp_drops_reported, drops
-        if new_rej or new_drops:
+        if new_rej or new_drops or receiver:
             level = rcm.WARN
             message = '; '.join(
-                ([f'{new_rej} input(s) rejected'] if new_rej else [])
+                ([receiver] if receiver else [])
+                + ([f'{new_rej} input(s) rejected since last report'] if new_rej else [])
                 + ([f'{new_drops} UDP datagram(s) dropped by the kernel (node busy or '
-                    'receive buffer full)'] if new_drops else [])) + ' since last report'
+                    'receive buffer full) since last report'] if new_drops else []))
         elif self.published == 0:
             level, message = rcm.OK, 'waiting for readings'
         else:
@@ -257,7 +347,10 @@ class StationNode(Node):
         self.diag_pub.publish(arr)
 
     def destroy_node(self):
-        """Close the UDP socket, then destroy the node."""
+        """Stop the receiver input, close the UDP socket, then destroy the node."""
+        if self.kraken is not None:
+            self.kraken.stop()
+            self.kraken = None
         if self._sock is not None:
             self._sock.close()
             self._sock = None

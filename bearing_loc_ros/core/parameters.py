@@ -234,6 +234,7 @@ def _fusion_schema():
 
 
 def _station_schema():
+    from . import receiver_params
     from .station import UNITS
     P = Param
     return (
@@ -279,7 +280,7 @@ def _station_schema():
           '', 2, 100000),
         P('diagnostics_period', DOUBLE, 1.0, 'Period of the /diagnostics status', 's', 0.05,
           3600.0, deprecated=('diagnostics_period_s',)),
-    )
+    ) + receiver_params.node_params()
 
 
 def _simulator_schema():

@@ -84,6 +84,46 @@ PARAMETERS = (
 
 DEFAULTS = {name: default for name, default, _, _ in PARAMETERS}
 STRING_ARRAYS = ('kraken.channels',)
+#: Unit of each receiver parameter with one (the names carry no suffix for SI units).
+UNITS = {'kraken.poll_rate': 'Hz', 'kraken.timeout': 's', 'kraken.max_age': 's',
+         'kraken.min_speed': 'm/s', 'kraken.heading_hold_timeout': 's',
+         'kraken.gps_sigma': 'm', 'kraken.antenna_height': 'm', 'kraken.sigma_snr_ref_db': 'dB',
+         'kraken.channel_bands_mhz': 'MHz'}
+#: Values written in the shipped station parameter file (as comments: the defaults stay).
+EXAMPLES = {'kraken.url': 'http://192.168.1.50:8081/doa.xml',
+            'kraken.file': 'mydata.csv', 'kraken.channels': ['uhf', 'vhf'],
+            'kraken.channel_bands_mhz': [430.0, 440.0, 144.0, 146.0]}
+
+
+def node_params():
+    """:data:`PARAMETERS` as station node schema entries
+    (:class:`bearing_loc_ros.core.parameters.Param`), appended to the station node's schema:
+    the type follows the default (``[]``: string array for :data:`STRING_ARRAYS`, double
+    array else), a numeric rule is the inclusive range, a string rule the choices."""
+    from . import parameters as sch
+    out = []
+    for name, default, text, rule in PARAMETERS:
+        if isinstance(default, bool):
+            kind = sch.BOOL
+        elif isinstance(default, int):
+            kind = sch.INTEGER
+        elif isinstance(default, float):
+            kind = sch.DOUBLE
+        elif isinstance(default, str):
+            kind = sch.STRING
+        else:
+            kind = sch.STRING_ARRAY if name in STRING_ARRAYS else sch.DOUBLE_ARRAY
+        unit = UNITS.get(name, 'deg' if name.endswith('_deg') else '')
+        lo = hi = None
+        choices = ()
+        if isinstance(rule, tuple) and rule and isinstance(rule[0], str):
+            choices = rule
+        elif isinstance(rule, tuple):
+            lo, hi = rule
+        out.append(sch.Param(name, kind, default, text, unit, lo, hi, choices=choices,
+                             example=EXAMPLES.get(name),
+                             commented=name in EXAMPLES))
+    return tuple(out)
 
 
 def flatten(params, prefix=''):
