@@ -1,9 +1,9 @@
-"""How the paper's CTLS depends on the coordinate origin and units (seed 000, section 4).
+"""How the paper's CTLS depends on the coordinate origin and units (Wang, Zhang & Wu, section 4).
 
-The constrained TLS of seed 000 weights the angle errors through G = Σ F_jᵀF_j, and F_4 holds
-the station coordinates, so ``ctls`` changes when the same geometry is written in km instead
-of m or with another origin. The Abatzoglou-Mendel variant ``ctls_am`` (G⁻¹ → P_E) and ``mle``
-do not. Scenario of seed 000 section 4: stations (30, −10, 0.1), (30, 20, 0.2),
+The constrained TLS of Wang, Zhang & Wu weights the angle errors through G = Σ F_jᵀF_j, and F_4
+holds the station coordinates, so ``ctls`` changes when the same geometry is written in km
+instead of m or with another origin. The Abatzoglou-Mendel variant ``ctls_am`` (G⁻¹ → P_E) and
+``mle`` do not. Scenario of Wang, Zhang & Wu section 4: stations (30, −10, 0.1), (30, 20, 0.2),
 (−30, 5, 0.15) km, equal σ on every angle, targets at 5 and 15 km altitude.
 
 For each coordinate frame the bearings are identical (angles do not depend on the frame);
@@ -57,7 +57,7 @@ def main():
     a = ap.parse_args()
     t0 = time.perf_counter()
     st = STATIONS_KM * 1e3
-    print(f'seed 000 scenario, {a.trials} trials per cell, seed {a.seed}; RMSE / CRLB '
+    print(f'Wang, Zhang & Wu scenario, {a.trials} trials per cell, seed {a.seed}; RMSE / CRLB '
           '(eq. (32) prediction / CRLB in brackets)')
     head = ['σ (mrad)', 'target (km)', 'CRLB (m)', 'mle']
     head += [f'ctls [{f}]' for f in FRAMES] + [f'ctls_am [{f}]' for f in ('m', 'km')]

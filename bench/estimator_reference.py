@@ -61,8 +61,8 @@ def _tma_problem():
 def run_multi(method, bs):
     """Estimator ``method`` on ``bs`` (wmle with d_ref = 1000 m)."""
     from bearing_loc_ros.core.estimators import locate
-    opts = {'reference_range': 1000.0} if method == 'wmle' else {}
-    return locate(method, bs, **opts)
+    from bearing_loc_ros.core.registry import scoped_options
+    return locate(method, bs, **scoped_options(method, {'reference_range': 1000.0}))
 
 
 def run_tma(method, bs, times, speed):

@@ -1,15 +1,15 @@
-"""Seed 001 section 4.2 Monte Carlo: TMA with a speed prior, ple / ctls / ctls6 / mle / CRLB.
+"""Lin et al., section 4.2 Monte Carlo: TMA with a speed prior, ple / ctls / ctls6 / mle / CRLB.
 
-Scenario (config/scenarios/seed001.yaml, seed 001 sec. 4.2.1): observer from the origin at
+Scenario (config/scenarios/seed001.yaml, Lin et al. sec. 4.2.1): observer from the origin at
 (0, 250, 0) m/s, target from (100, 100, 10) km at (−340, 80, −1.21) m/s, azimuth and elevation
 every 0.2 s for 100 s (501 bearings), prior relative speed v_c = 380 m/s (the true relative
 speed is 380.13 m/s: the paper's prior is 0.035 % off, far below every error here).
 
 Experiments (each ``--runs`` Monte Carlo runs, 200 as in the paper):
   1. σ = 0.1°, 0.15°, 0.2°, 0.25°, 0.3° (azimuth and elevation), start (100, 100, 10) km;
-  2. start (100, 100, 5) km × 0.5, 0.75, ..., 2.0 at σ = 0.1° (seed 001 sec. 4.2.2).
+  2. start (100, 100, 5) km × 0.5, 0.75, ..., 2.0 at σ = 0.1° (Lin et al. sec. 4.2.2).
 
-Metrics (seed 001 sec. 4.1; its formulas are lost, these are the usual ones):
+Metrics (Lin et al. sec. 4.1; its formulas are lost, these are the usual ones):
   RDE(t) = sqrt(mean_m (r̂_m(t) − r(t))²) / r(t)  (%), r the target-observer distance;
   APE(t) = sqrt(mean_m |p̂_m(t) − p(t)|²)          (km), p the target position;
 at t = 100 s, and averaged over the U = 251 epochs t = 50, 50.2, ..., 100 s, each estimate
@@ -146,7 +146,7 @@ def experiment(start, velocity, sigma, runs, seed, stride, t, obs):
 def table(title, label, keys, results, cols, which, eta=None):
     """Markdown table: rows = configurations, columns = estimators (RDE % | APE km).
 
-    ``eta`` = (new, old): add the paper's improvement η = (old − new) / old (%, seed 001
+    ``eta`` = (new, old): add the paper's improvement η = (old − new) / old (%, Lin et al.
     sec. 4.1) of RDE and APE.
     """
     head = ('| ' + label + ' | ' + ' | '.join(f'RDE {c}' for c in cols) + ' | '

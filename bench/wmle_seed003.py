@@ -1,15 +1,15 @@
-"""Seed 003 section 3 Monte Carlo: RMSE of ls, mle and wmle against the CRLB.
+"""Zong & Cui 2015, section 3 Monte Carlo: RMSE of ls, mle and wmle against the CRLB.
 
-Scenario (seed 003 section 3.1): six 2D stations on the x axis from −3000 to 3000 m; one
-source per trial, uniform in X(−3000, 3000), Y(1000, 7000), Z(−500, 500) m. Azimuth and
-elevation errors grow with range (seed 003 eqs. (9)-(10)): σ_k = σ_ref · d_k / d_ref, d_k the
-true slant range; the bearings report the nominal σ_ref (a station does not know the range),
-so ``mle`` weights all bearings equally and ``wmle`` (option reference_range = d_ref)
+Scenario (Zong & Cui 2015, section 3.1): six 2D stations on the x axis from −3000 to 3000 m;
+one source per trial, uniform in X(−3000, 3000), Y(1000, 7000), Z(−500, 500) m. Azimuth and
+elevation errors grow with range (Zong & Cui 2015 eqs. (9)-(10)): σ_k = σ_ref · d_k / d_ref,
+d_k the true slant range; the bearings report the nominal σ_ref (a station does not know the
+range), so ``mle`` weights all bearings equally and ``wmle`` (option reference_range = d_ref)
 re-weights them with the range of its current estimate. The CRLB is the inverse Fisher
 information at the true source with the true σ_k; the table gives RMSE = sqrt(mean |e|²) and
-CRLB = sqrt(mean trace(CRLB)) over the trials, in metres, and their ratio. Trials in which
-an estimator did not converge (status other than ok) are dropped from every column and
-counted in the last column.
+CRLB = sqrt(mean trace(CRLB)) over the trials, in metres, and their ratio. Trials in which an
+estimator did not converge (status other than ok) are dropped from every column and counted in
+the last column.
 
 Run: .venv/bin/python bench/wmle_seed003.py [--trials 1000] [--reference-range 1000]
 """
@@ -22,6 +22,7 @@ from bearing_loc_ros.core.bearings import BearingSet
 from bearing_loc_ros.core.conventions import azimuth_elevation, wrap_angle
 from bearing_loc_ros.core.crlb import crlb
 from bearing_loc_ros.core.estimators import locate
+from bearing_loc_ros.core.registry import scoped_options
 
 STATIONS = np.column_stack([np.linspace(-3000.0, 3000.0, 6), np.zeros(6), np.zeros(6)])
 BOX_MIN = np.array([-3000.0, 1000.0, -500.0])
@@ -33,7 +34,7 @@ def scenario(sigma_ref, trials, d_ref, rng):
     src = rng.uniform(BOX_MIN, BOX_MAX, size=(trials, 3))
     d = src[:, None, :] - STATIONS[None]
     az, el = azimuth_elevation(d)
-    sig = sigma_ref * np.linalg.norm(d, axis=-1) / d_ref          # seed 003 eqs. (9)-(10)
+    sig = sigma_ref * np.linalg.norm(d, axis=-1) / d_ref          # Zong & Cui 2015 eqs. (9)-(10)
     az = wrap_angle(az + sig * rng.standard_normal(az.shape))
     el = el + sig * rng.standard_normal(el.shape)
     el = np.clip(el, -1.5, 1.5)
@@ -48,7 +49,7 @@ def run(sigmas_deg, trials, d_ref, seed=3, methods=('ls', 'mle', 'wmle')):
     for s_deg in sigmas_deg:
         rng = np.random.default_rng(seed)
         src, bs, bound = scenario(np.deg2rad(s_deg), trials, d_ref, rng)
-        res = {m: locate(m, bs, **({'reference_range': d_ref} if m == 'wmle' else {}))
+        res = {m: locate(m, bs, **scoped_options(m, {'reference_range': d_ref}))
                for m in methods}
         # Trials where every estimator converged (the others are counted, not averaged).
         keep = np.all([r.converged for r in res.values()], axis=0)
@@ -69,7 +70,7 @@ def main():
     a = ap.parse_args()
     t0 = time.perf_counter()
     rows = run([0.5, 1.0, 1.5, 2.0, 2.5, 3.0], a.trials, a.reference_range, a.seed)
-    print(f'seed 003 scenario, {a.trials} trials per row, d_ref = {a.reference_range:g} m, '
+    print(f'Zong & Cui 2015 scenario, {a.trials} trials per row, d_ref = {a.reference_range:g} m, '
           f'seed {a.seed}')
     print('| σ_ref (deg) | CRLB (m) | ls RMSE (m) | mle RMSE (m) | wmle RMSE (m) '
           '| ls/CRLB | mle/CRLB | wmle/CRLB | trials dropped |')
