@@ -12,10 +12,12 @@ from the full fix, without re-solving; Cook 1977's deletion residual): with J_k 
 the fix weighted it with. Over a window of recent fixes the excess of δ_k² beyond what the
 others' uncertainty explains estimates the station's own error variance,
 
-    σ̂_k² = mean(δ_k² − [J_k P_(−k) J_kᵀ]_diag)      (per angle, over the window),
+    σ̂_k² = median over the window of mean_angles(δ_k² − [J_k P_(−k) J_kᵀ]_diag),
 
-and the station's σ is used as σ_eff = max(σ_claim · s_k, σ_floor) with the scale
-s_k = sqrt(max(1, σ̂_k² / σ_claim²)) (never below the claim). Until a station has
+(the median: an occasional outlier, which the robust fix excludes, does not inflate a
+station's σ; a consistent bias does), and the station's σ is used as
+σ_eff = max(σ_claim · s_k, σ_floor) with the scale s_k = sqrt(max(1, σ̂_k² / σ_claim²))
+(never below the claim). Until a station has
 :data:`MIN_SAMPLES` residuals its σ is also floored at the median σ its peers claim: an
 unverified claim better than the rest of the network is not believed. A station whose window
 statistic Σ d_k² (d_k² = δ_kᵀ (R_claim + J_k P_(−k) J_kᵀ)⁻¹ δ_k, with the *claimed* σ)
@@ -66,7 +68,7 @@ class StationTrust:
         h = self._hist.get(station)
         if not h or len(h) < MIN_SAMPLES:
             return 1.0
-        excess = sum(x for x, _, _, _ in h) / sum(n for _, n, _, _ in h)
+        excess = float(np.median([x / n for x, n, _, _ in h]))
         return math.sqrt(max(1.0, excess))
 
     def floor(self, station):

@@ -145,9 +145,10 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
 
     Robustness (core.robust, core.station_trust): an estimator that declares option
     ``robust`` runs with it on (off when ``outlier_gate`` is 1, which disables every outlier
-    test) unless ``options`` says otherwise; its outlier bearings (both
-    angles excluded) count as rejected, and a fix it assesses ``low_confidence`` becomes an
-    Epoch of reason ``low_confidence`` that carries position and covariance. With ``trust``
+    test) unless ``options`` says otherwise; its outlier bearings (any angle excluded) count
+    as rejected and the fix is recomputed without them, and a fix it assesses
+    ``low_confidence`` becomes an Epoch of reason ``low_confidence`` that carries position
+    and covariance. With ``trust``
     (a :class:`~bearing_loc_ros.core.station_trust.StationTrust`) every bearing is used with
     its σ_eff and the deletion residuals of the final solve update the trust.
     """
@@ -196,14 +197,15 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
             return Epoch(DEGENERATE_GEOMETRY, **common)
         excluded = getattr(res, 'excluded', None)
         if excluded is not None and np.all(np.isfinite(pos)):
-            out = np.flatnonzero(excluded[0, :, 0] & (excluded[0, :, 1]
-                                                      | np.isnan(bs.elevation[0])))
-            if out.size:
-                rejected = rejected + [used[i] for i in out]
-                drop = set(out.tolist())
-                used = [b for i, b in enumerate(used) if i not in drop]
-                common.update(bearings=used, rejected=rejected)
-                bs = make_set(used)
+            # A station with an excluded angle is an outlier station (the gate's unit):
+            # dropped and the fix recomputed, while the rest stays solvable.
+            out = set(np.flatnonzero(excluded[0].any(axis=1)).tolist())
+            remaining = [b for i, b in enumerate(used) if i not in out]
+            if out and len(remaining) >= int(min_stations) \
+                    and count_reason(remaining) is None:
+                rejected = rejected + [b for i, b in enumerate(used) if i in out]
+                used = remaining
+                continue
         if status == STATUS_LOW_CONFIDENCE:
             if trust is not None:
                 trust.update(used, claims, pos, cov, rejected)
