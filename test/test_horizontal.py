@@ -8,9 +8,10 @@ import pytest
 from bearing_loc_ros.core.bearings import BearingSet
 from bearing_loc_ros.core.crlb import crlb, fisher_information
 from bearing_loc_ros.core.cutangle import optimal_cut_angle
+from bearing_loc_ros.core.fix import FixResult
 from bearing_loc_ros.core.horizontal import (ESTIMATORS, height_observed, locate,
                                              locate_horizontal, select_dimension,
-                                             simulate_bearings, SolvedFix)
+                                             simulate_bearings)
 from bearing_loc_ros.core.horizontal_crlb import (horizontal_crlb, horizontal_crlb_for,
                                                   horizontal_gdop,
                                                   optimal_cut_angle_two_azimuth,
@@ -228,7 +229,7 @@ def test_locate_dispatches_and_merges_a_mixed_batch():
     with pytest.raises(ValueError, match='^target_altitude'):
         locate('mle', mixed)
     r = locate('mle', mixed, target_altitude=600.0, target_altitude_sigma=5.0)
-    assert isinstance(r, SolvedFix)
+    assert isinstance(r, FixResult)
     assert list(r.solve) == ['horizontal', '3d'] * 3
     h = locate_horizontal('mle', mixed.problem(0), 600.0, 5.0)
     assert np.allclose(r.position[0], h.position[0])

@@ -118,12 +118,13 @@ class BearingSet:
 
     @classmethod
     def from_arrays(cls, positions, azimuth, elevation=None, sigma_az=None, sigma_el=None,
-                    stations=None, validate=True):
+                    stations=None, validate=True, require_elevation=True):
         """Build a batch from arrays shaped (N, ...) (one problem) or (M, N, ...).
 
         ``elevation`` None means every bearing is azimuth-only. ``sigma_az``/``sigma_el`` may be
         scalars or broadcastable arrays (rad); ``sigma_el`` is forced to NaN where elevation is
-        NaN. With ``validate`` (default) the batch is checked by :meth:`validate`.
+        NaN. With ``validate`` (default) the batch is checked by :meth:`validate`
+        (``require_elevation`` passed on; False for azimuth-only sets of a horizontal solve).
         """
         pos = np.asarray(positions, dtype=float)
         az = np.asarray(azimuth, dtype=float)
@@ -151,7 +152,7 @@ class BearingSet:
         sel = np.where(np.isfinite(el), sel, np.nan)
         out = cls(pos, az, el, saz, sel, list(stations) if stations is not None else None)
         if validate:
-            out.validate()
+            out.validate(require_elevation)
         return out
 
     @classmethod
@@ -181,21 +182,25 @@ class BearingSet:
         return BearingSet(self.positions[sl], self.azimuth[sl], self.elevation[sl],
                           self.sigma_az[sl], self.sigma_el[sl], self.stations)
 
-    def validate(self):
+    def validate(self, require_elevation=True):
         """Check every field; raise ``ValueError`` naming the bad field. Returns self.
 
-        Rules: finite positions and azimuths; elevation finite or NaN (1D) with |ψ| < π/2;
-        σ_θ in [SIGMA_MIN, SIGMA_MAX] = [1e-12, 1e3] rad; σ_ψ in that range wherever elevation
-        is given; at least two stations and at least three independent scalar constraints with
-        at least one elevation (azimuths alone never fix the height: seed 004 needs one 2D
-        sensor).
+        Field rules: finite positions and azimuths; elevation finite or NaN (1D) with
+        |ψ| < π/2; σ_θ in [SIGMA_MIN, SIGMA_MAX] = [1e-12, 1e3] rad; σ_ψ in that range wherever
+        elevation is given; at least two bearings. With ``require_elevation`` (the 3D solve,
+        default) also at least three independent scalar constraints with at least one
+        elevation (azimuths alone never fix the height: Wang, Su, Bai & Zhong 2009 need one 2D
+        sensor); False (the horizontal solve, core.horizontal) checks the fields only.
         """
-        if _one_problem_valid(self):
+        if require_elevation and _one_problem_valid(self):
             return self
         _check_bearing_fields(self.positions, self.azimuth, self.elevation, self.sigma_az,
                               self.sigma_el)
         if self.N < 2:
-            raise ValueError(f'bearings: {self.N} station(s); a 3D fix needs at least two')
+            what = 'a 3D fix' if require_elevation else 'a fix'
+            raise ValueError(f'bearings: {self.N} station(s); {what} needs at least two')
+        if not require_elevation:
+            return self
         n_el = np.sum(self.has_elevation, axis=1)
         if np.any(n_el == 0):
             raise ValueError('elevation: no bearing measures elevation; azimuths alone cannot '
@@ -287,13 +292,15 @@ def _check_bearing_fields(pos, az, el, saz, sel):
                          f'{SIGMA_MAX:g}] rad where elevation is measured')
 
 
-def simulate_bearings(target, positions, sigma_az, sigma_el=None, has_elevation=True, rng=None):
+def simulate_bearings(target, positions, sigma_az, sigma_el=None, has_elevation=True, rng=None,
+                      require_elevation=True):
     """Noisy bearings from stations ``positions`` (N, 3) to target(s) ``target`` (M, 3) or (3,).
 
-    Model of seed 000 eq. (1) with additive Gaussian noise eq. (6): θ_i = θ_i* + n_i,
+    Model of Wang, Zhang & Wu eq. (1) with additive Gaussian noise eq. (6): θ_i = θ_i* + n_i,
     ψ_i = ψ_i* + m_i. ``sigma_az``/``sigma_el`` are scalars or (N,)/(M, N) arrays (rad);
     ``has_elevation`` a bool or (N,) bool mask (False = 1D station). ``rng`` a numpy Generator
-    (None: noise-free). Returns a validated :class:`BearingSet` with M problems.
+    (None: noise-free). Returns a validated :class:`BearingSet` with M problems
+    (``require_elevation=False``: field checks only, azimuth-only sets allowed).
     """
     from .conventions import azimuth_elevation, wrap_angle
     tgt = np.atleast_2d(np.asarray(target, dtype=float))
@@ -311,4 +318,5 @@ def simulate_bearings(target, positions, sigma_az, sigma_el=None, has_elevation=
         el = el + sel * rng.standard_normal((M, N))
     mask = np.broadcast_to(np.asarray(has_elevation, dtype=bool), (N,))
     el = np.where(mask[None, :], el, np.nan)
-    return BearingSet.from_arrays(pos, wrap_angle(az), el, saz, sel)
+    return BearingSet.from_arrays(pos, wrap_angle(az), el, saz, sel,
+                                  require_elevation=require_elevation)

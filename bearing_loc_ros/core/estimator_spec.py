@@ -42,8 +42,9 @@ class Option:
     ``kind``: ``'count'`` (integer ≥ 1), ``'positive'`` (finite > 0, at most ``upper`` when
     set; +inf too when ``allow_inf``), ``'probability'`` (in (0, 1)), ``'flag'`` (bool),
     ``'choice'`` (one of
-    ``choices``), ``'point'`` ((3,) or (M, 3) finite coordinates, m) or ``'object'``
-    (checked by the estimator itself).
+    ``choices``), ``'point'`` ((3,) or (M, 3) finite coordinates, m), ``'altitude'`` (None
+    or a finite length, m, scalar or (M,)), ``'nonnegative'`` (finite ≥ 0, m, scalar or
+    (M,)) or ``'object'`` (checked by the estimator itself).
     """
 
     name: str
@@ -83,7 +84,28 @@ class Option:
             return value
         if self.kind == 'point':
             return None if value is None else _initial(value, M)
+        if self.kind in ('altitude', 'nonnegative'):
+            return _metres(name, value, self.kind == 'altitude')
         return value
+
+
+def _metres(name, value, optional):
+    """A finite length (m, scalar or (M,)) or None (``optional``); ``nonnegative``: ≥ 0."""
+    if value is None and optional:
+        return None
+    if isinstance(value, (bool, np.bool_)) or isinstance(value, str):
+        raise ValueError(f'options.{name}: must be a number (m), got {value!r}')
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f'options.{name}: must be a number (m), got {value!r}') from None
+    if v.ndim > 1:
+        raise ValueError(f'options.{name}: expected a number or a list of one per problem')
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f'options.{name}: must be finite (m), got NaN or inf')
+    if not optional and np.any(v < 0):
+        raise ValueError(f'options.{name}: must be >= 0 (m)')
+    return float(v) if v.ndim == 0 else v
 
 
 def _initial(value, M):
@@ -109,6 +131,23 @@ STEP_DECAY = Option('step_decay', 1.0, 'positive', 'mu of the Newton step decay 
 ROBUST = Option('robust', False, 'flag',
                 'screen the fix; on doubt, consensus over station subsets and a full-likelihood '
                 'refit without outlier bearings; status ok or low_confidence (core.robust)')
+
+#: Dimension choices of the solve (core.horizontal): 3D when the bearings observe the height,
+#: forced 3D, or the horizontal solve with the target altitude stated.
+DIMENSIONS = ('auto', '3d', 'horizontal')
+DIMENSION = Option('dimension', 'auto', 'choice',
+                   'auto (3d when the bearings observe the height, else horizontal), 3d or '
+                   'horizontal', choices=DIMENSIONS)
+TARGET_ALTITUDE = Option('target_altitude', None, 'altitude',
+                         'target altitude z0 of the horizontal solve, m, world frame (None: '
+                         'not stated)')
+TARGET_ALTITUDE_SIGMA = Option('target_altitude_sigma', 0.0, 'nonnegative',
+                               'standard deviation of the stated altitude, m (0: exact)')
+USE_ELEVATIONS = Option('use_elevations', True, 'flag',
+                        'horizontal solve: use measured elevations (range information)')
+#: Solve-level options of every multi-station estimator (not TMA): the dimension selection
+#: and the horizontal solve's stated altitude (core.horizontal, core.registry.solve).
+SOLVE_OPTIONS = (DIMENSION, TARGET_ALTITUDE, TARGET_ALTITUDE_SIGMA, USE_ELEVATIONS)
 
 #: Options of the closed-form multi-station estimators (accepted and ignored, so one option
 #: set serves every estimator).

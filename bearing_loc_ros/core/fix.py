@@ -66,6 +66,12 @@ class FixResult:
     Robust multi-station fixes only (``mle``, ``wmle``; core.robust), else None:
         excluded: (M, N, 2) bool, the (azimuth, elevation) of each bearing left out of the
         fix as an outlier. nonlinearity: (M,) range σ / range seen from the worst station.
+
+    Multi-station fixes through the dimension selection (core.horizontal.locate, the
+    registry's ``solve``), else None:
+        solve: (M,) str, ``'3d'`` or ``'horizontal'``, the solve that produced each fix.
+        target_altitude, target_altitude_sigma: (M,) m, the stated altitude z₀ and its σ_z
+        (NaN where the problem was solved in 3D).
     """
 
     position: np.ndarray
@@ -85,6 +91,9 @@ class FixResult:
     reason: typing.Optional[np.ndarray] = None
     excluded: typing.Optional[np.ndarray] = None
     nonlinearity: typing.Optional[np.ndarray] = None
+    solve: typing.Optional[np.ndarray] = None
+    target_altitude: typing.Optional[np.ndarray] = None
+    target_altitude_sigma: typing.Optional[np.ndarray] = None
 
     @property
     def M(self):
@@ -116,7 +125,8 @@ class FixResult:
         """Problem ``m`` as a dict of plain Python values (NaN/inf left as floats).
 
         Keys: method, position, covariance, converged, iterations, status; for TMA also t,
-        velocity, t0, position0, range and reason.
+        velocity, t0, position0, range and reason; with a dimension selection also solve
+        (and target_altitude, target_altitude_sigma for a horizontal solve).
         """
         out = {
             'method': self.method,
@@ -135,6 +145,11 @@ class FixResult:
                 'range': float(self.range[m]),
                 'reason': str(self.reason[m]),
             })
+        if self.solve is not None:
+            out['solve'] = str(self.solve[m])
+            if out['solve'] == 'horizontal':
+                out['target_altitude'] = float(self.target_altitude[m])
+                out['target_altitude_sigma'] = float(self.target_altitude_sigma[m])
         return out
 
 

@@ -20,6 +20,9 @@ Dimension selection, per problem (:func:`select_dimension`):
   ground emitters whose elevations are spoiled by multipath (option ``use_elevations=False``
   then ignores them).
 * ``auto``: 3D when the set observes the height (:func:`height_observed`), else horizontal.
+  Without a stated altitude a set with any elevation is solved in 3D (as before the
+  horizontal mode existed: the 3D estimator reports ``degenerate_geometry`` where the
+  height is not observed); an azimuth-only set then raises ``target_altitude: required``.
 
 Height observed: at least one elevation, a 3D pseudo-linear solution (Wang, Zhang & Wu
 eq. (4)) exists, and the 3D Fisher information J (Zong & Cui 2015 eq. (7), core/crlb.py)
@@ -30,45 +33,22 @@ plane, a single elevation constrains only a combination of the along-line positi
 height (J has rank 2); two elevations from that plane triangulate it.
 """
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from . import horizontal_estimators as _h
 from . import horizontal_ml as _ml
-from .bearings import BearingSet
-from .conventions import azimuth_elevation, wrap_angle
+from .bearings import BearingSet, simulate_bearings as _simulate
 from .crlb import fisher_information
-from .estimators import DEFAULT_ESTIMATOR, FixResult, locate as locate_3d, ls as ls_3d
+from .estimator_spec import DIMENSIONS, ROBUST
+from .estimators import DEFAULT_ESTIMATOR, locate as locate_3d, ls as ls_3d
+from .fix import FixResult
 
-DIMENSIONS = ('auto', '3d', 'horizontal')
+__all__ = ['DIMENSIONS', 'ESTIMATORS', 'height_observed', 'locate', 'locate_horizontal',
+           'select_dimension', 'simulate_bearings']
 SOLVE_3D = '3d'
 SOLVE_HORIZONTAL = 'horizontal'
 #: Minimum eigenvalue ratio of the 3D Fisher information for ``auto`` to solve in 3D.
 HEIGHT_RCOND = 1e-6
-
-
-@dataclass
-class SolvedFix(FixResult):
-    """A :class:`~bearing_loc_ros.core.estimators.FixResult` that says which solve produced it.
-
-    Extra attributes: ``solve`` (M,) str, ``'3d'`` or ``'horizontal'`` per problem;
-    ``target_altitude`` and ``target_altitude_sigma`` (M,), m, the stated altitude and its σ
-    (NaN where the problem was solved in 3D).
-    """
-
-    solve: np.ndarray = None
-    target_altitude: np.ndarray = None
-    target_altitude_sigma: np.ndarray = None
-
-    def single(self, m=0):
-        """Problem ``m`` as plain Python values, with ``solve`` (and the stated altitude)."""
-        out = super().single(m)
-        out['solve'] = str(self.solve[m])
-        if out['solve'] == SOLVE_HORIZONTAL:
-            out['target_altitude'] = float(self.target_altitude[m])
-            out['target_altitude_sigma'] = float(self.target_altitude_sigma[m])
-        return out
 
 
 def _constrained_tls(weighting):
@@ -88,13 +68,16 @@ ESTIMATORS = {
     'wmle': _ml.wmle,
 }
 OPTION_DEFAULTS = _h.OPTION_DEFAULTS
+#: Horizontal estimators that take option ``robust`` (as their 3D namesakes do).
+ROBUST_ESTIMATORS = ('mle', 'wmle')
 
 
 def _wrap(result, solve, z0, sz):
     M = result.position.shape[0]
-    return SolvedFix(position=result.position, covariance=result.covariance,
+    return FixResult(position=result.position, covariance=result.covariance,
                      iterations=result.iterations, converged=result.converged,
                      status=result.status, method=result.method,
+                     excluded=result.excluded, nonlinearity=result.nonlinearity,
                      solve=np.full(M, solve, dtype=object).astype(str),
                      target_altitude=np.broadcast_to(np.asarray(z0, dtype=float), (M,)).copy(),
                      target_altitude_sigma=np.broadcast_to(np.asarray(sz, dtype=float),
@@ -120,15 +103,57 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
         target_altitude: z₀, m, world frame (scalar or (M,)), finite.
         target_altitude_sigma: σ_z, m (scalar or (M,)), finite ≥ 0; 0 = exactly known.
         use_elevations: use the measured elevations (range information given z₀).
-        options: estimator options (see :mod:`.horizontal_estimators`).
+        options: estimator options (see :mod:`.horizontal_estimators`); ``mle`` and ``wmle``
+            also take ``robust`` (:mod:`.horizontal_robust`: screen, pairwise consensus,
+            refit without outlier bearings, status ok or low_confidence, ``excluded``).
 
-    Returns a :class:`SolvedFix` with ``solve`` = ``'horizontal'``: position (M, 3) with z = z₀
-    (or its posterior), covariance (M, 3, 3) (z block σ_z² for azimuth-only sets). Raises
-    ``ValueError`` naming the field for bad input (:func:`.horizontal_estimators.prepare`).
+    Returns a FixResult (core.fix) with ``solve`` = ``'horizontal'``: position (M, 3) with
+    z = z₀ (or its posterior), covariance (M, 3, 3) (z block σ_z² for azimuth-only sets).
+    Raises ``ValueError`` naming the field for bad input
+    (:func:`.horizontal_estimators.prepare`).
     """
     method = _method(method)
+    options = dict(options)
+    robust = options.pop('robust', False)
+    if method in ROBUST_ESTIMATORS:
+        robust = ROBUST.validate(robust)
+    elif robust is not False:
+        raise ValueError(f'options.robust: unknown option for estimator {method!r} (accepted '
+                         f'by {", ".join(ROBUST_ESTIMATORS)})')
     p = _h.prepare(bearings, target_altitude, target_altitude_sigma, use_elevations)
-    return _wrap(ESTIMATORS[method](p, **options), SOLVE_HORIZONTAL, p.z0, p.sz)
+    res = ESTIMATORS[method](p, **options)
+    if not robust:
+        return _wrap(res, SOLVE_HORIZONTAL, p.z0, p.sz)
+    return _wrap(_robust(method, bearings, res, p, options), SOLVE_HORIZONTAL, p.z0, p.sz)
+
+
+def _robust(method, bearings, res, p, options):
+    """Problem by problem :func:`.horizontal_robust.robust_fix`; FixResult with ``excluded``."""
+    from .horizontal_robust import robust_fix
+    from .estimator_spec import DEFAULT_REFERENCE_RANGE
+    d_ref = (options.get('reference_range', DEFAULT_REFERENCE_RANGE) if method == 'wmle'
+             else None)
+    names = ('position', 'covariance', 'iterations', 'converged', 'status')
+    fields = {k: np.array(getattr(res, k)) for k in names}
+    fields['status'] = fields['status'].astype(object)
+    excluded = np.zeros((bearings.M, bearings.N, 2), dtype=bool)
+    opts = {k: v for k, v in options.items() if k != 'initial'}
+    for m in range(bearings.M):
+        bs = bearings.problem(m)
+        z0, sz, use_el = float(p.z0[m]), float(p.sz[m]), p.use_el[m]
+
+        def solve(sub, x0, z0=z0, sz=sz, use_el=use_el):
+            q = _h.prepare(sub, z0, sz, bool(np.any(use_el)))
+            return ESTIMATORS[method](q, initial=x0, **opts)
+
+        one = FixResult(*(fields[k][m:m + 1] for k in names), method)
+        out, ex = robust_fix(solve, bs, one, z0, use_el, d_ref)
+        for k in fields:
+            fields[k][m] = getattr(out, k)[0]
+        excluded[m, :, 0] = ex
+        excluded[m, :, 1] = ex & bearings.has_elevation[m]
+    fields['status'] = fields['status'].astype(str)
+    return FixResult(method=method, excluded=excluded, **fields)
 
 
 def _subset(bearings, idx):
@@ -162,6 +187,8 @@ def select_dimension(bearings, dimension='auto'):
 
     ``dimension``: ``auto`` (3D where :func:`height_observed`, else horizontal), ``3d`` or
     ``horizontal`` (forced). ValueError naming ``dimension`` for another value.
+    (:func:`locate` with ``auto`` and no stated altitude keeps the 3D solve for every set
+    with an elevation.)
     """
     if dimension not in DIMENSIONS:
         raise ValueError(f'dimension: must be one of {", ".join(DIMENSIONS)}, got {dimension!r}')
@@ -172,7 +199,7 @@ def select_dimension(bearings, dimension='auto'):
 
 def locate(method, bearings, dimension='auto', target_altitude=None, target_altitude_sigma=0.0,
            use_elevations=True, **options):
-    """Fix of M problems in the selected dimension; returns a :class:`SolvedFix`.
+    """Fix of M problems in the selected dimension; returns a FixResult (core.fix).
 
     3D problems go to core/estimators.py ``locate`` (``target_altitude`` is not used there);
     horizontal ones to :func:`locate_horizontal`. With ``auto``, a problem that does not
@@ -183,6 +210,11 @@ def locate(method, bearings, dimension='auto', target_altitude=None, target_alti
     if not isinstance(bearings, BearingSet):
         raise ValueError(f'bearings: expected a BearingSet, got {type(bearings).__name__}')
     solves = select_dimension(bearings, dimension)
+    if dimension == 'auto' and target_altitude is None:
+        # No altitude stated: a set with an elevation keeps the 3D solve (which reports
+        # degenerate_geometry itself where the height is not observed).
+        any_el = np.any(bearings.has_elevation, axis=1)
+        solves = np.where(any_el, SOLVE_3D, solves)
     horiz = solves == SOLVE_HORIZONTAL
     if np.any(horiz) and target_altitude is None:
         why = ('dimension is horizontal' if dimension == SOLVE_HORIZONTAL else
@@ -217,7 +249,7 @@ def locate(method, bearings, dimension='auto', target_altitude=None, target_alti
         arr = np.empty((M,) + a3.shape[1:], dtype=np.result_type(a3, ah))
         arr[i_3], arr[i_h] = a3, ah
         merged[name] = arr
-    return SolvedFix(method=method, **merged)
+    return FixResult(method=method, **merged)
 
 
 def simulate_bearings(target, positions, sigma_az, sigma_el=None, has_elevation=False, rng=None):
@@ -228,23 +260,7 @@ def simulate_bearings(target, positions, sigma_az, sigma_el=None, has_elevation=
     ``target`` (M, 3) or (3,) and stations ``positions`` (N, 3) or (M, N, 3), m; σ (rad)
     scalars or broadcastable to (M, N); ``has_elevation`` a bool or (N,) mask (default:
     azimuth only); ``rng`` a numpy Generator (None: noise-free). The set is checked with the
-    horizontal solve's field rules (:func:`.horizontal_estimators.prepare`), not with the 3D
-    demand for an elevation.
+    field rules of BearingSet.validate without the 3D demand for an elevation.
     """
-    tgt = np.atleast_2d(np.asarray(target, dtype=float))
-    pos = np.asarray(positions, dtype=float)
-    M = tgt.shape[0]
-    pos = np.broadcast_to(pos if pos.ndim == 3 else pos[None], (M,) + pos.shape[-2:])
-    N = pos.shape[1]
-    az, el = azimuth_elevation(tgt[:, None, :] - pos)
-    saz = np.broadcast_to(np.asarray(sigma_az, dtype=float), (M, N))
-    sel = np.broadcast_to(np.asarray(saz if sigma_el is None else sigma_el, dtype=float),
-                          (M, N))
-    if rng is not None:
-        az = az + saz * rng.standard_normal((M, N))
-        el = el + sel * rng.standard_normal((M, N))
-    mask = np.broadcast_to(np.asarray(has_elevation, dtype=bool), (N,))
-    out = BearingSet.from_arrays(pos, wrap_angle(az), np.where(mask, el, np.nan), saz, sel,
-                                 validate=False)
-    _h.prepare(out, 0.0)
-    return out
+    return _simulate(target, positions, sigma_az, sigma_el, has_elevation, rng,
+                     require_elevation=False)

@@ -51,7 +51,7 @@ import numbers
 
 import numpy as np
 
-from .bearings import BearingSet, SIGMA_MAX, SIGMA_MIN
+from .bearings import BearingSet
 from .estimator_spec import (BEARING_SIGMA, EstimatorSpec, MAX_ITERATIONS, MULTISTATION, Option,
                              RANGE_GROWN_SIGMA, REFERENCE_RANGE, STEP_DECAY, TOLERANCE)
 from .estimators import FixResult, STATUS_DEGENERATE, STATUS_OK
@@ -122,21 +122,9 @@ def prepare(bearings, target_altitude, target_altitude_sigma=0.0, use_elevations
         raise ValueError(f'bearings: expected a BearingSet, got {type(bearings).__name__}')
     pos, az, el = bearings.positions, bearings.azimuth, bearings.elevation
     saz, sel = bearings.sigma_az, bearings.sigma_el
-    if not np.all(np.isfinite(pos)):
-        raise ValueError('position: non-finite station coordinate')
-    if not np.all(np.isfinite(az)):
-        raise ValueError('azimuth: non-finite value')
-    if np.any(np.isinf(el)):
-        raise ValueError('elevation: infinite value (use NaN/null for azimuth-only bearings)')
+    if bearings.N >= 2:
+        bearings.validate(require_elevation=False)
     has_el = np.isfinite(el)
-    if np.any(np.abs(el[has_el]) >= HALF_PI):
-        raise ValueError('elevation: |elevation| must be < pi/2')
-    if not np.all((saz >= SIGMA_MIN) & (saz <= SIGMA_MAX)):
-        raise ValueError(f'sigma_azimuth: must be finite and in [{SIGMA_MIN:g}, {SIGMA_MAX:g}] '
-                         'rad')
-    if not np.all((sel[has_el] >= SIGMA_MIN) & (sel[has_el] <= SIGMA_MAX)):
-        raise ValueError(f'sigma_elevation: must be finite and in [{SIGMA_MIN:g}, '
-                         f'{SIGMA_MAX:g}] rad where elevation is measured')
     if bearings.N < 2:
         raise ValueError(f'bearings: {bearings.N} azimuth(s); a horizontal fix needs at least '
                          'two stations')

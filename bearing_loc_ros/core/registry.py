@@ -15,15 +15,24 @@ validation, its noise model, its mode and its result type. For each name this mo
 * :func:`noise_sigmas` and :func:`noise_crlb`: the bearing noise model the estimator assumes
   (the σ it weights with) and hence the Cramér-Rao bound it is measured against.
 * :func:`solve`: run it; every estimator returns a :class:`~bearing_loc_ros.core.fix.FixResult`.
+
+Every multi-station estimator also takes the solve-level options
+(:data:`~bearing_loc_ros.core.estimator_spec.SOLVE_OPTIONS`): ``dimension`` (``auto | 3d |
+horizontal``), ``target_altitude`` (m, world frame), ``target_altitude_sigma`` (m) and
+``use_elevations``; :func:`solve` then runs the dimension selection of
+:mod:`~bearing_loc_ros.core.horizontal` and the fix says which solve produced it
+(``FixResult.solve``).
 """
 
 import numpy as np
 
 from . import estimators as _estimators
+from . import horizontal as _horizontal
 from . import tma as _tma
 from .estimator_spec import (BEARING_SIGMA, COMMON_OPTIONS, EstimatorSpec, MULTISTATION,
-                             TMA)
+                             SOLVE_OPTIONS, TMA)
 from .fix import FixResult
+from .horizontal_crlb import horizontal_crlb
 
 #: Fusion modes an estimator belongs to.
 MODE_MULTISTATION = MULTISTATION
@@ -87,6 +96,23 @@ def _option_scope():
 #: Options and the estimators that accept them (derived from the declarations), so one set of
 #: node parameters serves every estimator: an option goes only to the estimators listed.
 OPTION_SCOPE = _option_scope()
+#: Solve-level options (every multi-station estimator): name -> Option.
+SOLVE_OPTION_SPECS = {o.name: o for o in SOLVE_OPTIONS}
+
+
+def split_solve_options(options, M=None):
+    """(validated solve options with defaults, the other options) of a multi-station call.
+
+    ValueError('options.<name>: ...') for a bad dimension, altitude or σ.
+    """
+    solve_opts = {name: o.default for name, o in SOLVE_OPTION_SPECS.items()}
+    rest = {}
+    for k, v in options.items():
+        if k in SOLVE_OPTION_SPECS:
+            solve_opts[k] = SOLVE_OPTION_SPECS[k].validate(v, M)
+        else:
+            rest[k] = v
+    return solve_opts, rest
 
 
 def mode_of(name):
@@ -107,8 +133,10 @@ def scoped_options(name, options):
     unchanged, so the estimator rejects it by name.
     """
     own = spec(name)
+    multi = own.mode == MULTISTATION
     return {k: v for k, v in options.items()
-            if own.accepts(k) or k not in OPTION_SCOPE}
+            if own.accepts(k) or (k in SOLVE_OPTION_SPECS and multi)
+            or (k not in OPTION_SCOPE and k not in SOLVE_OPTION_SPECS)}
 
 
 def check(name, options):
@@ -118,16 +146,24 @@ def check(name, options):
     ``options.<name>: ...``).
     """
     kwargs = scoped_options(name, options)
-    spec(name).parse(kwargs)
+    own = spec(name)
+    if own.mode == MULTISTATION:
+        own.parse(split_solve_options(kwargs)[1])
+    else:
+        own.parse(kwargs)
     return kwargs
 
 
 def solve(name, bearings, **options):
     """Run estimator ``name`` on ``bearings`` -> FixResult.
 
-    Multi-station: see estimators.locate (its errors, ``method: unknown estimator ...`` for
-    an unknown name). TMA: pass the bearing times (``times``, (K,) or
-    (M, K) s) and the prior speed (``speed``, m/s) as keywords (see core.tma).
+    Multi-station: the dimension selection of core.horizontal.locate with the solve-level
+    options (``dimension``, default ``auto``; ``target_altitude``, required when a problem is
+    solved horizontally; ``target_altitude_sigma``; ``use_elevations``), then the estimator
+    (see estimators.locate for its errors; ``method: unknown estimator ...`` for an unknown
+    name); the result's ``solve`` says ``3d`` or ``horizontal`` per problem. TMA: pass the
+    bearing times (``times``, (K,) or (M, K) s) and the prior speed (``speed``, m/s) as
+    keywords (see core.tma).
     """
     fn = _tma.TMA_FUNCTIONS.get(name) if isinstance(name, str) else None
     if fn is not None:
@@ -137,7 +173,14 @@ def solve(name, bearings, **options):
         except KeyError as exc:
             raise ValueError(f'{exc.args[0]}: required by TMA estimator {name!r}') from None
         return own.function(bearings, *inputs, **options)
-    return _estimators.locate(name, bearings, **options)
+    solve_opts, rest = split_solve_options(options, getattr(bearings, 'M', None))
+    if isinstance(name, str) and name in _estimators.ESTIMATORS \
+            and name not in _horizontal.ESTIMATORS:
+        # An estimator without a horizontal form (registered by a test or a plug-in).
+        if solve_opts['dimension'] == _horizontal.SOLVE_HORIZONTAL:
+            raise ValueError(f'dimension: estimator {name!r} has no horizontal solve')
+        return _estimators.locate(name, bearings, **rest)
+    return _horizontal.locate(name, bearings, **solve_opts, **rest)
 
 
 def noise_sigmas(name, bearings, position, options):
@@ -149,13 +192,36 @@ def noise_sigmas(name, bearings, position, options):
     return spec(name).noise.sigmas(bearings, np.asarray(position, dtype=float), options)
 
 
-def noise_crlb(name, position, bearings, **options):
+def noise_crlb(name, position, bearings, solve=None, **options):
     """CRLB (M, 3, 3), m², at ``position`` under the noise model estimator ``name`` assumes.
 
     Multi-station estimators only (a TMA bound needs the state and times: core.tma.tma_crlb).
+    ``solve`` ((M,) ``'3d'``/``'horizontal'``, a result's ``FixResult.solve``; None = 3D):
+    for horizontal problems the bound of the horizontal solve (core.horizontal_crlb: the 3D
+    Fisher information plus the prior 1/σ_z² on z, ``target_altitude_sigma``), with the σ
+    of the noise model at ``position`` (``wmle``: grown with range first, Zong & Cui 2015
+    eqs. (9)-(10)); elevations count unless ``use_elevations`` is false.
     """
     if mode_of(name) != MODE_MULTISTATION:
         raise ValueError(f'estimator: {name} is a tma estimator; its bound is '
                          'core.tma.tma_crlb')
-    return _estimators.noise_model_crlb(name, np.asarray(position, dtype=float), bearings,
-                                        **options)
+    position = np.asarray(position, dtype=float)
+    solve_opts, rest = split_solve_options(options, position.shape[0])
+    out = _estimators.noise_model_crlb(name, position, bearings, **rest)
+    if solve is None:
+        return out
+    horiz = np.asarray(solve) == _horizontal.SOLVE_HORIZONTAL
+    if not np.any(horiz):
+        return out
+    idx = np.flatnonzero(horiz)
+    finite = np.all(np.isfinite(position), axis=1)
+    pos = np.where(finite[:, None], position, 0.0)
+    saz, sel = noise_sigmas(name, bearings, pos, rest)
+    has_el = bearings.has_elevation & bool(solve_opts['use_elevations'])
+    sz = np.broadcast_to(np.asarray(solve_opts['target_altitude_sigma'], dtype=float),
+                         (position.shape[0],))
+    h = horizontal_crlb(pos[idx], bearings.positions[idx], saz[idx], sel[idx], has_el[idx],
+                        sz[idx])
+    h[~finite[idx]] = np.inf
+    out[idx] = h
+    return out

@@ -1,0 +1,143 @@
+"""Horizontal solve through the registry: solve-level options, bound, robust fix, bad input."""
+
+import numpy as np
+import pytest
+
+from bearing_loc_ros.core import registry
+from bearing_loc_ros.core.bearings import BearingSet
+from bearing_loc_ros.core.horizontal import simulate_bearings
+from bearing_loc_ros.core.horizontal_crlb import horizontal_crlb
+from bearing_loc_ros.core.robust import _c2
+
+# Wang, Zhang & Wu section 4 station layout (azimuth only here), target at a known altitude.
+STATIONS = np.array([[0.0, 0.0, 0.0], [20e3, 0.0, 0.0], [20e3, 20e3, 0.0]])
+TARGET = np.array([10e3, 30e3, 500.0])
+
+
+def az_only(rng=None, sigma=0.0015, target=TARGET, stations=STATIONS):
+    return simulate_bearings(target, stations, sigma, rng=rng)
+
+
+def test_solve_reports_the_solve_and_the_stated_altitude():
+    res = registry.solve('mle', az_only(), target_altitude=500.0, target_altitude_sigma=20.0)
+    assert list(res.solve) == ['horizontal']
+    np.testing.assert_allclose(res.position[0], TARGET, atol=1e-6)
+    one = res.single()
+    assert one['solve'] == 'horizontal'
+    assert one['target_altitude'] == 500.0 and one['target_altitude_sigma'] == 20.0
+    # z variance is the stated σ², no x-y/z correlation for an azimuth-only set
+    assert res.covariance[0, 2, 2] == pytest.approx(400.0)
+    assert np.all(res.covariance[0, :2, 2] == 0.0)
+
+
+def test_3d_set_without_altitude_keeps_the_3d_solve():
+    bs = simulate_bearings(TARGET, STATIONS, 0.0015, has_elevation=True)
+    res = registry.solve('mle', bs)
+    assert list(res.solve) == ['3d']
+    assert 'target_altitude' not in res.single()
+
+
+@pytest.mark.parametrize('options, field', [
+    ({}, 'target_altitude'),
+    ({'dimension': 'horizontal'}, 'target_altitude'),
+    ({'target_altitude': float('nan')}, 'options.target_altitude'),
+    ({'target_altitude': float('inf')}, 'options.target_altitude'),
+    ({'target_altitude': 0.0, 'target_altitude_sigma': -1.0}, 'options.target_altitude_sigma'),
+    ({'target_altitude': 0.0, 'dimension': '2d'}, 'options.dimension'),
+    ({'target_altitude': 0.0, 'use_elevations': 'yes'}, 'options.use_elevations'),
+    ({'target_altitude': 'high'}, 'options.target_altitude'),
+])
+def test_bad_solve_options_are_named_errors(options, field):
+    with pytest.raises(ValueError, match=f'^{field}:'):
+        registry.solve('mle', az_only(), **options)
+
+
+def test_check_accepts_solve_options_for_multistation_only():
+    kw = registry.check('ls', {'dimension': 'horizontal', 'target_altitude': 3.0})
+    assert kw == {'dimension': 'horizontal', 'target_altitude': 3.0}
+    assert registry.scoped_options('tma_mle', {'dimension': 'auto'}) == {}
+
+
+@pytest.mark.parametrize('name', ['ls', 'tls', 'ctls', 'ctls_am', 'mle', 'wmle'])
+def test_collinear_target_on_the_station_line_is_degenerate(name):
+    st = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0], [2500.0, 0.0, 0.0]])
+    bs = az_only(target=np.array([4000.0, 0.0, 0.0]), stations=st)
+    res = registry.solve(name, bs, target_altitude=0.0)
+    assert list(res.status) == ['degenerate_geometry']
+    assert np.all(np.isnan(res.position)) and not res.converged[0]
+
+
+def test_noise_crlb_of_horizontal_solves_is_the_horizontal_bound():
+    bs = az_only()
+    res = registry.solve('mle', bs, target_altitude=500.0, target_altitude_sigma=5.0)
+    bound = registry.noise_crlb('mle', res.position, bs, solve=res.solve,
+                                target_altitude=500.0, target_altitude_sigma=5.0)
+    ref = horizontal_crlb(TARGET, STATIONS, 0.0015, sigma_z=5.0)
+    np.testing.assert_allclose(bound, ref, rtol=1e-9)
+    # wmle: σ grown with range (Zong & Cui 2015 eqs. (9)-(10)) before the bound
+    w = registry.noise_crlb('wmle', res.position, bs, solve=res.solve, target_altitude=500.0,
+                            reference_range=1000.0)
+    d = np.linalg.norm(TARGET - STATIONS, axis=1)
+    np.testing.assert_allclose(w, horizontal_crlb(TARGET, STATIONS, 0.0015 * d / 1000.0),
+                               rtol=1e-9)
+
+
+def test_azimuth_only_set_passes_the_field_checks_only():
+    bs = az_only()
+    with pytest.raises(ValueError, match='^elevation:'):
+        bs.validate()
+    assert bs.validate(require_elevation=False) is bs
+    bad = BearingSet(bs.positions, bs.azimuth * np.nan, bs.elevation, bs.sigma_az, bs.sigma_el)
+    with pytest.raises(ValueError, match='^azimuth:'):
+        bad.validate(require_elevation=False)
+
+
+def _track(N):
+    t = np.linspace(0.0, 1.0, N)
+    return np.column_stack([4000.0 * t, 600.0 * np.sin(3.0 * t), np.zeros(N)])
+
+
+def test_robust_horizontal_fix_excludes_reflections():
+    """Many bearings, 10 % of them 20-90° off: the robust fix excludes exactly the bad ones
+    (each is > 5 σ off) and its error is consistent with its covariance (χ²₂ 99.9 % gate)."""
+    rng = np.random.default_rng(7)
+    N, sigma = 200, np.radians(4.0)
+    target = np.array([2000.0, 3000.0, 0.0])
+    bs = simulate_bearings(target, _track(N), sigma, rng=rng)
+    bad = np.zeros(N, dtype=bool)
+    bad[rng.choice(N, N // 10, replace=False)] = True
+    off = np.radians(rng.uniform(20, 90, bad.sum())) * rng.choice([-1, 1], bad.sum())
+    bs.azimuth[0, bad] += off
+    plain = registry.solve('mle', bs, target_altitude=0.0)
+    res = registry.solve('mle', bs, target_altitude=0.0, robust=True)
+    assert res.status[0] == 'ok'
+    ex = res.excluded[0, :, 0]
+    assert np.all(ex[bad])
+    # good bearings excluded only as the Gaussian tail beyond c² allows (expected < 0.02)
+    assert np.count_nonzero(ex & ~bad) <= 2
+    err = res.position[0, :2] - target[:2]
+    d2 = err @ np.linalg.solve(res.covariance[0, :2, :2], err)
+    assert d2 < 13.8
+    # the fix is the full-likelihood fit of the kept bearings
+    kept = registry.solve('mle', bs.subset(~ex), target_altitude=0.0)
+    np.testing.assert_allclose(res.position, kept.position, atol=1e-3)
+    np.testing.assert_allclose(res.covariance, kept.covariance, rtol=1e-3)
+    assert plain.excluded is None
+
+
+def test_robust_keeps_a_clean_fix_unchanged():
+    rng = np.random.default_rng(3)
+    bs = simulate_bearings(np.array([2000.0, 3000.0, 0.0]), _track(60), np.radians(3.0),
+                           rng=rng)
+    plain = registry.solve('mle', bs, target_altitude=0.0)
+    res = registry.solve('mle', bs, target_altitude=0.0, robust=True)
+    d2 = ((bs.azimuth[0] - np.arctan2(3000.0 - bs.positions[0, :, 1],
+                                      2000.0 - bs.positions[0, :, 0])) / np.radians(3.0)) ** 2
+    if np.all(d2 < _c2()):
+        np.testing.assert_array_equal(res.position, plain.position)
+    assert not res.excluded.any() or res.status[0] == 'ok'
+
+
+def test_robust_is_refused_by_estimators_without_it():
+    with pytest.raises(ValueError, match='^options.robust:'):
+        registry.solve('ls', az_only(), target_altitude=0.0, robust=True)
