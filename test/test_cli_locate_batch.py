@@ -1,0 +1,312 @@
+"""``bearing_loc locate`` on large batches: the vectorised JSON checks give the same problems
+and the same error messages as checking problem by problem (also deep inside a batch), and
+the CSV/NPZ bearing tables give the same fixes as the JSON request."""
+import copy
+import csv
+import json
+
+import numpy as np
+import pytest
+
+from bearing_loc_ros.cli import InputError, main
+from bearing_loc_ros.cli import batch_input
+from bearing_loc_ros.cli.locate import parse_problem, parse_request
+from bearing_loc_ros.core.bearings import simulate_bearings
+
+STATIONS = np.array([[30.0, -10.0, 0.1], [30.0, 20.0, 0.2], [-30.0, 5.0, 0.15],
+                     [0.0, -40.0, 0.3]]) * 1e3
+SIGMA = 1.5e-3
+
+
+def make_problems(m, seed=0):
+    """m problems of 3 or 4 bearings, some azimuth-only, some with station ids or ints."""
+    rng = np.random.default_rng(seed)
+    targets = np.array([10e3, 20e3, 5e3]) + rng.normal(0, 2e3, (m, 3))
+    probs = []
+    for k in range(m):
+        n = 3 + k % 2
+        bs = simulate_bearings(targets[k], STATIONS[:n], SIGMA, rng=rng)
+        items = []
+        for i in range(n):
+            b = {'position': bs.positions[0, i].tolist(), 'azimuth': float(bs.azimuth[0, i]),
+                 'sigma_azimuth': SIGMA if k % 3 else 2}       # an int sigma (2 rad) is valid
+            if k % 5:
+                b['station'] = f's{i}'
+            if i == 2 and k % 4 == 0:
+                b['elevation'] = None
+                b['sigma_elevation'] = 'ignored without an elevation'
+            elif not (i == 3 and k % 7 == 0):
+                b['elevation'] = float(bs.elevation[0, i])
+                b['sigma_elevation'] = SIGMA
+            if k % 11 == 0:
+                b['position'] = [int(round(v)) for v in b['position']]
+            items.append(b)
+        probs.append({'bearings': items})
+    return probs
+
+
+def slow_problems(probs):
+    """The reference: every problem through the per-problem parser."""
+    return [parse_problem(p, k) for k, p in enumerate(probs)]
+
+
+def test_vectorised_batch_equals_problem_by_problem():
+    probs = make_problems(300)
+    _, _, fast, batch = parse_request({'problems': probs})
+    slow = slow_problems(probs)
+    assert batch and len(fast) == len(slow) == 300
+    assert {bs.N for _, bs in fast.groups} == {3, 4}
+    for k in range(300):
+        a, b = fast[k], slow[k]
+        for attr in ('positions', 'azimuth', 'elevation', 'sigma_az', 'sigma_el'):
+            np.testing.assert_array_equal(getattr(a, attr), getattr(b, attr))
+        assert a.stations == b.stations
+
+
+MUTATIONS = [
+    (lambda b: b[1].update(sigma_azimuth=0.0), 'bearings[1].sigma_azimuth: must be > 0'),
+    (lambda b: b[1].update(sigma_azimuth=1e-300), 'bearings: sigma_azimuth: must be finite'),
+    (lambda b: b[0].update(sigma_azimuth=True), 'bearings[0].sigma_azimuth: must be a number'),
+    (lambda b: b[0].update(azimuth='north'), 'bearings[0].azimuth: must be a number'),
+    (lambda b: b[0].update(azimuth=10 ** 400), 'bearings[0].azimuth: must be a finite number'),
+    (lambda b: b[2].update(position=[1.0, 2.0]), 'bearings[2].position: must be a list'),
+    (lambda b: b[2].update(position=[1.0, 2.0, None]),
+     'bearings[2].position[2]: must be a number'),
+    (lambda b: b[0].update(elevation=2.0), 'bearings[0].elevation: |elevation| must be < pi/2'),
+    (lambda b: b[0].update(elevation='up'), 'bearings[0].elevation: must be a number'),
+    (lambda b: b[1].pop('sigma_elevation'), 'bearings[1].sigma_elevation: missing'),
+    (lambda b: b[1].update(sigma_elevation=-1), 'bearings[1].sigma_elevation: must be > 0'),
+    (lambda b: b[1].pop('azimuth'), 'bearings[1].azimuth: missing'),
+    (lambda b: b[1].update(colour='red'), 'bearings[1].colour: unknown field'),
+    (lambda b: b[1].update(station=7), 'bearings[1].station: must be a string'),
+    (lambda b: b.__setitem__(0, 5), 'bearings[0]: must be an object'),
+    (lambda b: [x.update(elevation=None) for x in b], 'bearings: elevation: no bearing'),
+    (lambda b: b.__delitem__(slice(1, None)), 'bearings: 1 bearing(s)'),
+]
+
+
+@pytest.mark.parametrize('mutate, message', MUTATIONS)
+def test_error_deep_in_a_batch_names_problem_and_field(mutate, message):
+    probs = make_problems(2000, seed=1)
+    mutate(probs[1733]['bearings'])
+    with pytest.raises(InputError) as fast:
+        parse_request({'problems': probs})
+    with pytest.raises(InputError) as slow:
+        parse_problem(probs[1733], 1733)
+    assert str(fast.value) == str(slow.value)
+    assert str(fast.value).startswith('problems[1733].' + message), str(fast.value)
+
+
+@pytest.mark.parametrize('bad, message', [
+    (5, 'problems[1500]: must be an object with "bearings"'),
+    ({'bearings': [], 'note': 1}, 'problems[1500].note: unknown field'),
+    ({'bearings': {}}, 'problems[1500].bearings: must be a list'),
+])
+def test_bad_problem_object_deep_in_a_batch(bad, message):
+    probs = make_problems(1600)
+    probs[1500] = bad
+    with pytest.raises(InputError, match=message.replace('[', r'\[').replace(']', r'\]')):
+        parse_request({'problems': probs})
+
+
+def test_first_bad_problem_is_reported(tmp_path, capsys):
+    probs = make_problems(1200)
+    probs[900]['bearings'][0]['azimuth'] = 'x'
+    probs[400]['bearings'][2]['sigma_azimuth'] = -1.0
+    path = tmp_path / 'in.json'
+    path.write_text(json.dumps({'problems': probs}))
+    assert main(['locate', str(path)]) == 2
+    out, err = capsys.readouterr()
+    assert out == ''
+    assert err.splitlines() == ['bearing_loc locate: error: problems[400].bearings[2].'
+                                'sigma_azimuth: must be > 0']
+
+
+def table_rows(probs, degrees=False):
+    """The problems as bearing-table rows (problem id 100 + k), columns of the module doc."""
+    rows = []
+    for k, p in enumerate(probs):
+        for b in p['bearings']:
+            el = b.get('elevation')
+            angles = [b['azimuth'], np.nan if el is None else el, b['sigma_azimuth'],
+                      np.nan if el is None else b['sigma_elevation']]
+            if degrees:
+                angles = np.degrees(angles).tolist()
+            rows.append([100 + k, *b['position'], *angles, b.get('station', '')])
+    return rows
+
+
+def header(degrees=False):
+    angles = ['azimuth', 'elevation', 'sigma_azimuth', 'sigma_elevation']
+    return ['problem', 'x', 'y', 'z'] + [a + '_deg' if degrees else a for a in angles] + [
+        'station']
+
+
+def write_csv(path, head, rows):
+    with open(path, 'w', newline='') as f:
+        w = csv.writer(f)
+        w.writerow(head)
+        for r in rows:
+            w.writerow(['' if isinstance(v, float) and np.isnan(v) else
+                        (repr(v) if isinstance(v, float) else v) for v in r])
+
+
+def run(argv, capsys):
+    code = main(argv)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def json_results(tmp_path, probs, capsys, *extra):
+    path = tmp_path / 'in.json'
+    path.write_text(json.dumps({'estimator': 'mle', 'problems': probs}))
+    code, out, err = run(['locate', str(path), *extra], capsys)
+    assert code == 0, err
+    return json.loads(out)['results']
+
+
+def valid_problems(m):
+    """make_problems without the NaN-free quirks tables cannot express (int sigma kept)."""
+    probs = make_problems(m, seed=3)
+    for p in probs:
+        for b in p['bearings']:
+            if b.get('elevation') is None:
+                b.pop('sigma_elevation', None)
+    return probs
+
+
+def test_csv_table_gives_the_json_results(tmp_path, capsys):
+    probs = valid_problems(60)
+    expect = json_results(tmp_path, probs, capsys)
+    rows = table_rows(probs)
+    order = np.random.default_rng(0).permutation(len(rows))   # rows of a problem scattered
+    first_seen = list(dict.fromkeys(rows[i][0] for i in order))
+    write_csv(tmp_path / 't.csv', header(), [rows[i] for i in order])
+    code, out, err = run(['locate', str(tmp_path / 't.csv'), '--estimator', 'mle'], capsys)
+    assert code == 0, err
+    got = json.loads(out)['results']
+    assert [r['problem'] for r in got] == first_seen
+    by_id = {r['problem']: r for r in got}
+    for k, r in enumerate(expect):
+        t = by_id[100 + k]
+        # Bearing order inside a problem is kept, so the solve is the same to rounding.
+        np.testing.assert_allclose(t['position'], r['position'], rtol=1e-12)
+        np.testing.assert_allclose(t['covariance'], r['covariance'], rtol=1e-9)
+        assert t['status'] == r['status'] and t['iterations'] == r['iterations']
+
+
+def test_degree_columns_and_npz_equal_the_radian_csv(tmp_path, capsys):
+    probs = valid_problems(30)
+    rows = table_rows(probs)
+    write_csv(tmp_path / 'rad.csv', header(), rows)
+    write_csv(tmp_path / 'deg.csv', header(True), table_rows(probs, degrees=True))
+    cols = list(zip(*rows))
+    np.savez(tmp_path / 't.npz', problem=np.array(cols[0]),
+             **{h: np.array(c, dtype=float) for h, c in zip(header()[1:8], cols[1:8])},
+             station=np.array(cols[8]))
+    outs = []
+    for name in ('rad.csv', 'deg.csv', 't.npz'):
+        code, out, err = run(['locate', str(tmp_path / name)], capsys)
+        assert code == 0, err
+        outs.append(json.loads(out)['results'])
+    for a, b, c in zip(*outs):
+        assert a['problem'] == b['problem'] == c['problem']
+        assert a['position'] == c['position']
+        np.testing.assert_allclose(b['position'], a['position'], rtol=1e-9)
+
+
+def test_table_station_ids_reach_the_problems(tmp_path):
+    probs = valid_problems(5)
+    write_csv(tmp_path / 't.csv', header(), table_rows(probs))
+    problems = batch_input.read_columnar(str(tmp_path / 't.csv'), 'csv')
+    assert problems.ids == [100, 101, 102, 103, 104]
+    assert problems[1].stations == ['s0', 's1', 's2', 's3']
+    assert problems[0].stations == ['', '', '']      # an empty station cell is kept as ''
+
+
+def test_options_flag_reaches_the_estimator(tmp_path, capsys):
+    probs = valid_problems(4)
+    write_csv(tmp_path / 't.csv', header(), table_rows(probs))
+    code, out, _ = run(['locate', str(tmp_path / 't.csv'), '--options',
+                        '{"max_iterations": 1}'], capsys)
+    assert code == 0
+    assert {r['iterations'] for r in json.loads(out)['results']} == {1}
+    code, out, err = run(['locate', str(tmp_path / 't.csv'), '--options', '{"bogus": 1}'],
+                         capsys)
+    assert code == 2 and out == '' and 'options.bogus: unknown option' in err
+
+
+def table_error(tmp_path, capsys, rows, head=None, name='t.csv'):
+    write_csv(tmp_path / name, head or header(), rows)
+    code, out, err = run(['locate', str(tmp_path / name)], capsys)
+    assert code == 2 and out == '' and len(err.splitlines()) == 1, err
+    return err.strip().removeprefix('bearing_loc locate: error: ')
+
+
+@pytest.mark.parametrize('column, value, message', [
+    (7, 0.0, 'sigma_elevation: must be > 0'),
+    (6, -1e-3, 'sigma_azimuth: must be > 0'),
+    (6, 1e-300, 'sigma_azimuth: must be in [1e-12, 1000] rad'),
+    (4, float('inf'), 'azimuth: must be a finite number'),
+    (5, 2.0, 'elevation: |elevation| must be < pi/2 rad'),
+    (7, float('nan'), 'sigma_elevation: missing (required when elevation is given)'),
+    (1, 'east', 'x: must be a number'),
+    (0, '1.5', 'problem: must be an integer id'),
+])
+def test_table_error_names_line_problem_and_column(tmp_path, capsys, column, value, message):
+    rows = table_rows(valid_problems(1500))
+    r = 4000
+    rows[r][column] = value
+    # Line numbers count the header: data row r is on line r + 2.
+    expect = f'line {r + 2}' + ('' if column == 0 else f' (problem {rows[r][0]})')
+    err = table_error(tmp_path, capsys, rows)
+    assert err.startswith(f'{expect}: {message}'), err
+
+
+@pytest.mark.parametrize('edit, message', [
+    (lambda h, rows: (h + ['colour'], [r + ['red'] for r in rows]),
+     "input: unknown column 'colour'"),
+    (lambda h, rows: ([c for c in h if c != 'azimuth'], [r[:4] + r[5:] for r in rows]),
+     'input: missing column azimuth'),
+    (lambda h, rows: (h + ['azimuth_deg'], [r + [1.0] for r in rows]),
+     'input: give azimuth or azimuth_deg, not both'),
+    (lambda h, rows: (h, [r for r in rows if not (r[0] == 103 and r[-1] != 's0')]),
+     'problem 103: 1 bearing(s); a 3D fix needs at least two'),
+    (lambda h, rows: (h, [r[:5] + [float('nan')] + r[6:] if r[0] == 102 else r
+                          for r in rows]),
+     'problem 102: elevation: no bearing measures elevation'),
+    (lambda h, rows: (h, rows[:3] + [rows[3][:-2]] + rows[4:]),
+     'line 5: 7 fields, the header has 9'),
+])
+def test_table_structure_errors(tmp_path, capsys, edit, message):
+    h, rows = edit(header(), table_rows(valid_problems(6)))
+    assert table_error(tmp_path, capsys, rows, h).startswith(message)
+
+
+def test_npz_errors(tmp_path, capsys):
+    base = {'problem': np.array([0, 0]), 'x': np.zeros(2), 'y': np.array([0.0, 1e3]),
+            'z': np.zeros(2), 'azimuth': np.array([0.5, 1.0]), 'elevation': np.array([0.1, 0.1]),
+            'sigma_azimuth': np.full(2, 1e-3), 'sigma_elevation': np.full(2, 1e-3)}
+    cases = [({'x': np.array(['a', 'b'])}, 'x: must be a numeric array'),
+             ({'y': np.zeros(3)}, 'input: the NPZ columns have different lengths'),
+             ({'problem': np.array([0.0, 0.5])}, 'row 1: problem: must be an integer id'),
+             ({'sigma_azimuth': np.array([1e-3, 0.0])},
+              'row 1 (problem 0): sigma_azimuth: must be > 0')]
+    for change, message in cases:
+        np.savez(tmp_path / 'b.npz', **dict(base, **change))
+        code, out, err = run(['locate', str(tmp_path / 'b.npz')], capsys)
+        assert code == 2 and out == '' and message in err, (message, err)
+    (tmp_path / 'c.npz').write_bytes(b'not a zip')
+    code, _, err = run(['locate', str(tmp_path / 'c.npz')], capsys)
+    assert code == 2 and 'input: not a readable NPZ file' in err
+    np.savez(tmp_path / 'ok.npz', **base)
+    code, out, err = run(['locate', str(tmp_path / 'ok.npz')], capsys)
+    assert code == 0 and json.loads(out)['results'][0]['problem'] == 0
+
+
+def test_json_batch_and_export_see_the_same_problems(tmp_path):
+    probs = make_problems(12)
+    _, _, fast, _ = parse_request({'problems': copy.deepcopy(probs)})
+    names = [bs.stations for bs in fast]
+    assert names[0] == ['station_0', 'station_1', 'station_2']     # no ids given
+    assert names[1] == ['s0', 's1', 's2', 's3']
