@@ -194,14 +194,16 @@ def test_event_trigger_fires_when_every_live_station_reported():
     assert len(eps) == 1 and eps[0].ok and eps[0].stamp_ns == 11 * S
 
 
-def test_event_trigger_stops_waiting_for_a_silent_station_after_the_timeout():
-    c = core(trigger='event', station_timeout=2.0)
+def test_event_trigger_waits_for_a_silent_station_at_most_max_latency():
+    c = core(trigger='event', station_timeout=2.0, max_latency=0.2)
     eps = feed_round(c, 10 * S, stations=['s1', 's2'])
-    eps += feed_round(c, 11 * S, stations=['s1', 's2'])
-    assert eps == [] and c.tick(11 * S + 500 * MS) == []
-    eps = c.tick(12 * S + 1)        # s3 never reported within 2 s: no longer waited for
+    assert eps == [] and c.tick(10 * S + 100 * MS) == []
+    eps = c.tick(10 * S + 200 * MS)   # s3 never reported: not waited for beyond max_latency
     assert len(eps) == 1 and eps[0].ok and sorted(eps[0].stations) == ['s1', 's2']
-    assert eps[0].stamp_ns == 11 * S
+    assert eps[0].stamp_ns == 10 * S
+    # The next cycle starting (s1 reports again) closes a pending epoch at once.
+    eps = feed_round(c, 11 * S, stations=['s1', 's2']) + feed_round(c, 12 * S, stations=['s1'])
+    assert [(e.stamp_ns, sorted(e.stations)) for e in eps] == [(11 * S, ['s1', 's2'])]
 
 
 def test_late_duplicate_and_out_of_order_bearings_are_dropped_and_counted():

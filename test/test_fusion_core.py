@@ -281,12 +281,14 @@ def test_bad_messages_are_counted_and_do_not_block_fixes():
     nan = Bearing('s3', 10 * S, POSITIONS[2], float('nan'), 0.1, 1e-3, 1e-3)
     assert core.add_bearing(nan, 10 * S) == []
     eps = []
-    for b in good[:2] + bearings_at(t_ns=14 * S)[:2]:
+    for b in good[:2]:
         eps += core.add_bearing(b, b.stamp_ns)
-    assert eps == []               # s3-s5 are waited for during station_timeout (5 s)...
-    eps += core.tick(15 * S + 1)   # ...then s1 and s2 fix on their own
+    assert eps == []               # s3-s5 (configured, silent) are waited for max_latency...
+    eps += core.tick(10 * S + 150_000_000)
+    assert eps == []
+    eps += core.tick(10 * S + 200_000_000)   # ...then s1 and s2 fix on their own
     assert len(eps) == 1 and eps[0].ok and eps[0].stations == ['s1', 's2']
-    assert eps[0].stamp_ns == 14 * S
+    assert eps[0].stamp_ns == 10 * S
     diag = {d.name: d.values for d in core.diagnostics(15 * S + 1)}
     assert diag['fusion']['bad_messages'] == 3
     assert diag['station s5']['bad.bad_quaternion'] == 1

@@ -155,15 +155,17 @@ def _fusion_schema():
           's', 0.05, 3600.0),
         P('qos_depth', INTEGER, 10, 'Keep-last depth of each bearing subscription', '', 1,
           10000),
-        P('qos_reliability', STRING, 'reliable', 'QoS reliability of the bearing '
-          'subscriptions (best_effort also matches best-effort publishers)',
-          choices=('reliable', 'best_effort')),
+        P('qos_reliability', STRING, 'best_effort', 'QoS reliability of the bearing '
+          'subscriptions: best_effort (sensor data; matches reliable and best-effort '
+          'publishers) or reliable (matches reliable publishers only)',
+          choices=('best_effort', 'reliable')),
         P('trigger', STRING, 'event', 'Epoch trigger: event (every live station reported) '
           'or timer (every 1/rate s, after max_latency)', choices=('event', 'timer')),
         P('rate', DOUBLE, 10.0, 'Timer epoch rate; also the housekeeping tick rate in event '
           'mode', 'Hz', 0.01, 1000.0),
         P('max_latency', DOUBLE, 0.2, 'Timer mode: epoch t is processed once now >= t + '
-          'max_latency', 's', 0.0, 60.0),
+          'max_latency; event mode: an epoch missing a live station closes this long after '
+          'its first bearing (with min_stations)', 's', 0.0, 60.0),
         P('sync_tolerance', DOUBLE, 0.05, 'Nearest alignment window |stamp - t|', 's', 0.0,
           60.0),
         P('interpolation', BOOL, False, 'Interpolate between the two bearings bracketing t '
@@ -177,6 +179,8 @@ def _fusion_schema():
           'must exceed max_latency + sync_tolerance', 's', 1e-3, 3600.0),
         P('time_jump_tolerance', DOUBLE, 0.1, 'The clock going back by more than this '
           'clears every buffer', 's', 0.0, 3600.0),
+        P('future_tolerance', DOUBLE, 0.5, 'Bearings stamped later than now + this are '
+          'dropped (dropped.from_future)', 's', 0.0, 3600.0),
         P('estimator', STRING, _default_estimator(), 'Estimator; a switch between a TMA '
           '(tma_*) and a multi-station estimator needs a restart', choices=_estimator_names(),
           **run),
@@ -373,7 +377,7 @@ FUSION_CONFIG_FIELDS = ('frame_id', 'trigger', 'rate', 'max_latency', 'sync_tole
                         'interpolation', 'max_interpolation_gap', 'station_timeout',
                         'buffer_size', 'buffer_age', 'min_stations', 'estimator',
                         'outlier_gate', 'time_jump_tolerance', 'target_speed', 'window',
-                        'speed_reference')
+                        'speed_reference', 'future_tolerance')
 #: Fusion node parameters that are estimator options (FusionConfig.estimator_options).
 ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay')
 

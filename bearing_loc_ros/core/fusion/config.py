@@ -47,7 +47,10 @@ class FusionConfig:
         frame_id: world frame; bearings in another frame are rejected (``wrong_frame``).
         trigger: ``event`` or ``timer`` (:mod:`.triggers`).
         rate: timer epoch rate, Hz (also the node's housekeeping tick rate in event mode).
-        max_latency: timer mode: epoch t_k is processed once now >= t_k + max_latency, s.
+        max_latency: timer mode: epoch t_k is processed once now >= t_k + max_latency;
+            event mode: an epoch still missing a live station's bearing is processed once
+            max_latency has passed since its first bearing arrived, with >= min_stations
+            stations, s.
         sync_tolerance: nearest alignment window |stamp − t|, s.
         interpolation: interpolate between bracketing bearings.
         max_interpolation_gap: longest bracketing gap t1 − t0, s.
@@ -59,6 +62,8 @@ class FusionConfig:
             core.registry.scoped_options).
         outlier_gate: χ² gate probability in [0.5, 1]; 1 disables gating.
         time_jump_tolerance: "now" going back by more than this (s) clears the buffers.
+        future_tolerance: bearings stamped later than now + this (s) are dropped
+            (``from_future``): a station clock ahead, or a forged stamp.
         target_speed: TMA speed prior v_c, m/s (Lin et al.; required > 0 for a TMA
             estimator, 0 = unset).
         window: TMA window, s: bearings older than the newest minus this leave the sums.
@@ -81,6 +86,7 @@ class FusionConfig:
     estimator_options: dict = field(default_factory=dict)
     outlier_gate: float = _DEFAULTS['outlier_gate']
     time_jump_tolerance: float = _DEFAULTS['time_jump_tolerance']
+    future_tolerance: float = _DEFAULTS['future_tolerance']
     target_speed: float = _DEFAULTS['target_speed']
     window: float = _DEFAULTS['window']
     speed_reference: str = _DEFAULTS['speed_reference']
@@ -99,6 +105,7 @@ class FusionConfig:
         _seconds('station_timeout', self.station_timeout, positive=True)
         _seconds('buffer_age', self.buffer_age, positive=True)
         _seconds('time_jump_tolerance', self.time_jump_tolerance)
+        _seconds('future_tolerance', self.future_tolerance)
         if int(self.buffer_size) < 2:
             raise ValueError(f'buffer_size: must be >= 2, got {self.buffer_size}')
         if float(self.buffer_age) <= float(self.max_latency) + float(self.sync_tolerance):

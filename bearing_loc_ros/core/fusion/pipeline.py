@@ -23,7 +23,7 @@ from .multistation import MultiStationStrategy
 from .results import DiagnosticEntry, LEVEL_OK, LEVEL_WARN, NO_FIX_REASONS, NOT_CONVERGED, \
     ESTIMATOR_ERROR
 from .single_station import TmaStrategy
-from .stations import ALIVE, StationRegistry, STALE
+from .stations import ALIVE, StationRegistry, STALE, WAITING
 
 #: Fusion modes: name -> strategy class; the node's ``mode`` parameter picks one
 #: (``auto``: the estimator's mode, core.registry.mode_of).
@@ -99,9 +99,11 @@ class FusionCore:
         """Known station ids, in the order they were added."""
         return self.registry.stations
 
-    def add_station(self, station):
-        """Register ``station`` (idempotent); it is 'waiting' until its first bearing."""
-        return self.registry.add_station(station)
+    def add_station(self, station, wait=True):
+        """Register ``station`` (idempotent); it is 'waiting' until its first bearing.
+        ``wait=False`` (a discovered station): never waited for before its first valid
+        bearing (:meth:`StationRegistry.add_station`)."""
+        return self.registry.add_station(station, wait=wait)
 
     def remove_station(self, station):
         """Forget ``station`` (its buffer, counters and the strategy's state of it)."""
@@ -151,6 +153,11 @@ class FusionCore:
         """Count a message of ``station`` rejected before reaching the core (conversion)."""
         self.registry.count_bad(station, reason, now_ns)
 
+    def count_lost(self, station, kind, n):
+        """Count ``n`` messages of ``station`` lost in transport, by ``kind`` (diagnostics
+        ``lost.<kind>``, per station and in total)."""
+        self.registry.count_lost(station, kind, n)
+
     def add_bearing(self, bearing, now_ns):
         """Ingest one bearing received at node-clock time ``now_ns``; return new Epochs.
 
@@ -190,7 +197,7 @@ class FusionCore:
         """Count ``epochs`` (the strategy's results at ``now``) and advance the epoch time."""
         reg = self.registry
         for ep in epochs:
-            reg.last_epoch_ns = ep.stamp_ns
+            reg.epoch_done(ep.stamp_ns, now)
             self.epochs += 1
             for b in ep.rejected:
                 reg.stats(b.station).outliers += 1
@@ -230,15 +237,26 @@ class FusionCore:
         Overall keys: estimator, trigger, alignment, epochs, fixes, fix_rate_hz,
         converged_fraction, mean_iterations, rejected_bearings, bad_messages,
         dropped.<reason>, no_fix.<reason>, time_jumps, live_stations, stale_stations,
-        last_fix_stamp, and the strategy's (TMA: tracked_station, window_bearings,
+        waiting_stations, last_fix_stamp, warnings_suppressed, lost.<kind> (totals),
+        clock_warnings, and the strategy's (TMA: tracked_station, window_bearings,
         target_speed, speed_reference). Station keys: state, received, accepted, used,
-        outliers, evicted, bad.<reason>, dropped.<reason>, last_stamp, age_s.
+        outliers, evicted, evicted_future, bad.<reason>, dropped.<reason>, lost.<kind>,
+        last_stamp, age_s, clock_offset_s (median stamp − now), clock_warning.
+
+        Before any station delivered a bearing the overall level is OK ("waiting for
+        data") for station_timeout after the start, then WARN; a station whose stamps are
+        far off the node clock is WARN with the likely cause (:func:`.stations.clock_hint`).
         """
         now = int(now_ns)
         reg = self.registry
         states = {s: reg.state_at(st, now) for s, st in reg.all_stats()}
         live = [s for s, v in states.items() if v == ALIVE]
         stale = [s for s, v in states.items() if v == STALE]
+        waiting = [s for s, v in states.items() if v == WAITING]
+        lost = Counter()
+        for _, st in reg.all_stats():
+            lost.update(st.lost)
+        clock = {s: st.clock_warning for s, st in reg.all_stats() if st.clock_warning}
         non_conv = self.no_fix[NOT_CONVERGED] + self.no_fix[ESTIMATOR_ERROR]
         attempts = self.fixes + non_conv
         values = {
@@ -255,6 +273,9 @@ class FusionCore:
             'time_jumps': reg.time_jumps,
             'live_stations': ','.join(live),
             'stale_stations': ','.join(stale),
+            'waiting_stations': ','.join(waiting),
+            'warnings_suppressed': reg.warnings_suppressed,
+            'clock_warnings': ','.join(clock),
             'last_fix_stamp': (f'{self.last_fix_stamp_ns / NS_PER_S:.9f}'
                                if self.last_fix_stamp_ns is not None else 'none'),
         }
@@ -262,12 +283,29 @@ class FusionCore:
             values[f'dropped.{r}'] = reg.dropped[r]
         for r in NO_FIX_REASONS:
             values[f'no_fix.{r}'] = self.no_fix[r]
+        for k, n in sorted(lost.items()):
+            values[f'lost.{k}'] = n
         values.update(self.strategy.diagnostic_values())
-        level, msg = self.strategy.overall_status(live, stale, self.fixes, self.last_epoch)
+        if not any(st.accepted or st.last_stamp_ns is not None for _, st in reg.all_stats()) \
+                and not self.epochs:
+            first = reg.first_now_ns
+            idle = 0.0 if first is None else (now - first) / NS_PER_S
+            level = LEVEL_OK if idle <= self.config.station_timeout else LEVEL_WARN
+            msg = 'waiting for data' + (f': no bearing accepted in {idle:.1f} s'
+                                        if level != LEVEL_OK else '')
+        else:
+            level, msg = self.strategy.overall_status(live, stale, self.fixes, self.last_epoch)
+        if clock:
+            level = LEVEL_WARN if level == LEVEL_OK else level
+            s0 = next(iter(clock))
+            msg += f'; {s0}: {clock[s0]}'
         out = [DiagnosticEntry('fusion', level, msg, values)]
         for s, st in reg.all_stats():
+            off = st.clock_offset_s()
             sv = {'state': states[s], 'received': st.received, 'accepted': st.accepted,
                   'used': st.used, 'outliers': st.outliers, 'evicted': st.evicted,
+                  'evicted_future': st.evicted_future,
+                  'clock_offset_s': 'n/a' if off is None else f'{off:.3f}',
                   'last_stamp': (f'{st.last_stamp_ns / NS_PER_S:.9f}'
                                  if st.last_stamp_ns is not None else 'none'),
                   'age_s': (f'{(now - st.last_stamp_ns) / NS_PER_S:.3f}'
@@ -276,9 +314,14 @@ class FusionCore:
                 sv[f'bad.{r}'] = n
             for r in DROP_REASONS:
                 sv[f'dropped.{r}'] = st.dropped[r]
+            for k, n in sorted(st.lost.items()):
+                sv[f'lost.{k}'] = n
             lvl = LEVEL_OK if states[s] == ALIVE else LEVEL_WARN
             msg = (states[s] if not st.bad
                    else f'{states[s]}, {sum(st.bad.values())} bad message(s)')
+            if st.clock_warning:
+                sv['clock_warning'] = st.clock_warning
+                lvl, msg = LEVEL_WARN, f'{msg}; {st.clock_warning}'
             out.append(DiagnosticEntry(f'station {s}', lvl, msg, sv, hardware_id=s))
         return out
 

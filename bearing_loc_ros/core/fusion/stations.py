@@ -9,9 +9,22 @@ its clock, and nothing about estimation:
   (``wrong_frame``), ``duplicate`` (same stamp as a buffered bearing of its station),
   ``out_of_order`` (older than the station's newest), ``too_late`` (stamp < last epoch −
   sync_tolerance, or older than now − buffer_age), ``from_future`` (stamp > now +
-  buffer_age); such bearings are counted, never raised;
+  future_tolerance); such bearings are counted, never raised. A station whose buffer holds
+  bearings stamped after now (a clock that was ahead) and that then sends
+  :data:`FUTURE_RECOVERY` consecutive in-order-with-now bearings refused as out of order
+  has those future bearings evicted (``evicted_future``), so one forged stamp cannot block
+  its station for longer than future_tolerance;
 * the station state machine: ``waiting`` (no bearing yet), ``alive``, ``stale`` (now − its
-  newest stamp > station_timeout);
+  newest stamp > station_timeout). Only stations added with ``wait=True`` (configured
+  ones) are waited for while ``waiting``; a discovered station counts once it delivered a
+  valid bearing;
+* the clock offset of each station: the median of (stamp − now) over its last
+  :data:`OFFSET_WINDOW` valid bearings; when a station's bearings are refused because
+  their stamps are further from now than buffer_age, a warning naming the likely cause is
+  logged once (use_sim_time set on one side only, an unsynchronised clock);
+* throttled warnings: a per-message warning (invalid bearings, bad station ids) is emitted
+  at most once per :data:`WARN_THROTTLE_NS` of node time per station and kind, with the
+  number suppressed in between (``warnings_suppressed``);
 * the clock: "now" (integer ns on the node clock) going back by more than
   ``time_jump_tolerance`` clears every buffer and the epoch history (a bag looping, a
   simulation reset), reported as an event and to the ``on_time_jump`` listener;
@@ -22,14 +35,15 @@ Cost: O(1) amortised per bearing (only the bearing's station buffer is pruned on
 every buffer before an epoch; states are rescanned only when one may have changed).
 """
 
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 import math
 import numbers
+import statistics
 
 import numpy as np
 
-from ..alignment import FROM_FUTURE, seconds_to_ns, StationBuffer, TOO_LATE
+from ..alignment import FROM_FUTURE, OUT_OF_ORDER, seconds_to_ns, StationBuffer, TOO_LATE
 
 NS_PER_S = 1_000_000_000
 
@@ -44,6 +58,15 @@ WRONG_FRAME = 'wrong_frame'
 
 #: A station moving more than this (m) counts as a geometry change (planning hook).
 GEOMETRY_MOVE_TOLERANCE_M = 1.0
+#: Consecutive out-of-order arrivals, each stamped no later than now, that evict the
+#: station's buffered bearings stamped after now.
+FUTURE_RECOVERY = 3
+#: Valid bearings per station over which the clock offset (stamp − now) is a median.
+OFFSET_WINDOW = 9
+#: A per-message warning of one station and kind is logged at most once per this, ns.
+WARN_THROTTLE_NS = 5 * NS_PER_S
+#: Offsets (s) beyond which a sim-time / wall-time mix-up is the likely cause (~11 days).
+SIM_TIME_OFFSET_S = 1e6
 
 
 @dataclass
@@ -62,6 +85,26 @@ class StationStats:
     last_stamp_ns: int = None
     position: tuple = None       # (x, y, z) m at the last geometry change
     since_ns: int = None
+    wait: bool = True            # waited for while 'waiting' (configured, not discovered)
+    evicted_future: int = 0      # buffered bearings stamped after now, evicted
+    offsets: deque = field(default_factory=lambda: deque(maxlen=OFFSET_WINDOW))
+    clock_warning: str = None    # set while its stamps are far off the node clock
+    lost: Counter = field(default_factory=Counter)   # losses reported by the transport
+    _future_run: int = 0
+
+    def clock_offset_s(self):
+        """Median of (stamp − now) over the last OFFSET_WINDOW valid bearings, s (None
+        without any)."""
+        return statistics.median(self.offsets) / NS_PER_S if self.offsets else None
+
+
+def clock_hint(offset_s):
+    """The likely cause of a station's stamps being ``offset_s`` (stamp − now, s) off the
+    node clock, as one sentence for the log and /diagnostics."""
+    side = 'behind' if offset_s < 0 else 'ahead of'
+    cause = ('is use_sim_time set on one side only?' if abs(offset_s) > SIM_TIME_OFFSET_S
+             else 'is the station clock synchronised (NTP/PTP)?')
+    return f'stamps are {abs(offset_s):.3g} s {side} the node clock: {cause}'
 
 
 def bearing_problem(b):
@@ -128,6 +171,11 @@ class StationRegistry:
         self._next_check_ns = None    # earliest now at which a station state may change
         self._scan_now_ns = None      # now of the last full state scan
         self._expected = None         # cached event-trigger station list (None: recompute)
+        self.open_since_ns = None     # now at which the pending epoch got its first bearing
+        self.repeat_stamp_ns = None   # a pending station's previous newest stamp (it reported
+        #                               again before the pending epoch closed)
+        self.warnings_suppressed = 0
+        self._warned = {}             # (station, kind) -> [last emitted now, suppressed]
         self.apply_config(config)
         for s in stations:
             self.add_station(s)
@@ -140,6 +188,7 @@ class StationRegistry:
         self.timeout_ns = seconds_to_ns(config.station_timeout)
         self._jump_tolerance_ns = seconds_to_ns(config.time_jump_tolerance)
         self.max_latency_ns = seconds_to_ns(config.max_latency)
+        self.future_ns = seconds_to_ns(config.future_tolerance)
         if old is not None and self.align != old:
             for buf in self._buffers.values():
                 buf.size, buf.age_ns = self.align.buffer_size, self.align.buffer_age_ns
@@ -155,10 +204,16 @@ class StationRegistry:
     def __contains__(self, station):
         return station in self._stats
 
-    def add_station(self, station):
-        """Register ``station`` (idempotent); it is 'waiting' until its first bearing."""
+    def add_station(self, station, wait=True):
+        """Register ``station`` (idempotent); it is 'waiting' until its first bearing.
+
+        ``wait``: the event trigger waits for it while it is 'waiting' (at most
+        station_timeout); False for a discovered station, which counts only once it has
+        delivered a valid bearing (a publisher without data never blocks an epoch).
+        """
         if station not in self._stats:
-            self._stats[station] = StationStats(station, since_ns=self.last_now_ns)
+            self._stats[station] = StationStats(station, since_ns=self.last_now_ns,
+                                                wait=bool(wait))
             self._buffers[station] = StationBuffer(station, self.align.buffer_size,
                                                    self.align.buffer_age_ns)
             self.events.append(('info', f'station {station} added'))
@@ -171,6 +226,8 @@ class StationRegistry:
         if self._stats.pop(station, None) is None:
             return False
         self._buffers.pop(station, None)
+        for key in [k for k in self._warned if k[0] == station]:
+            del self._warned[key]
         self._expected = None
         self.geometry_version += 1
         self.events.append(('info', f'station {station} removed'))
@@ -216,6 +273,33 @@ class StationRegistry:
         return out
 
     # ----------------------------------------------------------------- inputs
+    def warn_throttled(self, station, kind, text, now):
+        """Queue warning ``text`` unless one of the same ``station`` and ``kind`` was queued
+        less than WARN_THROTTLE_NS of node time ago (then count it as suppressed); the next
+        one emitted says how many were suppressed. True when queued."""
+        key = (station, kind)
+        entry = self._warned.get(key)
+        if entry is not None and now is not None and entry[0] is not None \
+                and entry[0] <= now < entry[0] + WARN_THROTTLE_NS:
+            entry[1] += 1
+            self.warnings_suppressed += 1
+            return False
+        if entry is not None and entry[1]:
+            text += f' ({entry[1]} similar warning(s) suppressed)'
+        if len(self._warned) > 4 * len(self._stats) + 64:   # bounded: forget the oldest
+            self._warned.pop(next(iter(self._warned)))
+        self._warned[key] = [now, 0]
+        self.events.append(('warn', text))
+        return True
+
+    def count_lost(self, station, kind, n):
+        """Count ``n`` messages of ``station`` lost in transport (``kind``: for example
+        ``message_lost`` from the middleware, ``sequence_gap`` from publication sequence
+        numbers); a station that is not known is ignored."""
+        st = self._stats.get(station)
+        if st is not None and n > 0:
+            st.lost[kind] += int(n)
+
     def count_bad(self, station, reason, now_ns=None, first_warning=None):
         """Count a message of ``station`` refused with ``reason``; log ``first_warning`` the
         first time this station is refused for that reason."""
@@ -234,8 +318,8 @@ class StationRegistry:
         if isinstance(bearing.station, str) and bearing.station:
             return True
         self.bad_messages += 1
-        self.events.append(('warn', f'bearing with station id {bearing.station!r} dropped '
-                                    '(must be a non-empty string)'))
+        self.warn_throttled('', 'station_id', f'bearing with station id '
+                            f'{bearing.station!r:.60} dropped (must be a non-empty string)', now)
         self.advance(now)
         return False
 
@@ -251,23 +335,45 @@ class StationRegistry:
         if detail is not None:
             st.bad[INVALID_BEARING] += 1
             self.bad_messages += 1
-            self.events.append(('warn', f'{bearing.station}: invalid bearing ({detail})'))
+            self.warn_throttled(bearing.station, INVALID_BEARING,
+                                f'{bearing.station}: invalid bearing ({detail})', now)
             return False
         if bearing.frame_id != self.config.frame_id:
             st.bad[WRONG_FRAME] += 1
             self.bad_messages += 1
             return False
         stamp = int(bearing.stamp_ns)
+        st.offsets.append(stamp - now)
         buf = self._buffers[bearing.station]
         reason = buf.classify(stamp)
+        if reason == OUT_OF_ORDER and stamp <= now and buf.newest_stamp_ns > now:
+            st._future_run += 1
+            if st._future_run >= FUTURE_RECOVERY:
+                reason = self._evict_future(st, buf, stamp, now)
+        else:
+            st._future_run = 0
         if reason is None and self._is_too_late(stamp, now):
             reason = TOO_LATE
-        if reason is None and stamp > now + self.align.buffer_age_ns:
+        if reason is None and stamp > now + self.future_ns:
             reason = FROM_FUTURE
         if reason is not None:
             st.dropped[reason] += 1
             self.dropped[reason] += 1
+            if reason in (TOO_LATE, FROM_FUTURE) and st.clock_warning is None \
+                    and abs(stamp - now) > self.align.buffer_age_ns:
+                st.clock_warning = clock_hint(st.clock_offset_s())
+                self.events.append(('warn', f'{bearing.station}: {st.clock_warning} (its '
+                                            f'bearings are dropped as {reason})'))
             return False
+        st.clock_warning = None
+        last = self.last_epoch_ns
+        if self.open_since_ns is None and (last is None or stamp > last):
+            self.open_since_ns = now
+        newest = buf.newest_stamp_ns
+        if newest is not None and (last is None or newest > last):
+            # A station reports again before the pending epoch closed: a new cycle began.
+            rep = self.repeat_stamp_ns
+            self.repeat_stamp_ns = newest if rep is None or newest < rep else rep
         st.evicted += buf.push(bearing)
         st.accepted += 1
         st.last_stamp_ns = stamp
@@ -283,6 +389,33 @@ class StationRegistry:
             if self._next_check_ns is not None and due < self._next_check_ns:
                 self._next_check_ns = due
         return True
+
+    def _evict_future(self, st, buf, stamp, now):
+        """Evict ``buf``'s bearings stamped after now (a clock that was ahead, or a forged
+        stamp); return the arrival's reason at ``stamp`` afterwards."""
+        kept = [b for b in buf.bearings if b.stamp_ns <= now]
+        n = len(buf) - len(kept)
+        buf.clear()
+        for b in kept:
+            buf.push(b)
+        st.evicted_future += n
+        st._future_run = 0
+        st.last_stamp_ns = buf.newest_stamp_ns
+        self.events.append(('warn', f'{st.station}: {n} buffered bearing(s) stamped after now '
+                                    'evicted (its clock was ahead)'))
+        return buf.classify(stamp)
+
+    def epoch_done(self, t, now):
+        """The pipeline processed an epoch at ``t`` (ns) at ``now``: the next pending epoch
+        opens at ``now`` if a station already has a bearing after t."""
+        self.last_epoch_ns = t
+        self.repeat_stamp_ns = None
+        self.open_since_ns = None
+        for buf in self._buffers.values():
+            n = buf.newest_stamp_ns
+            if n is not None and n > t:
+                self.open_since_ns = now
+                break
 
     def _is_too_late(self, stamp, now):
         if stamp < now - self.align.buffer_age_ns:
@@ -331,6 +464,8 @@ class StationRegistry:
             st.state = WAITING
             st.since_ns = now
         self.last_epoch_ns = None
+        self.open_since_ns = None
+        self.repeat_stamp_ns = None
         self.first_now_ns = now
         self.last_now_ns = now
         self._next_check_ns = None
@@ -372,11 +507,13 @@ class StationRegistry:
         self._expected = None
 
     def expected_stations(self, now):
-        """Stations an event epoch waits for: the live ones, plus those that have not
-        reported yet but were added (or the clock reset) less than station_timeout ago."""
+        """Stations an event epoch waits for: the live ones, plus the configured ones
+        (``wait``) that have not reported yet but were added (or the clock reset) less than
+        station_timeout ago."""
         if self._expected is None:
             self._expected = [
                 s for s, st in self._stats.items()
-                if st.state == ALIVE or (st.state == WAITING and st.since_ns is not None
+                if st.state == ALIVE or (st.state == WAITING and st.wait
+                                         and st.since_ns is not None
                                          and now - st.since_ns <= self.timeout_ns)]
         return self._expected
