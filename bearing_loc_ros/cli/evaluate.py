@@ -187,19 +187,18 @@ def format_table(rows):
     """The result table as text (one line per sweep × σ × estimator)."""
     head = (f'{"sweep":9s} {"σθ°":>5s} {"σψ°":>5s} {"estimator":9s} {"RMSE m":>10s} '
             f'{"bias m":>9s} {"CRLB m":>9s} {"RMSE/CRLB":>9s} {"NEES":>9s} {"conv %":>7s} '
-            f'{"µs/fix":>7s} {"RMSEall":>8s} {"median":>8s} {"p95 m":>8s} {"ok %":>6s} '
-            f'{"low %":>6s} '
-            f'{"RMSEok":>8s} {"NEESok":>7s} {"wrong%":>7s}')
+            f'{"RMSEall":>8s} {"median":>8s} {"p95 m":>8s} {"ok %":>6s} {"low %":>6s} '
+            f'{"RMSEok":>8s} {"NEESok":>7s} {"wrong%":>7s} {"µs/fix":>7s}')
     lines = [head, '-' * len(head)]
     for r in rows:
         lines.append(
             f'{r.sweep:9s} {r.sigma_az_deg:5.2f} {r.sigma_el_deg:5.2f} {r.estimator:9s} '
             f'{r.rmse:10.1f} {r.bias:9.1f} {r.crlb:9.1f} {r.rmse_over_crlb:9.2f} '
             f'{r.mean_nees:9.3g} {100 * r.convergence_rate:7.1f} '
-            f'{1e6 * r.time_per_fix_s:7.1f} {r.rmse_all:8.1f} {r.median_error:8.1f} '
-            f'{r.p95_error:8.1f} '
+            f'{r.rmse_all:8.1f} {r.median_error:8.1f} {r.p95_error:8.1f} '
             f'{100 * r.ok_fraction:6.1f} {100 * r.low_confidence_fraction:6.1f} '
-            f'{r.rmse_ok:8.1f} {r.nees_ok:7.3g} {100 * r.confident_wrong_fraction:7.3f}')
+            f'{r.rmse_ok:8.1f} {r.nees_ok:7.3g} {100 * r.confident_wrong_fraction:7.3f} '
+            f'{1e6 * r.time_per_fix_s:7.1f}')
     return '\n'.join(lines)
 
 
