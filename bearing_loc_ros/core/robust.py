@@ -44,6 +44,7 @@ the region is a banana elongated in range and a Gaussian covariance understates 
 Units: m, rad; ENU, azimuth θ CCW from East, elevation ψ above the horizontal.
 """
 
+from functools import lru_cache
 from itertools import combinations
 import math
 
@@ -64,6 +65,7 @@ REFIT_ROUNDS = 3
 REFIT_ITERATIONS = 40
 
 
+@lru_cache(maxsize=16)
 def _c2(p=OUTLIER_PROBABILITY):
     return float(_chi2.ppf(p, 1))
 
