@@ -366,3 +366,55 @@ def test_vehicle_gps_heading_on_a_circle_holds_the_heading_below_min_speed(net, 
     values = net.diag('car')[2]
     assert int(values['kraken_heading_gps']) == frames
     assert 'kraken_heading_fixed' not in values
+
+
+TX2 = {'uhf': (TX, 433.92e6), 'vhf': (np.array([-400.0, 900.0, 0.0]), 145.5e6)}
+
+
+@pytest.mark.skipif(not HAS_HORIZONTAL, reason='the fusion node has no azimuth-only mode '
+                    '(dimension) yet')
+def test_two_channels_two_transmitters_one_fusion_process(net, fake):
+    """Each receiver serves DOA_value.html with one line per channel; the station nodes
+    publish /<channel>/<station>/bearing, the fusion node (channels uhf, vhf) fixes each
+    transmitter on /<channel>/fix within its covariance."""
+    from bearing_loc_ros.core import kraken
+    from bearing_loc_ros.fusion_node import FusionNode
+    bands = {'kraken.channels': ['uhf', 'vhf'],
+             'kraken.channel_bands_mhz': [430.0, 440.0, 144.0, 146.0]}
+    for s, (pos, heading) in STATIONS.items():
+        net.station(s, topics=[f'/{c}/{s}/bearing' for c in TX2], **kraken_params(
+            fake.url(s).replace('doa.xml', 'DOA_value.html'), input='kraken_csv_http',
+            position=pos, **{'kraken.array_heading_deg': heading}, **bands))
+    host = net.add(FusionNode(context=net.context, parameter_overrides=[
+        Parameter('stations', value=sorted(STATIONS)), Parameter('min_stations', value=3),
+        Parameter('dimension', value='horizontal'), Parameter('target_altitude', value=0.0),
+        Parameter('channels', value=list(TX2))]))
+    fixes = {c: [] for c in TX2}
+    for c in TX2:
+        net.probe.create_subscription(PoseWithCovarianceStamped, f'/{c}/fix',
+                                      fixes[c].append, 50)
+    assert net.spin(lambda: len(host.channel_host.nodes) == 2 and all(
+        n.pubs[c].get_subscription_count() >= 2 for k, n in net.nodes.items()
+        if k in STATIONS for c in TX2)), 'channel nodes not subscribed'
+    rng = np.random.default_rng(15)
+    n = 20
+    for k in range(n):
+        net.last_ms = max(getattr(net, 'last_ms', 0) + 1, int(time.time() * 1000))
+        for s, (pos, heading) in STATIONS.items():
+            lines = []
+            for c, (tx, freq) in TX2.items():
+                doa = (heading - compass_deg(pos, tx) - rng.normal(0.0, SIGMA_DEG)) % 360.0
+                lines.append(kraken.csv_line(kraken.KrakenRecord(
+                    net.last_ms * 10 ** 6, s, freq, doa, (360.0 - doa) % 360.0, 0.95, -40.0)))
+            fake.set(f'/{s}/DOA_value.html', ('\n'.join(lines) + '\n').encode())
+        assert net.spin(lambda: all(len(net.received[f'/{c}/{s}/bearing']) > k
+                                    for s in STATIONS for c in TX2)), f'frame {k}'
+    assert net.spin(lambda: all(len(fixes[c]) >= n for c in TX2))
+    for c, (tx, _) in TX2.items():
+        ok, figures = _nees_sum_in_band([fix_from_msg(m)[1:] for m in fixes[c]], tx)
+        assert len(fixes[c]) == n and ok, (c, figures)
+        print(f'channel {c}: NEES sum {figures[0]:.1f} in ({figures[1]:.1f}, '
+              f'{figures[2]:.1f}), largest {figures[3]:.1f}')
+    assert net.spin(lambda: all(f'{c}/fusion: fusion' in net.diagnostics for c in TX2))
+    values = net.diagnostics['uhf/fusion: fusion'][2]
+    assert int(values['fixes']) == n and values['live_stations'].count(',') == 2
