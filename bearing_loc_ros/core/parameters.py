@@ -143,12 +143,16 @@ def _fusion_schema():
     run = dict(read_only=False)
     return (
         P('mode', STRING, 'auto', 'Fusion mode; auto = tma for a TMA estimator (tma_*), '
-          'else multistation', choices=('auto', 'multistation', 'tma')),
+          'else multistation; window = stationary emitter, every bearing of the last window '
+          's in one fix', choices=('auto', 'multistation', 'tma', 'window')),
         P('frame_id', STRING, 'map', 'World frame; bearings in any other frame are rejected '
           '(bad.wrong_frame)'),
         P('stations', STRING_ARRAY, [], 'Station ids; subscribes to <station>/bearing '
           'relative to the node namespace', example=['station_1', 'station_2', 'station_3'],
           **run),
+        P('channels', STRING_ARRAY, [], 'Several emitters: one fusion node per channel c in '
+          'this process, in namespace c (c/<station>/bearing -> c/fix); empty = one pipeline',
+          example=['uhf', 'vhf'], commented=True),
         P('discover', BOOL, False, 'Also subscribe to every */bearing '
           'PoseWithCovarianceStamped topic under the namespace'),
         P('discovery_period', DOUBLE, 1.0, 'Wall-clock period of the topic discovery scan',
@@ -186,14 +190,27 @@ def _fusion_schema():
           **run),
         P('target_speed', DOUBLE, 0.0, 'TMA speed prior v_c (Lin et al.); required > 0 with '
           'a tma_* estimator', 'm/s', 0.0, 1e6, **run),
-        P('window', DOUBLE, 120.0, 'TMA: bearings older than the newest minus window leave '
-          'the recursive sums', 's', 1e-3, 1e6),
+        P('window', DOUBLE, 120.0, 'TMA and window modes: bearings older than the newest '
+          'minus window leave the fix', 's', 1e-3, 1e6),
+        P('window_max_bearings', INTEGER, 400, 'Window mode: most bearings in one fix (the '
+          'oldest leave first); bounds memory and CPU', '', 3, 100000),
         P('speed_reference', STRING, 'relative', 'TMA: the prior is on the relative '
           '(target - station, Lin et al.) or the ground (target) speed',
           choices=tuple(SPEED_REFERENCES)),
         P('min_stations', INTEGER, 2, 'Fewest stations in a fix', '', 2, 10000, **run),
         P('outlier_gate', DOUBLE, 0.999, 'Chi-square gate probability (1 dof per angle); '
           '1.0 disables the gate', '', 0.5, 1.0, **run),
+        P('dimension', STRING, 'auto', 'Solve: auto (3d when the bearings observe the '
+          'height, else horizontal), 3d or horizontal (needs target_altitude)',
+          choices=('auto', '3d', 'horizontal'), **run),
+        P('target_altitude', DOUBLE_ARRAY, [], 'Target altitude [z] (world frame) of the '
+          'horizontal solve; [] = not stated (azimuth-only sets then give no fix)', 'm',
+          example=[0.0], commented=True, **run),
+        P('target_altitude_sigma', DOUBLE, 0.0, 'Standard deviation of target_altitude; 0 '
+          '= exactly known', 'm', 0.0, 1e6, **run),
+        P('use_elevations', BOOL, True, 'Horizontal solve: use measured elevations (range '
+          'information); false for ground emitters with multipath-spoiled elevations',
+          **run),
         P('max_iterations', INTEGER, 50, 'Iterative estimators: iteration limit', '', 1,
           100000, **run),
         P('tolerance', DOUBLE, 1e-9, 'Iterative estimators: relative step tolerance', '',
@@ -377,9 +394,10 @@ FUSION_CONFIG_FIELDS = ('frame_id', 'trigger', 'rate', 'max_latency', 'sync_tole
                         'interpolation', 'max_interpolation_gap', 'station_timeout',
                         'buffer_size', 'buffer_age', 'min_stations', 'estimator',
                         'outlier_gate', 'time_jump_tolerance', 'target_speed', 'window',
-                        'speed_reference', 'future_tolerance')
+                        'speed_reference', 'future_tolerance', 'window_max_bearings')
 #: Fusion node parameters that are estimator options (FusionConfig.estimator_options).
-ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay')
+ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay',
+                     'dimension', 'target_altitude', 'target_altitude_sigma', 'use_elevations')
 
 
 def markdown_table(node):

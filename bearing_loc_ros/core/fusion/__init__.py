@@ -8,8 +8,9 @@ Parts, each readable on its own:
 * :mod:`.gating`: solving one epoch with χ² outlier gating (:func:`solve_epoch`);
 * :mod:`.stations`: the station registry (buffers, arrival checks, states, clock);
 * :mod:`.triggers`: when epochs happen (``event``, ``timer``);
-* :mod:`.multistation` and :mod:`.single_station`: the two strategies (many fixed stations;
-  one moving station, target motion analysis), composed with the registry by
+* :mod:`.multistation`, :mod:`.single_station` and :mod:`.window`: the strategies (many
+  fixed stations; one moving station, target motion analysis; a stationary emitter, every
+  bearing of a sliding window in one fix), composed with the registry by
 * :mod:`.pipeline`: :class:`FusionCore`, :func:`make_core` and :func:`replay`.
 
 Display geometry (error ellipsoids, bearing rays, marker sizes) is in
@@ -17,8 +18,8 @@ Display geometry (error ellipsoids, bearing rays, marker sizes) is in
 """
 
 from ..display import error_ellipsoid, quaternion_from_matrix, ray_endpoints
-from .config import (FusionConfig, MODE_MULTISTATION, MODE_TMA, NS_PER_S, TRIGGER_EVENT,
-                     TRIGGER_TIMER, TRIGGERS)
+from .config import (FusionConfig, MODE_MULTISTATION, MODE_TMA, MODE_WINDOW, NS_PER_S,
+                     TRIGGER_EVENT, TRIGGER_TIMER, TRIGGERS)
 from .gating import gate_threshold, normalized_residuals, solve_epoch
 from .pipeline import FusionCore, make_core, MODES, RATE_WINDOW_NS, replay
 from .results import (BAD_COVARIANCE, DEGENERATE_GEOMETRY, DiagnosticEntry, Epoch,
@@ -26,6 +27,7 @@ from .results import (BAD_COVARIANCE, DEGENERATE_GEOMETRY, DiagnosticEntry, Epoc
                       LEVEL_WARN, NO_ELEVATION, NO_FIX_REASONS, NOT_CONVERGED, OK,
                       TOO_FEW_STATIONS, UNOBSERVABLE)
 from .single_station import NOT_TRACKED, TmaStrategy
+from .window import WindowStrategy
 from .stations import (ALIVE, GEOMETRY_MOVE_TOLERANCE_M, INVALID_BEARING, STALE,
                        StationRegistry, StationStats, WAITING, WRONG_FRAME)
 
@@ -43,10 +45,10 @@ __all__ = [
     'ALIVE', 'BAD_COVARIANCE', 'DEGENERATE_GEOMETRY', 'DiagnosticEntry', 'Epoch',
     'error_ellipsoid', 'ESTIMATOR_ERROR', 'FusionConfig', 'FusionCore', 'gate_threshold',
     'GEOMETRY_MOVE_TOLERANCE_M', 'INCONSISTENT_BEARINGS', 'INVALID_BEARING', 'LEVEL_ERROR',
-    'LEVEL_OK', 'LEVEL_WARN', 'make_core', 'MODE_MULTISTATION', 'MODE_TMA', 'MODES',
+    'LEVEL_OK', 'LEVEL_WARN', 'make_core', 'MODE_MULTISTATION', 'MODE_TMA', 'MODE_WINDOW', 'MODES',
     'NO_ELEVATION', 'NO_FIX_REASONS', 'normalized_residuals', 'NOT_CONVERGED', 'NOT_TRACKED',
     'NS_PER_S', 'OK', 'quaternion_from_matrix', 'RATE_WINDOW_NS', 'ray_endpoints', 'replay',
     'solve_epoch', 'STALE', 'StationRegistry', 'StationStats', 'TmaFusionCore', 'TmaStrategy',
     'TOO_FEW_STATIONS', 'TRIGGER_EVENT', 'TRIGGER_TIMER', 'TRIGGERS', 'UNOBSERVABLE',
-    'WAITING', 'WRONG_FRAME',
+    'WAITING', 'WindowStrategy', 'WRONG_FRAME',
 ]

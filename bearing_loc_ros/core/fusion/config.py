@@ -23,6 +23,21 @@ TRIGGERS = (TRIGGER_EVENT, TRIGGER_TIMER)
 #: Fusion modes (the node's ``mode`` parameter; ``auto`` follows the estimator).
 MODE_MULTISTATION = _registry.MODE_MULTISTATION
 MODE_TMA = _registry.MODE_TMA
+#: Stationary emitter: every bearing of the window in one fix (core.fusion.window); it runs
+#: the multi-station estimators.
+MODE_WINDOW = 'window'
+
+
+def _estimator_options(values):
+    """Estimator options of node parameter values: ``target_altitude`` [] (the node's "not
+    stated") becomes None and [z] becomes z (m); ValueError for more than one value."""
+    out = dict(values)
+    z = out.get('target_altitude')
+    if isinstance(z, (list, tuple)):
+        if len(z) > 1:
+            raise ValueError(f'target_altitude: expected [] (not stated) or [z] (m), got {z}')
+        out['target_altitude'] = float(z[0]) if z else None
+    return out
 
 
 #: Defaults: the fusion node's parameter schema (core.parameters), the one place they live.
@@ -66,7 +81,9 @@ class FusionConfig:
             (``from_future``): a station clock ahead, or a forged stamp.
         target_speed: TMA speed prior v_c, m/s (Lin et al.; required > 0 for a TMA
             estimator, 0 = unset).
-        window: TMA window, s: bearings older than the newest minus this leave the sums.
+        window: TMA and window modes, s: bearings older than the newest minus this leave
+            the sums (TMA) or the fix (window).
+        window_max_bearings: window mode: most bearings in one fix (oldest leave first).
         speed_reference: TMA prior on 'relative' (|v_t − v_o|, Lin et al.) or 'ground'
             (|v_t|) speed.
     """
@@ -90,6 +107,7 @@ class FusionConfig:
     target_speed: float = _DEFAULTS['target_speed']
     window: float = _DEFAULTS['window']
     speed_reference: str = _DEFAULTS['speed_reference']
+    window_max_bearings: int = _DEFAULTS['window_max_bearings']
 
     def validate(self):
         """Raise ``ValueError`` naming the first invalid field; return self."""
@@ -131,6 +149,13 @@ class FusionConfig:
                 raise ValueError(f'max_iterations: must be an integer >= 1, got {it}')
         else:
             _registry.check(self.estimator, self.estimator_options)
+            if self.estimator_options.get('dimension') == 'horizontal' \
+                    and self.estimator_options.get('target_altitude') is None:
+                raise ValueError('target_altitude: required when dimension is horizontal '
+                                 '(m, world frame)')
+        if int(self.window_max_bearings) < 3:
+            raise ValueError(f'window_max_bearings: must be >= 3, got '
+                             f'{self.window_max_bearings}')
         g = float(self.outlier_gate)
         if not 0.5 <= g <= 1.0:
             raise ValueError(f'outlier_gate: probability must be in [0.5, 1], got {g}')
@@ -145,7 +170,8 @@ class FusionConfig:
         config here. ValueError naming the field."""
         v = _parameters.defaults('fusion_node')
         v.update(values or {})
-        return cls(estimator_options={k: v[k] for k in _parameters.ESTIMATOR_OPTIONS},
+        return cls(estimator_options=_estimator_options(
+                       {k: v[k] for k in _parameters.ESTIMATOR_OPTIONS}),
                    **{k: v[k] for k in _parameters.FUSION_CONFIG_FIELDS}).validate()
 
     def parameter_changes(self, values):
@@ -154,7 +180,8 @@ class FusionConfig:
         option changes; other names are ignored."""
         changes = {k: v for k, v in values.items() if k in _parameters.FUSION_CONFIG_FIELDS}
         options = dict(self.estimator_options)
-        options.update({k: v for k, v in values.items() if k in _parameters.ESTIMATOR_OPTIONS})
+        options.update(_estimator_options(
+            {k: v for k, v in values.items() if k in _parameters.ESTIMATOR_OPTIONS}))
         if options != self.estimator_options:
             changes['estimator_options'] = options
         return changes

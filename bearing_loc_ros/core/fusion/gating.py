@@ -89,16 +89,30 @@ def normalized_residuals(bearings, position, position_covariance=None):
     return d2, dof
 
 
-def count_reason(bearings):
+def count_reason(bearings, horizontal=False):
     """No-fix reason of BearingSet.validate's counting rules (at least two stations, one
-    elevation, three angles), or None; checked without building arrays."""
+    elevation, three angles), or None; checked without building arrays. ``horizontal``
+    (a target altitude is stated, core.horizontal): two azimuths suffice."""
     n = len(bearings)
+    if horizontal:
+        return TOO_FEW_STATIONS if n < 2 else None
     n_el = sum(1 for b in bearings if not math.isnan(b.elevation))
     if n < 2 or n + n_el < 3:
         return TOO_FEW_STATIONS
     if n_el == 0:
         return NO_ELEVATION
     return None
+
+
+def horizontal_capable(kwargs):
+    """True when the solve options in ``kwargs`` allow a horizontal solve (a target
+    altitude stated and ``dimension`` not ``3d``); otherwise they are dropped from
+    ``kwargs`` (the 3D solve, as without them)."""
+    if kwargs.get('target_altitude') is not None and kwargs.get('dimension') != '3d':
+        return True
+    for k in _registry.SOLVE_OPTION_SPECS:
+        kwargs.pop(k, None)
+    return False
 
 
 def covariance_ok(cov):
@@ -143,6 +157,11 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     same fields, builds the BearingSet directly and calls the estimator function directly:
     same result, ~60 µs less per estimation at N = 10.
 
+    Horizontal solve (core.horizontal): when ``options`` state ``target_altitude`` and
+    ``dimension`` is not ``3d``, the estimator runs through core.registry.solve with the
+    solve options, two azimuths suffice (no ``no_elevation``), the gate uses the same d² at
+    the fix (z = the stated altitude) and ``dof`` = angles − 2 for a horizontal fix.
+
     Robustness (core.robust, core.station_trust): an estimator that declares option
     ``robust`` runs with it on (off when ``outlier_gate`` is 1, which disables every outlier
     test) unless ``options`` says otherwise; its outlier bearings (any angle excluded) count
@@ -163,7 +182,8 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     kwargs = _registry.scoped_options(estimator, options)
     if 'robust' not in kwargs and _registry.spec(estimator).accepts('robust'):
         kwargs['robust'] = float(outlier_gate) < 1.0     # gate 1: no outlier handling
-    if validated:
+    horizontal = horizontal_capable(kwargs)
+    if validated and not horizontal:
         make_set = _trusted_set
 
         def run(bs):
@@ -178,7 +198,7 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         if len(used) < int(min_stations):
             return Epoch(TOO_FEW_STATIONS, estimator=estimator, bearings=used,
                          rejected=rejected, detail=f'{len(used)} < min_stations {min_stations}')
-        reason = count_reason(used)
+        reason = count_reason(used, horizontal)
         if reason is not None:
             return Epoch(reason, estimator=estimator, bearings=used, rejected=rejected,
                          detail=f'{len(used)} station(s)')
@@ -202,7 +222,7 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
             out = set(np.flatnonzero(excluded[0].any(axis=1)).tolist())
             remaining = [b for i, b in enumerate(used) if i not in out]
             if out and len(remaining) >= int(min_stations) \
-                    and count_reason(remaining) is None:
+                    and count_reason(remaining, horizontal) is None:
                 rejected = rejected + [b for i, b in enumerate(used) if i in out]
                 used = remaining
                 continue
@@ -230,7 +250,8 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         worst = int(np.argmax(excess))
         if excess[worst] > 1.0:
             remaining = used[:worst] + used[worst + 1:]
-            if len(remaining) >= int(min_stations) and count_reason(remaining) is None:
+            if len(remaining) >= int(min_stations) and count_reason(remaining,
+                                                                    horizontal) is None:
                 rejected = rejected + [used[worst]]
                 used = remaining
                 continue
@@ -240,5 +261,7 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         if trust is not None:
             trust.update(used, claims, pos, cov, rejected)
         residuals = {b.station: float(v) for b, v in zip(used, d2)}
+        solved = getattr(res, 'solve', None)
+        n_free = 2 if solved is not None and str(solved[0]) == 'horizontal' else 3
         return Epoch(OK, position=pos, covariance=0.5 * (cov + cov.T), residuals=residuals,
-                     chi2=float(np.nansum(d2)), dof=int(np.sum(dof)) - 3, **common)
+                     chi2=float(np.nansum(d2)), dof=int(np.sum(dof)) - n_free, **common)

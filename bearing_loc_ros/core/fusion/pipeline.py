@@ -18,16 +18,18 @@ from collections import Counter, deque
 
 from .. import registry as _registry
 from ..alignment import DROP_REASONS, INTERPOLATED, NEAREST
-from .config import FusionConfig, MODE_MULTISTATION, MODE_TMA, NS_PER_S
+from .config import FusionConfig, MODE_MULTISTATION, MODE_TMA, MODE_WINDOW, NS_PER_S
 from .multistation import MultiStationStrategy
 from .results import DiagnosticEntry, LEVEL_OK, LEVEL_WARN, NO_FIX_REASONS, NOT_CONVERGED, \
     ESTIMATOR_ERROR
 from .single_station import TmaStrategy
+from .window import WindowStrategy
 from .stations import ALIVE, StationRegistry, STALE, WAITING
 
 #: Fusion modes: name -> strategy class; the node's ``mode`` parameter picks one
 #: (``auto``: the estimator's mode, core.registry.mode_of).
-MODES = {MODE_MULTISTATION: MultiStationStrategy, MODE_TMA: TmaStrategy}
+MODES = {MODE_MULTISTATION: MultiStationStrategy, MODE_TMA: TmaStrategy,
+         MODE_WINDOW: WindowStrategy}
 #: Window (ns) over which the fix rate is measured.
 RATE_WINDOW_NS = 5 * NS_PER_S
 
@@ -79,7 +81,8 @@ class FusionCore:
 
     def _check_mode(self, config):
         mode = _registry.mode_of(config.estimator)
-        if mode != self.mode:
+        # The window mode (a stationary emitter) runs the multi-station estimators.
+        if mode != (MODE_MULTISTATION if self.mode == MODE_WINDOW else self.mode):
             raise ValueError(f'estimator: {config.estimator} is a {mode} estimator but the '
                              f'fusion runs in mode {self.mode}; switching between tma_* and '
                              'multi-station estimators needs a restart')

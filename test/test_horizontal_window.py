@@ -1,0 +1,146 @@
+"""Window fusion mode: a stationary emitter, all bearings of a sliding window in one fix."""
+
+import numpy as np
+import pytest
+
+from bearing_loc_ros.core.bearings import Bearing
+from bearing_loc_ros.core.fusion import FusionConfig, make_core
+from bearing_loc_ros.core.fusion.config import MODE_WINDOW
+from bearing_loc_ros.core.horizontal_crlb import horizontal_crlb
+
+TARGET = np.array([1500.0, 3000.0, 0.0])
+SIGMA = np.radians(4.0)
+
+
+def car(t):
+    return np.array([10.0 * t, 200.0 * np.sin(t / 50.0), 0.0])
+
+
+def drive(core, rng, n=300, dt=0.5, outliers=0.0, target=TARGET, station='car', every=10):
+    """Bearings of the car every dt s; with the timer trigger a tick every ``every``."""
+    eps, bad = [], []
+    for k in range(n):
+        t = k * dt
+        pos = car(t)
+        az = np.arctan2(target[1] - pos[1], target[0] - pos[0]) + SIGMA * rng.standard_normal()
+        is_bad = rng.random() < outliers
+        if is_bad:
+            az += np.radians(rng.uniform(20.0, 90.0)) * rng.choice([-1.0, 1.0])
+        b = Bearing(station, int(t * 1e9), pos, float(az), sigma_azimuth=SIGMA)
+        bad.append(is_bad)
+        eps += core.add_bearing(b, int(t * 1e9))
+        if k % every == every - 1:
+            eps += core.tick(int(t * 1e9))
+    return eps, np.array(bad)
+
+
+def config(**kw):
+    base = dict(estimator='mle', trigger='timer', window=1000.0, buffer_age=30.0,
+                estimator_options={'target_altitude': 0.0}, window_max_bearings=400)
+    base.update(kw)
+    return FusionConfig(**base)
+
+
+def test_one_moving_station_converges_and_is_consistent():
+    rng = np.random.default_rng(11)
+    core = make_core(config(), stations=['car'], mode=MODE_WINDOW)
+    eps, _ = drive(core, rng)
+    ok = [e for e in eps if e.ok]
+    assert ok, {e.reason for e in eps}
+    # the first epochs have too little geometry (nearly parallel bearings): no fix
+    assert eps[0].reason in ('unobservable', 'degenerate_geometry')
+    last = ok[-1]
+    assert len(last.bearings) == 300
+    # the fix's covariance is the CRLB of the accumulated bearings at the fix
+    P = horizontal_crlb(last.position, np.array([b.position for b in last.bearings]), SIGMA)
+    np.testing.assert_allclose(last.covariance[:2, :2], P[0, :2, :2], rtol=0.05)
+    err = last.position[:2] - TARGET[:2]
+    assert err @ np.linalg.solve(last.covariance[:2, :2], err) < 13.8    # χ²₂ 99.9 %
+    # convergence: the later fixes have a smaller bound than the first ones
+    assert np.trace(ok[-1].covariance) < 0.25 * np.trace(ok[0].covariance)
+    assert last.result.solve[0] == 'horizontal'
+
+
+def test_reflections_are_rejected_and_counted_once_per_station():
+    rng = np.random.default_rng(5)
+    core = make_core(config(), stations=['car'], mode=MODE_WINDOW)
+    eps, bad = drive(core, rng, outliers=0.1)
+    last = [e for e in eps if e.ok][-1]
+    err = last.position[:2] - TARGET[:2]
+    assert err @ np.linalg.solve(last.covariance[:2, :2], err) < 13.8
+    # every reflection (≥ 20° = 5 σ off) is out of the last fix
+    used = {id(b) for b in last.bearings}
+    assert len(used) <= 300 - bad.sum()
+    counted = core.station_stats('car').outliers
+    assert bad.sum() - 3 <= counted <= bad.sum() + 3      # each counted once (±Gaussian tail)
+    assert counted == core.outliers
+
+
+def test_one_bad_bearing_does_not_move_the_fix_far():
+    rng = np.random.default_rng(9)
+    core = make_core(config(trigger='event'), stations=['car'], mode=MODE_WINDOW)
+    eps, _ = drive(core, rng, n=200, every=1000)
+    before = [e for e in eps if e.ok][-1]
+    pos = car(100.0)
+    wild = Bearing('car', int(100.0 * 1e9), pos, float(np.arctan2(-1.0, 0.0)),
+                   sigma_azimuth=SIGMA)
+    after = core.add_bearing(wild, int(100.0 * 1e9))[0]
+    assert after.ok
+    shift = after.position[:2] - before.position[:2]
+    assert shift @ np.linalg.solve(before.covariance[:2, :2], shift) < 1.0
+    assert core.station_stats('car').outliers >= 1
+
+
+def test_window_bounds_the_number_of_bearings():
+    rng = np.random.default_rng(1)
+    core = make_core(config(window_max_bearings=50), stations=['car'], mode=MODE_WINDOW)
+    drive(core, rng, n=120)
+    assert core.strategy.window_bearings == 50
+    core = make_core(config(window=10.0), stations=['car'], mode=MODE_WINDOW)
+    drive(core, rng, n=120)
+    assert core.strategy.window_bearings == 21      # stamps within 10 s of the newest, 0.5 s
+
+
+def test_several_fixed_stations_and_a_car_share_the_window():
+    rng = np.random.default_rng(4)
+    core = make_core(config(trigger='event'), stations=['car', 'a', 'b'], mode=MODE_WINDOW)
+    eps = []
+    fixed = {'a': np.array([0.0, 5000.0, 0.0]), 'b': np.array([4000.0, 5000.0, 0.0])}
+    for k in range(40):
+        t = 0.5 * k
+        for s, p in [('car', car(t))] + list(fixed.items()):
+            az = np.arctan2(TARGET[1] - p[1], TARGET[0] - p[0]) + SIGMA * rng.standard_normal()
+            eps += core.add_bearing(Bearing(s, int(t * 1e9) + len(eps), p, float(az),
+                                            sigma_azimuth=SIGMA), int(t * 1e9) + len(eps))
+    last = eps[-1]
+    assert last.ok
+    assert set(last.stations) == {'car', 'a', 'b'}
+    err = last.position[:2] - TARGET[:2]
+    assert err @ np.linalg.solve(last.covariance[:2, :2], err) < 13.8
+
+
+def test_azimuth_only_window_without_altitude_is_a_counted_no_fix():
+    rng = np.random.default_rng(2)
+    core = make_core(config(estimator_options={}, trigger='event'), stations=['car'],
+                     mode=MODE_WINDOW)
+    eps, _ = drive(core, rng, n=20)
+    assert {e.reason for e in eps} == {'too_few_stations', 'no_elevation'}
+    assert core.fixes == 0
+
+
+def test_window_mode_rejects_tma_estimators_and_horizontal_without_altitude():
+    with pytest.raises(ValueError, match='^estimator:'):
+        make_core(config(estimator='tma_mle', target_speed=1.0, estimator_options={}),
+                  mode=MODE_WINDOW)
+    with pytest.raises(ValueError, match='^target_altitude:'):
+        config(estimator_options={'dimension': 'horizontal'}).validate()
+    with pytest.raises(ValueError, match='^options.target_altitude:'):
+        config(estimator_options={'target_altitude': float('inf')}).validate()
+
+
+def test_backward_time_jump_empties_the_window():
+    rng = np.random.default_rng(3)
+    core = make_core(config(), stations=['car'], mode=MODE_WINDOW)
+    drive(core, rng, n=30)
+    core.tick(int(1e9))
+    assert core.strategy.window_bearings == 0
