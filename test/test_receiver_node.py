@@ -40,6 +40,11 @@ STATIONS = {'north': ([0.0, 2000.0, 0.0], 10.0), 'west': ([-1500.0, -500.0, 0.0]
             'east': ([1800.0, -300.0, 0.0], 95.0)}
 TX = np.array([300.0, 400.0, 0.0])
 HAS_HORIZONTAL = any(p.name == 'dimension' for p in schema.schema('fusion_node'))
+#: The fusion node's azimuth-only settings for a transmitter at altitude 0.
+HORIZONTAL = {} if not HAS_HORIZONTAL else {
+    'dimension': 'horizontal', 'target_altitude': (
+        [0.0] if schema.param('fusion_node', 'target_altitude').type.endswith('array')
+        else 0.0)}
 
 
 def xml_doc(t_ms, doa_deg, station='rx', conf=0.95, lat=None, lon=None, heading=None,
@@ -197,8 +202,7 @@ def three_stations(net, fake, fusion=False):
         from bearing_loc_ros.fusion_node import FusionNode
         node = net.add(FusionNode(context=net.context, parameter_overrides=[
             Parameter('stations', value=sorted(STATIONS)), Parameter('min_stations', value=3),
-            Parameter('dimension', value='horizontal'),
-            Parameter('target_altitude', value=float(TX[2]))]))
+            *(Parameter(k, value=v) for k, v in HORIZONTAL.items())]))
         net.probe.create_subscription(PoseWithCovarianceStamped, '/fix', net.fixes.append, 50)
         assert net.spin(lambda: all(n.pubs[''].get_subscription_count() >= 2 for k, n in
                                     net.nodes.items() if k in STATIONS)), 'not discovered'
@@ -387,7 +391,7 @@ def test_two_channels_two_transmitters_one_fusion_process(net, fake):
             position=pos, **{'kraken.array_heading_deg': heading}, **bands))
     host = net.add(FusionNode(context=net.context, parameter_overrides=[
         Parameter('stations', value=sorted(STATIONS)), Parameter('min_stations', value=3),
-        Parameter('dimension', value='horizontal'), Parameter('target_altitude', value=0.0),
+        *(Parameter(k, value=v) for k, v in HORIZONTAL.items()),
         Parameter('channels', value=list(TX2))]))
     fixes = {c: [] for c in TX2}
     for c in TX2:
@@ -418,3 +422,89 @@ def test_two_channels_two_transmitters_one_fusion_process(net, fake):
     assert net.spin(lambda: all(f'{c}/fusion: fusion' in net.diagnostics for c in TX2))
     values = net.diagnostics['uhf/fusion: fusion'][2]
     assert int(values['fixes']) == n and values['live_stations'].count(',') == 2
+
+
+def test_file_input_live_equals_bag_import_then_bag_process(net, tmp_path):
+    """The station nodes' file input (kraken_csv_file, followed while the test appends one
+    frame at a time) and a live fusion node on /clock give the same bearings as ``bag
+    import`` of the same logs, bit for bit, and (with the azimuth-only solve) the same
+    fixes as ``bag process`` of that bag: stamps come from the files and the pipeline is
+    the same, so only the arrival times differ, and those change no fix (event trigger,
+    every frame's bearings in before the next)."""
+    from rclpy.serialization import serialize_message
+    from rosgraph_msgs.msg import Clock
+    from test_kraken_bag import params as log_params, STATIONS as LOG_STATIONS, write_logs
+
+    from bearing_loc_ros import bagio
+    from bearing_loc_ros.bag_import import import_logs
+    from bearing_loc_ros.bag_process import fusion_params, process_bag
+    from bearing_loc_ros.fusion_node import FusionNode
+    from bearing_loc_ros.ros_conversions import fix_to_msg, ns_to_time
+    channels = ['uhf', 'vhf']
+    logs = write_logs(tmp_path, np.random.default_rng(3))
+    import_logs(logs, tmp_path / 'bag', log_params(), clock_rate=10.0)
+    fusion = {'min_stations': 3, **HORIZONTAL}
+    offline = {c: process_bag(tmp_path / 'bag', None, fusion_params(None, [
+        f'{k}={v}' for k, v in fusion.items()]), namespace=c)['epoch_list'] for c in channels}
+
+    frames = {}     # station -> [lines of frame k]
+    for s, path in logs.items():
+        groups = []
+        for line in path.read_text().splitlines(keepends=True):
+            head = line.split(',')[0]
+            if groups and (not head.isdigit() or abs(int(head) - groups[-1][0]) < 500):
+                groups[-1][1].append(line)
+            else:
+                groups.append((int(head), [line]))
+        frames[s] = groups
+    live_dir = tmp_path / 'live'
+    live_dir.mkdir()
+    common = log_params()['/**']['ros__parameters']['kraken']
+    for s, (pos, heading) in LOG_STATIONS.items():
+        (live_dir / f'{s}.csv').write_text('')
+        net.station(s, topics=[f'/{c}/{s}/bearing' for c in channels], position=pos, **{
+            'input': 'kraken_csv_file', 'kraken.file': str(live_dir / f'{s}.csv'),
+            'kraken.array_heading_deg': heading, **{f'kraken.{k}': v
+                                                    for k, v in common.items()}})
+    host = net.add(FusionNode(context=net.context, parameter_overrides=[
+        *(Parameter(k, value=v) for k, v in fusion.items()),
+        Parameter('stations', value=sorted(LOG_STATIONS)), Parameter('channels', value=channels),
+        Parameter('use_sim_time', value=True)]))
+    live = {c: [] for c in channels}
+    for c in channels:
+        net.probe.create_subscription(PoseWithCovarianceStamped, f'/{c}/fix',
+                                      live[c].append, 100)
+    clock = net.probe.create_publisher(Clock, '/clock', 10)
+    assert net.spin(lambda: len(host.channel_host.nodes) == 2 and all(
+        n.pubs[c].get_subscription_count() >= 2 for k, n in net.nodes.items()
+        if k in LOG_STATIONS for c in channels)), 'not connected'
+    n_frames = len(frames['north'])
+    for k in range(n_frames):
+        t_ns = max(frames[s][k][0] for s in LOG_STATIONS) * 10 ** 6
+        clock.publish(Clock(clock=ns_to_time(t_ns)))
+        assert net.spin(lambda: all(n.get_clock().now().nanoseconds >= t_ns for n in
+                                    host.channel_host.nodes.values()))
+        for s in LOG_STATIONS:
+            with open(live_dir / f'{s}.csv', 'a') as f:
+                f.writelines(frames[s][k][1])
+        assert net.spin(lambda: all(len(net.received[f'/{c}/{s}/bearing']) > k
+                                    for s in LOG_STATIONS for c in channels)), f'frame {k}'
+    clock.publish(Clock(clock=ns_to_time(t_ns + 10 ** 9)))
+    net.spin(lambda: False, 0.3)
+
+    with bagio.BagReader(tmp_path / 'bag') as r:
+        for c in channels:
+            for s in LOG_STATIONS:
+                topic = f'/{c}/{s}/bearing'
+                want = [m.raw for m in r.messages([topic])]
+                got = [serialize_message(m) for m in net.received[topic]]
+                assert got == want, topic          # the same bytes
+    if not HAS_HORIZONTAL:
+        return
+    for c in channels:
+        want = [fix_from_msg(fix_to_msg(e.position, e.covariance, e.stamp_ns, 'map'))
+                for e in offline[c] if e.ok]
+        got = [fix_from_msg(m) for m in live[c]]
+        assert len(got) == len(want) == n_frames
+        for (ts, xs, cs), (tw, xw, cw) in zip(got, want):
+            assert ts == tw and np.array_equal(xs, xw) and np.array_equal(cs, cw)
