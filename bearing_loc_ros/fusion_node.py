@@ -33,6 +33,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import NavSatFix
 from visualization_msgs.msg import MarkerArray
 
+from . import fusion_channels
 from .core.display import AccuracyMap, AccuracyMapConfig
 from .core.fusion import FusionConfig, make_core, MODE_MULTISTATION, MODE_TMA
 from .ros_common import declare_schema, keep_last_qos, main_for, ParameterError, \
@@ -69,6 +70,16 @@ class FusionNode(Node):
     def __init__(self, **kwargs):
         super().__init__('fusion', **kwargs)
         p = declare_schema(self, 'fusion_node')
+        self.channel_host = None
+        if p['channels']:     # this node only hosts one fusion node per channel
+            try:
+                self.channel_host = fusion_channels.ChannelHost(
+                    self, p['channels'], p, lambda ns, overrides: FusionNode(
+                        context=self.context, namespace=ns, parameter_overrides=overrides,
+                        use_global_arguments=False))
+            except ValueError as exc:
+                raise _parameter_error(exc) from None
+            return
         self.frame_id = p['frame_id']
         self.stations_param = list(p['stations'])
         for s in self.stations_param:
@@ -293,6 +304,12 @@ class FusionNode(Node):
             if ep.rejected:
                 log.info(f'epoch {ep.stamp_ns / 1e9:.3f}: outlier bearing(s) from '
                          f'{", ".join(b.station for b in ep.rejected)} rejected')
+
+    def destroy_node(self):
+        """Destroy the channel nodes this node hosts (if any), then the node."""
+        if self.channel_host is not None:
+            self.channel_host.destroy()
+        return super().destroy_node()
 
     def publish_accuracy_map(self, now_ns):
         """Publish the expected-accuracy OccupancyGrid when core.display.AccuracyMap says the
