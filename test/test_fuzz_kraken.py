@@ -13,6 +13,7 @@ import os
 import re
 
 from hypothesis import given, HealthCheck, settings, strategies as st
+import numpy as np
 import pytest
 
 from bearing_loc_ros.core import kraken
@@ -96,3 +97,57 @@ def test_every_number_of_every_fixture_hostile(fmt, base):
     for a, b in (m.span() for m in NUMBER.finditer(base[:3000])):
         for literal in HOSTILE_NUMBERS[:3]:
             check(base[:a] + literal.encode() + base[b:], fmt)
+
+
+# ------------------------------------------------------------ the station node's receiver path
+
+NODE_REASONS = REASONS + ('duplicate_time', 'old_time', 'stale_time', 'zero_gps', 'no_gps',
+                          'no_heading', 'no_odometry', 'low_confidence', 'no_channel',
+                          'other_station', 'no_clock', 'invalid_bearing')
+HOSTILE_FLOATS = st.one_of(st.floats(allow_nan=True, allow_infinity=True),
+                           st.floats(-400.0, 400.0), st.sampled_from([0.0, -0.0, 1e308]))
+
+
+def _receiver(kind):
+    from bearing_loc_ros.core.receiver_params import receiver_from_params
+    p = {'position': [1.0, 2.0, 3.0], 'kraken.channels': ['a', 'b'],
+         'kraken.channel_bands_mhz': [100.0, 200.0, 400.0, 500.0],
+         'kraken.min_confidence': 0.1, 'kraken.max_age': 5.0}
+    if kind == 'vehicle':
+        p = {'geodetic_origin': [48.1, 11.5, 500.0], 'kraken.heading_source': 'gps',
+             'kraken.position_source': 'gps', 'kraken.heading_hold_timeout': 2.0}
+    return receiver_from_params('st', p)
+
+
+@FUZZ
+@given(st.sampled_from(['fixed', 'vehicle']), st.lists(st.tuples(
+    st.integers(-10 ** 4, 10 ** 4), HOSTILE_FLOATS, HOSTILE_FLOATS, HOSTILE_FLOATS,
+    HOSTILE_FLOATS, HOSTILE_FLOATS, st.sampled_from([150.0, 450.0, 300.0, 0.0])),
+    min_size=1, max_size=8))
+def test_receiver_path_never_raises_and_publishes_only_valid_bearings(kind, readings):
+    """Readings with hostile DOA, heading, confidence and GPS values, through the text
+    format and the node's KrakenInput (channels, time filter, geometry, confidence -> σ):
+    each is a valid bearing that converts to a message, or a rejection with a known
+    reason; nothing raises."""
+    from bearing_loc_ros.receiver_inputs import _Source, KrakenInput
+    from bearing_loc_ros.ros_conversions import bearing_from_msg, bearing_to_msg
+    cfg, channels = _receiver(kind)
+    src = _Source()
+    t0 = 1_700_000_000_000
+    for dt, doa, heading, conf, lat, lon, mhz in readings:
+        rec = kraken.KrakenRecord(
+            (t0 + dt) * 10 ** 6, 'st', mhz * 1e6, doa, doa, conf, -40.0, latitude_deg=lat,
+            longitude_deg=lon, heading_deg=heading, source='csv')
+        try:
+            src._put([kraken.parse_csv_line(kraken.csv_line(rec, spectrum=False))])
+        except kraken.KrakenError as exc:
+            src._put([exc])
+    ki = KrakenInput(src, cfg, channels, 'receiver', 5.0)
+    bearings, rejected = ki.poll(t0 * 10 ** 6)
+    assert len(bearings) + len(rejected) == len(readings)
+    assert {r for r, _ in rejected} <= set(NODE_REASONS), rejected
+    for ch, b in bearings:
+        assert ch in channels.names
+        back = bearing_from_msg(bearing_to_msg(b), 'st')
+        assert math.isfinite(back.azimuth) and abs(back.azimuth) <= math.pi
+        assert 0.0 < back.sigma_azimuth < math.pi and np.all(np.isfinite(back.position))
