@@ -37,6 +37,7 @@ class MultiStationStrategy:
         self._used_until = {}     # nearest mode: station -> stamp of its last used bearing
         self.trust = trust if trust is not None else StationTrust()
         self.low_confidence = 0
+        self.last_solve = 'none'     # '3d' or 'horizontal': the solve of the last estimate
 
     # ----------------------------------------------------------------- pipeline hooks
     def reconfigure(self, config):
@@ -77,9 +78,11 @@ class MultiStationStrategy:
 
     def diagnostic_values(self):
         """low_confidence_fixes, suspect_stations (σ claim inconsistent with their
-        leave-one-out residuals) and trust_scale.<station> (s_k > 1 only)."""
+        leave-one-out residuals), solve (``3d`` or ``horizontal``, the last estimate's,
+        core.horizontal) and trust_scale.<station> (s_k > 1 only)."""
         out = {'low_confidence_fixes': self.low_confidence,
-               'suspect_stations': ','.join(self.trust.suspects())}
+               'suspect_stations': ','.join(self.trust.suspects()),
+               'solve': self.last_solve}
         for s in self.registry.stations:
             k = self.trust.scale(s)
             if k > 1.0:
@@ -126,6 +129,9 @@ class MultiStationStrategy:
                          cfg.outlier_gate, validated=True, trust=self.trust)
         if ep.reason == LOW_CONFIDENCE:
             self.low_confidence += 1
+        if ep.result is not None:
+            solved = getattr(ep.result, 'solve', None)
+            self.last_solve = str(solved[0]) if solved is not None else '3d'
         ep.stamp_ns, ep.produced_ns = int(t), int(now)
         ep.how, ep.missing, ep.stale = how, missing, reg.stale_stations()
         return ep
