@@ -8,7 +8,12 @@ outlier gate, counters), messages <-> core objects (``ros_conversions``), the no
 Topics (relative, so namespaces and remapping work):
 
 * in: ``<station>/bearing`` geometry_msgs/PoseWithCovarianceStamped per station (the
-  ``stations`` parameter, plus topics found by discovery), keep-last ``qos_depth``;
+  ``stations`` parameter, plus topics found by discovery), keep-last ``qos_depth``, best
+  effort by default (``qos_reliability``; it matches reliable and best-effort publishers).
+  Losses are counted per station: the middleware's message-lost events
+  (``lost.message_lost``) and gaps in the publication sequence numbers of a single
+  publisher (``lost.sequence_gap``: the network, or the keep-last queue overflowing while
+  the node was busy);
 * out: ``fix`` (PoseWithCovarianceStamped), ``fix/navsat`` (sensor_msgs/NavSatFix, with a
   ``geodetic_origin``), ``markers`` (visualization_msgs/MarkerArray), ``/diagnostics``
   (diagnostic_msgs/DiagnosticArray); TMA mode: ``track`` (nav_msgs/Odometry, target position
@@ -45,6 +50,9 @@ from .ros_conversions import (bearing_from_msg, ConversionError, diagnostic_arra
 BEARING_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 #: A station id: one or more ROS name tokens separated by '/' (the topic namespace).
 STATION_RE = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$')
+#: New subscriptions made per discovery scan at most (the executor stays responsive when
+#: many publishers appear at once; the rest are taken on the next scans).
+MAX_NEW_PER_SCAN = 16
 #: Run-time parameters that change only the display (the others change the core).
 RUNTIME_DISPLAY = ('marker_ray_length', 'ellipsoid_sigma')
 MAP_PREFIX = 'accuracy_map.'
@@ -62,6 +70,16 @@ def _check_station_name(name):
     if not STATION_RE.match(name):
         raise ParameterError('stations', f'{name!r} is not a valid station id (ROS name '
                              'tokens separated by /)')
+
+
+def _check_stations(names):
+    """Valid, distinct station ids (ParameterError naming the first problem)."""
+    seen = set()
+    for s in names:
+        _check_station_name(s)
+        if s in seen:
+            raise ParameterError('stations', f'{s!r} is listed twice')
+        seen.add(s)
 
 
 class FusionNode(Node):
@@ -82,8 +100,7 @@ class FusionNode(Node):
             return
         self.frame_id = p['frame_id']
         self.stations_param = list(p['stations'])
-        for s in self.stations_param:
-            _check_station_name(s)
+        _check_stations(self.stations_param)
         self.geodetic_origin = None
         if p['geodetic_origin']:
             from .core.geodesy import geodetic_triplet
@@ -105,10 +122,13 @@ class FusionNode(Node):
         self.ray_length = p['marker_ray_length']
         self.ellipsoid_sigma = p['ellipsoid_sigma']
         self.discover = p['discover']
+        self.qos_reliability = p['qos_reliability']
         self.bearing_qos = keep_last_qos(p['qos_depth'], p['qos_reliability'])
         self._subs = {}            # station -> Subscription
         self.incompatible_qos = {}  # station -> incompatible publishers seen (QoS events)
         self._discovered = set()   # stations found by discovery (not in the parameter)
+        self._seq = {}             # station -> last publication sequence number
+        self._single_publisher = {}  # station -> exactly one publisher (sequence gaps valid)
         for s in self.stations_param:
             self._subscribe(s)
 
@@ -140,6 +160,10 @@ class FusionNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameters)
         self.fixes_published = 0
         self._log_events()
+        if not self.stations_param and not self.discover:
+            self.get_logger().error(
+                'no stations: set stations:=[...] or discover:=true (the node idles until '
+                'the stations parameter is set)')
         self.get_logger().info(
             f'fusion ({self.mode}): estimator {self.config.estimator}, trigger '
             f'{self.config.trigger}, {"interpolated" if self.config.interpolation else "nearest"}'
@@ -160,8 +184,7 @@ class FusionNode(Node):
         config = self.core.config.parameter_changes(values)
         display = {k: v for k, v in values.items() if k in RUNTIME_DISPLAY}
         stations = list(values['stations'] or []) if 'stations' in values else None
-        for s in stations or ():
-            _check_station_name(s)
+        _check_stations(stations or ())
         if config:
             try:
                 self.core.check_config(**config)
@@ -186,30 +209,42 @@ class FusionNode(Node):
             self.stations_param = stations
 
     # ------------------------------------------------------------------ stations
-    def _subscribe(self, station):
+    def _subscribe(self, station, wait=True):
+        """Subscribe to ``<station>/bearing``; ``wait=False`` (discovered): the station is
+        not waited for before it delivered a valid bearing."""
         if station in self._subs:
             return
-        self.core.add_station(station)
+        self.core.add_station(station, wait=wait)
         events = SubscriptionEventCallbacks(
-            incompatible_qos=partial(self._on_incompatible_qos, station))
+            incompatible_qos=partial(self._on_incompatible_qos, station),
+            message_lost=partial(self._on_message_lost, station))
         self._subs[station] = self.create_subscription(
             PoseWithCovarianceStamped, f'{station}/bearing', partial(self._on_bearing, station),
             self.bearing_qos, event_callbacks=events)
+        self._single_publisher[station] = False
 
     def _unsubscribe(self, station):
         sub = self._subs.pop(station, None)
         if sub is not None:
             self.destroy_subscription(sub)
         self._discovered.discard(station)
+        self._seq.pop(station, None)
+        self._single_publisher.pop(station, None)
+        self.incompatible_qos.pop(station, None)
         self.core.remove_station(station)
 
     def _discover(self):
-        """Subscribe to new */bearing topics under the namespace; drop vanished ones."""
+        """Subscribe to new */bearing topics under the namespace (at most
+        MAX_NEW_PER_SCAN per scan); drop discovered stations whose publishers are gone once
+        they are not alive (waiting: at once; alive: after station_timeout, when stale)."""
         found = topics_under_namespace(self, '/bearing', BEARING_TYPE, STATION_RE)
+        new = 0
         for station, name in found.items():
-            if station not in self._subs and self.count_publishers(name) > 0:
+            if new < MAX_NEW_PER_SCAN and station not in self._subs \
+                    and self.count_publishers(name) > 0:
                 self._discovered.add(station)
-                self._subscribe(station)
+                self._subscribe(station, wait=False)
+                new += 1
                 self.get_logger().info(f'discovered station {station} ({name})')
         for station in list(self._discovered):
             topic = f'{self.get_namespace().rstrip("/")}/{station}/bearing'
@@ -217,6 +252,21 @@ class FusionNode(Node):
             if gone and self.core.station_state(station) != 'alive':
                 self._unsubscribe(station)
                 self.get_logger().info(f'station {station} left (no publisher on {topic})')
+
+    def _count_publishers(self):
+        """Refresh which stations have exactly one publisher (sequence gaps are counted for
+        those only: several publishers interleave their sequence numbers)."""
+        ns = self.get_namespace().rstrip('/')
+        for station in self._subs:
+            one = self.count_publishers(f'{ns}/{station}/bearing') == 1
+            if one != self._single_publisher.get(station):
+                self._seq.pop(station, None)     # a new baseline after the change
+            self._single_publisher[station] = one
+
+    def _on_message_lost(self, station, info):
+        """The middleware reports messages of ``station`` lost (for example a sequence gap
+        seen by a best-effort reader)."""
+        self.core.count_lost(station, 'message_lost', int(info.total_count_change))
 
     def _on_incompatible_qos(self, station, info):
         """A publisher on <station>/bearing cannot match (typically best-effort vs reliable)."""
@@ -232,15 +282,25 @@ class FusionNode(Node):
         t = self.get_clock().now().nanoseconds
         return t if t > 0 else None
 
-    def _on_bearing(self, station, msg):
+    def _on_bearing(self, station, msg, info):
         # Per-message path (N calls per epoch): the fix is published before anything else.
+        # ``info``: rclpy's message info (two-argument callback), for the sequence numbers.
         now = self.now_ns()
+        seq = info.get('publication_sequence_number')
+        if seq is not None:
+            last = self._seq.get(station)
+            if last is not None and seq > last + 1 and self._single_publisher.get(station):
+                self.core.count_lost(station, 'sequence_gap', seq - last - 1)
+            self._seq[station] = seq
         try:
             bearing = bearing_from_msg(msg, station, expected_frame=self.frame_id)
         except ConversionError as exc:
             self.core.count_bad_message(station, exc.reason, now)
-            self.get_logger().warning(f'{station}: rejected bearing ({exc})',
-                                      throttle_duration_sec=5.0)
+            # Throttled per station and reason on the node clock, suppressed ones counted.
+            self.core.registry.warn_throttled(station, exc.reason,
+                                              f'{station}: rejected bearing ({exc})',
+                                              now if now is not None else 0)
+            self._log_events()
             return
         # Before the first /clock message ROS time is 0: the bearing's stamp stands in.
         epochs = self.core.add_bearing(bearing, now if now is not None else bearing.stamp_ns)
@@ -303,7 +363,8 @@ class FusionNode(Node):
                     int(self.config.station_timeout * 1e9)))
             if ep.rejected:
                 log.info(f'epoch {ep.stamp_ns / 1e9:.3f}: outlier bearing(s) from '
-                         f'{", ".join(b.station for b in ep.rejected)} rejected')
+                         f'{", ".join(b.station for b in ep.rejected)} rejected',
+                         throttle_duration_sec=5.0)
 
     def destroy_node(self):
         """Destroy the channel nodes this node hosts (if any), then the node."""
@@ -334,8 +395,14 @@ class FusionNode(Node):
     # ------------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self):
         now = self.now_ns() or 0
+        self._count_publishers()
         entries = self.core.diagnostics(now)
-        entries[0].values.update(fixes_published=self.fixes_published, mode=self.mode)
+        entries[0].values.update(fixes_published=self.fixes_published, mode=self.mode,
+                                 qos_reliability=self.qos_reliability,
+                                 discovered_stations=len(self._discovered))
+        if not self._subs and not self.discover:
+            entries[0].level = 'error'
+            entries[0].message = ('no stations: set stations:=[...] or discover:=true')
         if self.map_pub is not None:
             entries[0].values.update(accuracy_maps=self.accuracy_maps, accuracy_map_ms=(
                 'n/a' if self.accuracy_map_ms is None else f'{self.accuracy_map_ms:.1f}'))

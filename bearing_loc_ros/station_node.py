@@ -64,11 +64,15 @@ KRAKEN_POLL_PERIOD_S = 0.02
 #: Receiver source states reported as WARN in /diagnostics.
 KRAKEN_WARN_STATES = ('unreachable', 'error', 'missing', 'slow')
 
-#: Inputs accept best-effort and reliable publishers; outputs are reliable.
+#: Inputs accept best-effort and reliable publishers. Bearings are published with the
+#: sensor-data profile by default (best effort, keep-last ``qos_depth``, volatile: on a
+#: lossy link a retransmitted bearing arrives too late for its epoch and delays the next
+#: ones); ``qos_reliability:=reliable`` for reliable subscribers. OUTPUT_QOS (best effort)
+#: is a subscriber profile that matches the bearing publisher of either setting.
 INPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                        reliability=ReliabilityPolicy.BEST_EFFORT)
 OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
-                        reliability=ReliabilityPolicy.RELIABLE)
+                        reliability=ReliabilityPolicy.BEST_EFFORT)
 
 
 class StationNode(Node):
@@ -117,10 +121,11 @@ class StationNode(Node):
         self._published_reported = 0
         self._udp_drops_reported = 0
         self.sources = []
+        self.bearing_qos = rcm.keep_last_qos(p['qos_depth'], p['qos_reliability'])
 
         self.pubs = {ch: self.create_publisher(
             PoseWithCovarianceStamped, '/' + bearing_topic(ch, station) if ch else 'bearing',
-            OUTPUT_QOS) for ch in (self.channels.names if self.channels else [''])}
+            self.bearing_qos) for ch in (self.channels.names if self.channels else [''])}
         self.pub = self.pubs.get('')
         self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
         if not p['input']:

@@ -5,7 +5,7 @@ import itertools
 import math
 import os
 
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from geometry_msgs.msg import PoseWithCovarianceStamped
 import numpy as np
 import pytest
@@ -49,7 +49,9 @@ class Harness:
         params.setdefault('use_sim_time', True)
         params.setdefault('diagnostics_period', 0.1)
         params.setdefault('estimator', 'mle')
-        overrides = [Parameter(k, value=v) for k, v in params.items()]
+        # An empty list override cannot be typed: leave stations at its default ([]).
+        overrides = [Parameter(k, value=v) for k, v in params.items()
+                     if not (k == 'stations' and not v)]
         self.fusion = FusionNode(context=ctx, namespace=self.ns, parameter_overrides=overrides)
         self.node = rclpy.create_node('harness', namespace=self.ns, context=ctx)
         self.ex = SingleThreadedExecutor(context=ctx)
@@ -262,7 +264,11 @@ def test_station_joins_through_discovery(harness):
     assert h.spin(lambda: 's3' in h.fusion._subs)
     assert h.spin(lambda: pub.get_subscription_count() > 0)
     h.set_clock(100 * S)
+    # A discovered station counts once it has delivered: the first round may fix without it.
     h.send_round(100 * S)
+    assert h.fusion.core.station_state('s3') == 'alive'
+    h.set_clock(101 * S)
+    h.send_round(101 * S)
     assert h.fusion.core.last_epoch.stations == ['s1', 's2', 's3']
     # Outside the namespace or of another type: ignored.
     other = h.node.create_publisher(PoseWithCovarianceStamped, '/elsewhere/s9/bearing', QOS)
@@ -317,7 +323,7 @@ def test_live_fixes_equal_the_offline_replay(harness):
 
 def test_best_effort_publisher_needs_best_effort_qos(harness):
     best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
-    h = harness()
+    h = harness(qos_reliability='reliable')
     pub = h.node.create_publisher(PoseWithCovarianceStamped, 's1/bearing', best_effort)
     # Reliable subscription, best-effort publisher: no match, reported as incompatible QoS.
     assert h.spin(lambda: h.fusion.incompatible_qos.get('s1', 0) >= 1)
@@ -326,8 +332,10 @@ def test_best_effort_publisher_needs_best_effort_qos(harness):
     values = {kv.key: kv.value for kv in d['station s1'].values}
     assert int(values['incompatible_qos_publishers']) >= 1
     h.node.destroy_publisher(pub)
-    # qos_reliability:=best_effort matches best-effort (and reliable) publishers.
-    h2 = harness(qos_reliability='best_effort')
+    # The default, qos_reliability:=best_effort, matches best-effort (and reliable)
+    # publishers (the harness's other publishers are reliable).
+    h2 = harness()
+    assert h2.fusion.bearing_qos.reliability == ReliabilityPolicy.BEST_EFFORT
     h2.pubs['s1'] = h2.node.create_publisher(PoseWithCovarianceStamped, 's1/bearing',
                                              best_effort)
     h2.set_clock(100 * S)
@@ -348,3 +356,71 @@ def test_stations_parameter_changes_at_run_time(harness):
     res = h.set_parameter('stations', ['s1', 's2'])
     assert res.successful and 's3' not in h.fusion._subs
     assert 's3' not in h.fusion.core.stations
+
+
+def values_of(status):
+    return {kv.key: kv.value for kv in status.values}
+
+
+def test_start_up_diagnostics_say_waiting_and_no_stations_is_an_error(harness):
+    h = harness()
+    h.set_clock(100 * S)
+    d = h.diag(lambda d: 'fusion' in d)['fusion']
+    assert d.level == DiagnosticStatus.OK and d.message == 'waiting for data'   # not ERROR
+    assert values_of(d)['qos_reliability'] == 'best_effort'
+    # No stations and no discovery: an error in /diagnostics (and in the log).
+    h2 = harness(stations=())
+    d = h2.diag(lambda d: 'fusion' in d)['fusion']
+    assert d.level == DiagnosticStatus.ERROR and d.message.startswith('no stations')
+
+
+def test_duplicate_station_ids_are_refused(ros):
+    with pytest.raises(ValueError, match="parameter 'stations': 's1' is listed twice"):
+        FusionNode(context=ros, namespace='dup', parameter_overrides=[
+            Parameter('stations', value=['s1', 's2', 's1'])])
+
+
+def test_discovered_publisher_without_data_never_blocks_fixes(harness):
+    h = harness(stations=('s1', 's2', 's3'), discover=True, discovery_period=0.1)
+    ghosts = [h.node.create_publisher(PoseWithCovarianceStamped, f'ghost_{k}/bearing', QOS)
+              for k in range(5)]
+    assert h.spin(lambda: all(f'ghost_{k}' in h.fusion._subs for k in range(5)))
+    h.set_clock(100 * S)
+    h.send_round(100 * S)                # fixes at once: the ghosts are 'waiting'
+    assert h.fusion.core.station_state('ghost_0') == 'waiting'
+    for g in ghosts:
+        h.node.destroy_publisher(g)
+    # Their state is dropped once their publishers are gone.
+    assert h.spin(lambda: not any(s.startswith('ghost') for s in h.fusion.core.stations))
+    assert not any(s.startswith('ghost') for s in h.fusion._subs)
+
+
+def test_burst_is_counted_as_received_or_lost(harness):
+    """A burst larger than the keep-last depth while the node is not spinning: every
+    message is either received or counted as a sequence gap (none vanishes silently), bad
+    ones are counted by reason, the warnings are throttled, and fixes go on."""
+    h = harness(stations=('s1', 's2', 's3'), qos_depth=10)
+    h.publisher('s3')
+    assert h.spin(lambda: h.fusion._single_publisher.get('s3'))
+    h.set_clock(100 * S)
+    h.send_round(100 * S)
+    st = h.fusion.core.station_stats('s3')
+    before = st.received
+    n = 500
+    for k in range(n):                   # malformed: a variance of 1e30 rad²
+        m = bearing_to_msg(truth_bearing('s3', 100 * S + (k + 1) * 1000))
+        cov = list(m.pose.covariance)
+        cov[35] = 1e30
+        m.pose.covariance = cov
+        h.pubs['s3'].publish(m)
+    lost = lambda: st.lost['sequence_gap']  # noqa: E731
+    assert h.spin(lambda: st.received - before + lost() == n, timeout=10.0)
+    assert lost() > 0                    # the queue overflowed: counted, not silent
+    assert sum(st.bad.values()) == st.received - 1
+    d = h.diag(lambda d: 'station s3' in d)
+    v = values_of(d['station s3'])
+    assert int(v['lost.sequence_gap']) == lost()
+    assert int(values_of(d['fusion'])['warnings_suppressed']) >= st.received - before - 2
+    h.set_clock(101 * S)
+    h.send_round(101 * S)
+    assert h.fusion.core.last_epoch.ok

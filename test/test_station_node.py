@@ -73,6 +73,8 @@ class Harness:
                      odometry_tolerance=0.05, frame_id='map'),
         # UDP re-stamped on receipt with the node clock.
         'restamp': dict(position=STATION, udp_port='free', udp_stamp='receive'),
+        # Bearings published reliable (for reliable subscribers).
+        'reliable': dict(position=STATION, qos_reliability='reliable', qos_depth=50),
     }
 
     def __init__(self):
@@ -371,3 +373,11 @@ def test_unparsable_ros_args_exit_1_with_one_line():
     assert proc.returncode == 1
     assert 'error: invalid command line:' in proc.stderr, proc.stderr
     assert 'Traceback' not in proc.stderr
+
+
+def test_bearings_are_published_best_effort_unless_reliable_is_asked(h):
+    from rclpy.qos import ReliabilityPolicy
+    info = {n: h.probe.get_publishers_info_by_topic(f'/st_{n}/bearing')
+            for n in ('enu', 'reliable')}
+    assert [i.qos_profile.reliability for i in info['enu']] == [ReliabilityPolicy.BEST_EFFORT]
+    assert [i.qos_profile.reliability for i in info['reliable']] == [ReliabilityPolicy.RELIABLE]

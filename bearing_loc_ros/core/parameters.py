@@ -301,6 +301,10 @@ def _station_schema():
           '', 2, 100000),
         P('diagnostics_period', DOUBLE, 1.0, 'Period of the /diagnostics status', 's', 0.05,
           3600.0, deprecated=('diagnostics_period_s',)),
+        P('qos_reliability', STRING, 'best_effort', 'QoS reliability of the bearing '
+          'publisher: best_effort (sensor data, no retransmission) or reliable (needed by '
+          'reliable subscribers)', choices=('best_effort', 'reliable')),
+        P('qos_depth', INTEGER, 10, 'Keep-last depth of the bearing publisher', '', 1, 10000),
     ) + receiver_params.node_params()
 
 
