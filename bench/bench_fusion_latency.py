@@ -14,16 +14,17 @@ Reported per N:
 * the core alone: time of FusionCore.add_bearing for the epoch-completing bearing (alignment,
   estimator and outlier gate; no ROS), median and p99.
 
-``--baseline`` runs the same harness against a trivial rclpy node that subscribes to the N
-topics and republishes the epoch-completing bearing on /fix: the rclpy + DDS floor that any
-Python node pays, for comparison.
+Each run is paired with a run of the same harness against a trivial rclpy node that
+subscribes to the N topics and republishes the epoch-completing bearing on /fix: the
+rclpy + DDS floor that any Python node pays. The pair runs back to back and its ratio
+(fusion e2e median / echo e2e median) is printed; ``--repeat`` pairs per N give the spread
+on a shared machine. ``--baseline`` runs the echo node only.
 
 Run: ``.venv/bin/python bench/bench_fusion_latency.py [--seconds 10] [--estimator mle]
-[--baseline]``.
+[--stations 10,50] [--repeat 3] [--baseline]``.
 """
 
 import argparse
-import math
 import os
 import subprocess
 import sys
@@ -182,29 +183,46 @@ def over_dds(n, seconds, estimator, baseline=False):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--seconds', type=float, default=10.0, help='measurement window per N')
+    ap.add_argument('--seconds', type=float, default=10.0, help='measurement window per run')
     ap.add_argument('--estimator', default='mle')
     ap.add_argument('--stations', default='3,10,50')
+    ap.add_argument('--repeat', type=int, default=1,
+                    help='echo/fusion pairs per N (interleaved; the ratio is per pair)')
     ap.add_argument('--baseline', action='store_true',
-                    help='measure a trivial echo node instead of fusion_node (the floor)')
+                    help='only the trivial echo node (the floor), no fusion_node')
     args = ap.parse_args()
     os.environ.setdefault('ROS_DOMAIN_ID', str(1 + os.getpid() % 100))
     os.environ.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')
     os.environ.setdefault('AMENT_PREFIX_PATH', sys.prefix)
-    what = ('BASELINE: trivial echo node (rclpy + DDS floor)' if args.baseline else
-            f'fusion_node, estimator {args.estimator}, event trigger')
-    print(f'latency at {RATE:g} Hz epochs: {what}; {os.cpu_count()} CPUs, '
-          f'ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]}')
-    print('| stations | fixes/epochs | e2e median (ms) | e2e p99 (ms) | node CPU (% core) '
+    what = ('trivial echo node only (rclpy + DDS floor)' if args.baseline else
+            f'fusion_node (estimator {args.estimator}, event trigger) next to the trivial '
+            'echo node (rclpy + DDS floor), run in pairs')
+    print(f'latency at {RATE:g} Hz epochs: {what}; {args.seconds:g} s per run, '
+          f'{os.cpu_count()} CPUs, ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]}')
+    print('| stations | run | fixes/epochs | fusion e2e median (ms) | fusion e2e p99 (ms) '
+          '| echo e2e median (ms) | ratio | fusion CPU (% core) | echo CPU (% core) '
           '| core median (ms) | core p99 (ms) |')
-    print('|---:|---:|---:|---:|---:|---:|---:|')
+    print('|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
+    nan = float('nan')
     for n in (int(s) for s in args.stations.split(',')):
-        c_med, c_p99 = (math.nan, math.nan) if args.baseline else core_only(n, args.estimator)
-        lat, sent, cpu = over_dds(n, args.seconds, args.estimator, args.baseline)
-        med = np.median(lat) if len(lat) else float('nan')
-        p99 = np.percentile(lat, 99) if len(lat) else float('nan')
-        print(f'| {n} | {len(lat)}/{sent} | {med:.2f} | {p99:.2f} | {100 * cpu:.1f} '
-              f'| {c_med:.2f} | {c_p99:.2f} |', flush=True)
+        c_med, c_p99 = (nan, nan) if args.baseline else core_only(n, args.estimator)
+        ratios = []
+        for r in range(args.repeat):
+            e_lat, _, e_cpu = over_dds(n, args.seconds, args.estimator, baseline=True)
+            e_med = np.median(e_lat) if len(e_lat) else nan
+            if args.baseline:
+                lat, sent, cpu = e_lat, len(e_lat), nan
+            else:
+                lat, sent, cpu = over_dds(n, args.seconds, args.estimator)
+            med = np.median(lat) if len(lat) else nan
+            p99 = np.percentile(lat, 99) if len(lat) else nan
+            ratios.append(med / e_med)
+            print(f'| {n} | {r + 1} | {len(lat)}/{sent} | {med:.2f} | {p99:.2f} | {e_med:.2f} '
+                  f'| {med / e_med:.2f} | {100 * cpu:.1f} | {100 * e_cpu:.1f} | {c_med:.2f} '
+                  f'| {c_p99:.2f} |', flush=True)
+        if args.repeat > 1 and not args.baseline:
+            print(f'| {n} | all | | | | | {np.median(ratios):.2f} [{min(ratios):.2f}-'
+                  f'{max(ratios):.2f}] | | | | |', flush=True)
 
 
 if __name__ == '__main__':

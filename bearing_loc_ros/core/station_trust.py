@@ -30,6 +30,7 @@ Angles in rad, positions in m; ENU, azimuth CCW from East, elevation above the h
 from collections import deque
 from dataclasses import replace
 import math
+import statistics
 
 import numpy as np
 from scipy.stats import chi2 as _chi2
@@ -68,7 +69,9 @@ class StationTrust:
         h = self._hist.get(station)
         if not h or len(h) < MIN_SAMPLES:
             return 1.0
-        excess = float(np.median([x / n for x, n, _, _ in h]))
+        # statistics.median: the value np.median gives (the middle one, or the mean of the
+        # two), without its ~30 µs per call (one call per bearing per epoch).
+        excess = float(statistics.median([x / n for x, n, _, _ in h]))
         return math.sqrt(max(1.0, excess))
 
     def floor(self, station):
@@ -137,39 +140,122 @@ class StationTrust:
             F = np.linalg.inv(P)
         except np.linalg.LinAlgError:
             return {}
-        out = {}
         items = [(b, True) for b in bearings] + [(b, False) for b in outside]
-        for b, inside in items:
-            J, e, R = _angles(b, x)
-            if J is None:
+        rows = deletion_residuals(items, claims, x, P, F)
+        out = {}
+        for b, row in zip((b for b, _ in items), rows):
+            if row is None:
                 continue
-            Rinv = np.diag(1.0 / R)
-            if inside:
-                try:
-                    P_others = np.linalg.inv(F - J.T @ Rinv @ J)
-                except np.linalg.LinAlgError:
-                    continue
-                w = np.linalg.eigvalsh(0.5 * (P_others + P_others.T))
-                if not (np.all(np.isfinite(w)) and w[0] > 0):
-                    continue
-                A = np.eye(len(R)) - J @ P @ J.T @ Rinv
-            else:
-                P_others, A = P, np.eye(len(R))
-            V = J @ P_others @ J.T
-            c = claims.get(b.station, (b.sigma_azimuth, b.sigma_elevation))
-            c2 = np.array([c[0] ** 2] + ([c[1] ** 2] if len(R) == 2 else []))
-            try:
-                delta = np.linalg.solve(A, e)
-                d2 = float(delta @ np.linalg.solve(np.diag(c2) + V, delta))
-            except np.linalg.LinAlgError:
-                continue
-            if not math.isfinite(d2):
-                continue
-            excess = float(np.sum((delta ** 2 - np.diag(V)) / c2))
+            excess, k, d2 = row
             h = self._hist.setdefault(b.station, deque(maxlen=self.window))
-            h.append((excess, len(R), d2, len(R)))
+            h.append((excess, k, d2, k))
             out[b.station] = d2
         return out
+
+
+def deletion_residual(b, inside, claims, x, P, F):
+    """(excess, dof, d²) of one bearing at the fix (module doc), or None when untestable.
+
+    ``inside``: the bearing was in the fix (δ from the deletion formula), else δ = e and
+    P_(−k) = P. ``x`` (3,) m, ``P`` (3, 3) m² and ``F`` = P⁻¹ of the fix. The plain
+    definition; :func:`deletion_residuals` computes the same for a whole epoch at once.
+    """
+    J, e, R = _angles(b, x)
+    if J is None:
+        return None
+    Rinv = np.diag(1.0 / R)
+    if inside:
+        try:
+            P_others = np.linalg.inv(F - J.T @ Rinv @ J)
+        except np.linalg.LinAlgError:
+            return None
+        w = np.linalg.eigvalsh(0.5 * (P_others + P_others.T))
+        if not (np.all(np.isfinite(w)) and w[0] > 0):
+            return None
+        A = np.eye(len(R)) - J @ P @ J.T @ Rinv
+    else:
+        P_others, A = P, np.eye(len(R))
+    V = J @ P_others @ J.T
+    c = claims.get(b.station, (b.sigma_azimuth, b.sigma_elevation))
+    c2 = np.array([c[0] ** 2] + ([c[1] ** 2] if len(R) == 2 else []))
+    try:
+        delta = np.linalg.solve(A, e)
+        d2 = float(delta @ np.linalg.solve(np.diag(c2) + V, delta))
+    except np.linalg.LinAlgError:
+        return None
+    if not math.isfinite(d2):
+        return None
+    return float(np.sum((delta ** 2 - np.diag(V)) / c2)), len(R), d2
+
+
+def deletion_residuals(items, claims, x, P, F):
+    """:func:`deletion_residual` of every (bearing, inside) of ``items``, in one numpy pass.
+
+    The fusion's fast path (one call per epoch instead of ~10 small numpy calls per
+    station: at 50 stations 2.4 → 0.4 ms per epoch, bench/bench_fusion_latency.py). A
+    1D bearing is padded to two angles with a zero Jacobian row, zero weight and unit
+    claim, which adds only exact zeros; results equal the per-bearing path to rounding
+    (tests). Falls back to that path when a matrix of the stack is singular.
+    """
+    n = len(items)
+    if n == 0:
+        return []
+    pos = np.array([b.position for b, _ in items], dtype=float).reshape(n, 3)
+    az = np.array([b.azimuth for b, _ in items], dtype=float)
+    el = np.array([b.elevation for b, _ in items], dtype=float)
+    two = el == el
+    inside = np.array([i for _, i in items], dtype=bool)
+    d = x - pos
+    rho2 = d[:, 0] * d[:, 0] + d[:, 1] * d[:, 1]
+    usable = rho2 > 0.0
+    if not usable.all():
+        rho2 = np.where(usable, rho2, 1.0)
+    r2 = rho2 + d[:, 2] * d[:, 2]
+    rho = np.sqrt(rho2)
+    ea = az - np.arctan2(d[:, 1], d[:, 0])
+    ea -= 2.0 * math.pi * np.ceil((ea - math.pi) / (2.0 * math.pi))
+    J = np.zeros((n, 2, 3))
+    J[:, 0, 0] = -d[:, 1] / rho2
+    J[:, 0, 1] = d[:, 0] / rho2
+    J[:, 1, 0] = np.where(two, -d[:, 0] * d[:, 2] / (rho * r2), 0.0)
+    J[:, 1, 1] = np.where(two, -d[:, 1] * d[:, 2] / (rho * r2), 0.0)
+    J[:, 1, 2] = np.where(two, rho / r2, 0.0)
+    e = np.stack([ea, np.where(two, el - np.arctan2(d[:, 2], rho), 0.0)], axis=1)
+    saz = np.array([b.sigma_azimuth for b, _ in items], dtype=float)
+    sel = np.array([b.sigma_elevation for b, _ in items], dtype=float)
+    Rinv = np.zeros((n, 2, 2))
+    Rinv[:, 0, 0] = 1.0 / saz ** 2
+    Rinv[:, 1, 1] = np.where(two, 1.0 / np.where(two, sel, 1.0) ** 2, 0.0)
+    claim = [claims.get(b.station, (b.sigma_azimuth, b.sigma_elevation)) for b, _ in items]
+    c2 = np.ones((n, 2))
+    c2[:, 0] = np.array([c[0] for c in claim], dtype=float) ** 2
+    c2[two, 1] = np.array([c[1] for c in claim], dtype=float)[two] ** 2
+    Jt = J.transpose(0, 2, 1)
+    eye = np.broadcast_to(np.eye(2), (n, 2, 2))
+    ok = usable.copy()
+    P_others = np.broadcast_to(P, (n, 3, 3)).copy()
+    A = eye.copy()
+    try:
+        with np.errstate(all='ignore'):
+            if inside.any():
+                Ji, Jti, Ri = J[inside], Jt[inside], Rinv[inside]
+                Po = np.linalg.inv(F - Jti @ Ri @ Ji)
+                w = np.linalg.eigvalsh(0.5 * (Po + Po.transpose(0, 2, 1)))
+                ok[inside] &= np.isfinite(w).all(axis=1) & (w[:, 0] > 0)
+                P_others[inside] = Po
+                A[inside] = eye[inside] - Ji @ P @ Jti @ Ri
+            V = J @ P_others @ Jt
+            delta = np.linalg.solve(A, e[..., None])
+            M = V + c2[:, :, None] * eye
+            d2 = (delta.transpose(0, 2, 1) @ np.linalg.solve(M, delta))[:, 0, 0]
+            excess = np.sum((delta[..., 0] ** 2 - np.diagonal(V, axis1=1, axis2=2)) / c2,
+                            axis=1)
+    except np.linalg.LinAlgError:
+        return [deletion_residual(b, i, claims, x, P, F) for b, i in items]
+    ok &= np.isfinite(d2)
+    k = np.where(two, 2, 1)
+    return [(ex, kk, dd) if good else None for ex, kk, dd, good in
+            zip(excess.tolist(), k.tolist(), d2.tolist(), ok.tolist())]
 
 
 def _angles(b, x):
