@@ -162,7 +162,7 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
         truth_topic = prefix + 'truth'
         has_truth = truth_topic in topics
         has_clock = bagio.CLOCK_TOPIC in topics
-        core = make_core(config, stations=stations)
+        core = make_core(config, stations=stations, mode=params.get('mode') or 'auto')
         truth_t, truth_p = [], []
         clock = [None]
 

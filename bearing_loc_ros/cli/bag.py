@@ -277,7 +277,7 @@ def run_process(args):
               f'{e["mean_error"]:.3f} m, median {e["median_error"]:.3f} m, 95% '
               f'{e["p95_error"]:.3f} m, max {e["max_error"]:.3f} m, bias ('
               + ', '.join(f'{v:.3f}' for v in e['bias']) + f') m, mean NEES '
-              f'{e["mean_nees"]:.2f} (3 = consistent)')
+              f'{e["mean_nees"]:.2f} ({e.get("nees_dof", 3):g} = consistent)')
     elif e is not None:
         print('error against truth: no fix within the truth time span')
     gisargs.export_epochs(args, params, s['epoch_list'])

@@ -225,6 +225,30 @@ def _deg(label, rad):
     return float(label) if np.isfinite(label) else float(np.degrees(rad))
 
 
+def nees_values(e, P):
+    """Normalized estimation error squared eᵀP⁻¹e of each fix and its degrees of freedom.
+
+    ``e`` (M, 3) m, ``P`` (M, 3, 3) m². A horizontal fix with an exactly stated altitude
+    (core.horizontal, σ_z = 0: P_zz = 0 and no x-y/z covariance) has 2 degrees of freedom,
+    the xy block (its z error is the altitude assumption's, not the estimator's); every other
+    fix 3. Returns (nees (M,), dof (M,) int), NaN where the block is not invertible.
+    """
+    e = np.asarray(e, dtype=float).reshape(-1, 3)
+    P = np.asarray(P, dtype=float).reshape(-1, 3, 3)
+    flat = (P[:, 2, 2] == 0.0) & (P[:, 0, 2] == 0.0) & (P[:, 1, 2] == 0.0)
+    out = np.full(e.shape[0], np.nan)
+    if np.any(~flat):
+        Pi = safe_inverse(P[~flat])
+        out[~flat] = np.einsum('mi,mij,mj->m', e[~flat], Pi, e[~flat])
+    if np.any(flat):
+        from .horizontal_crlb import inverse2
+        Pi, ok = inverse2(P[flat][:, :2, :2])
+        v = np.einsum('mi,mij,mj->m', e[flat][:, :2], np.where(ok[:, None, None], Pi, 0.0),
+                      e[flat][:, :2])
+        out[flat] = np.where(ok, v, np.nan)
+    return out, np.where(flat, 2, 3)
+
+
 def error_statistics(estimator, sweep, level, truth, result, crlb_cov, elapsed_s):
     """:class:`Stats` of one batched run (see the module docstring for the definitions).
 
@@ -246,10 +270,9 @@ def error_statistics(estimator, sweep, level, truth, result, crlb_cov, elapsed_s
     tr = np.trace(crlb_cov, axis1=-2, axis2=-1)
     tr = tr[np.isfinite(tr)]
     bound = float(np.sqrt(tr.mean())) if tr.size else float('nan')
-    P = np.asarray(result.covariance, dtype=float)[conv]
-    Pinv = safe_inverse(P) if n else np.zeros((0, 3, 3))
-    ok = np.all(np.isfinite(Pinv), axis=(-2, -1))
-    nees = np.einsum('mi,mij,mj->m', e[ok], Pinv[ok], e[ok])
+    P = np.asarray(result.position_covariance, dtype=float)[conv]
+    nees = nees_values(e, P)[0] if n else np.zeros(0)
+    nees = nees[np.isfinite(nees)]
     rmse_se = (float(sq.std(ddof=1) / (2.0 * rmse * np.sqrt(n)))
                if n > 1 and rmse > 0 else float('nan'))
     tail = _tail_statistics(truth, est, result, M)
@@ -281,10 +304,9 @@ def _tail_statistics(truth, est, result, M):
     e_all = est[finite] - truth[finite]
     ok = finite & (status == 'ok')
     e = est[ok] - truth[ok]
-    Pinv = safe_inverse(np.asarray(result.position_covariance, dtype=float)[ok]) if ok.any() \
-        else np.zeros((0, 3, 3))
-    good = np.all(np.isfinite(Pinv), axis=(-2, -1))
-    nees = np.einsum('mi,mij,mj->m', e[good], Pinv[good], e[good])
+    nees = (nees_values(e, np.asarray(result.position_covariance, dtype=float)[ok])[0]
+            if ok.any() else np.zeros(0))
+    nees = nees[np.isfinite(nees)]
     n_ok, n_lc = int(ok.sum()), int(np.count_nonzero(status == 'low_confidence'))
     return dict(
         rmse_all=float(np.sqrt(np.mean(np.sum(e_all ** 2, axis=1)))) if e_all.size else nan,
@@ -442,9 +464,10 @@ def track_errors(truth, estimate, covariance=None):
 
     ``truth``, ``estimate`` (K, 3) m; ``covariance`` (K, 3, 3) m² or None. Returns a dict:
     n, rmse = sqrt(mean |e|²), mean_error, median_error, p95_error, max_error (|e|, m),
-    bias (the mean error vector, m) and mean_nees = mean eᵀP⁻¹e (3 for an honest
-    covariance; NaN without covariances). Non-finite rows are ignored; with no rows every
-    value is NaN (n = 0).
+    bias (the mean error vector, m), mean_nees = mean eᵀP⁻¹e and nees_dof, its expectation
+    for an honest covariance (3; 2 for horizontal fixes with an exactly stated altitude,
+    :func:`nees_values`; NaN without covariances). Non-finite rows are ignored; with no rows
+    every value is NaN (n = 0).
     """
     t = np.asarray(truth, dtype=float).reshape(-1, 3)
     x = np.asarray(estimate, dtype=float).reshape(-1, 3)
@@ -454,15 +477,16 @@ def track_errors(truth, estimate, covariance=None):
     nan = float('nan')
     if n == 0:
         return {'n': 0, 'rmse': nan, 'mean_error': nan, 'median_error': nan,
-                'p95_error': nan, 'max_error': nan, 'bias': [nan] * 3, 'mean_nees': nan}
+                'p95_error': nan, 'max_error': nan, 'bias': [nan] * 3, 'mean_nees': nan,
+                'nees_dof': nan}
     d = np.linalg.norm(e, axis=1)
-    nees = nan
+    nees, dof = nan, nan
     if covariance is not None:
-        P = safe_inverse(np.asarray(covariance, dtype=float).reshape(-1, 3, 3)[ok])
-        good = np.all(np.isfinite(P), axis=(-2, -1))
+        v, k = nees_values(e, np.asarray(covariance, dtype=float).reshape(-1, 3, 3)[ok])
+        good = np.isfinite(v)
         if np.any(good):
-            nees = float(np.einsum('mi,mij,mj->m', e[good], P[good], e[good]).mean())
+            nees, dof = float(v[good].mean()), float(k[good].mean())
     return {'n': n, 'rmse': float(np.sqrt(np.mean(d ** 2))), 'mean_error': float(d.mean()),
             'median_error': float(np.median(d)), 'p95_error': float(np.percentile(d, 95)),
             'max_error': float(d.max()), 'bias': [float(v) for v in e.mean(axis=0)],
-            'mean_nees': nees}
+            'mean_nees': nees, 'nees_dof': dof}

@@ -12,7 +12,10 @@ X(t), observation k at the true (scenario) time t_k and d = X(t_k) − s_i(t_k):
     σ(r) = σ_ref · clip(r / r_ref, f_min, f_max)   (seed 003 eqs. (9)-(10); σ(r) = σ_ref
                                                     when no ``sigma_growth`` is configured)
 
-with r = |d|, n, m ~ N(0, 1), o_ik ~ Bernoulli(outlier) and a = ±outlier_size (random sign).
+with r = |d|, n, m ~ N(0, 1), o_ik ~ Bernoulli(outlier) and a = ±outlier_size (random sign);
+with ``outlier_size_max`` the magnitude is uniform in [outlier_size, outlier_size_max] (a
+reflection 20-90° off: u = Φ(z_out)/outlier, uniform given o_ik, sets |a| = size + (max −
+size)·u, so no extra random draw and the other bearings of a scenario do not change).
 ψ is clipped to |ψ| ≤ π/2 − 1e-9 so a noisy elevation stays a valid bearing.
 Each observation is dropped with probability ``dropout``. Timing of observation k:
 
@@ -172,6 +175,7 @@ class Station:
     dropout: float = 0.0
     outlier: float = 0.0
     outlier_size: float = math.radians(10.0)
+    outlier_size_max: float = None
     position_sigma: float = 0.0
     sigma_growth: SigmaGrowth = None
 
@@ -445,13 +449,18 @@ def _simulate_stream(scenario, station, i, target, j, duration, seed, survey):
     else:
         f = np.ones(K)
     saz_act = station.sigma_az * f
-    outlier = ndtr(z[:, _C_OUT]) < station.outlier
+    u_out = ndtr(z[:, _C_OUT])
+    outlier = u_out < station.outlier
+    size = station.outlier_size
+    if station.outlier_size_max is not None and station.outlier > 0.0:
+        u = np.clip(u_out / station.outlier, 0.0, 1.0)
+        size = size + (station.outlier_size_max - size) * u
     sign_az = np.where(z[:, _C_SIGN_AZ] >= 0.0, 1.0, -1.0)
-    az = wrap_angle(az0 + saz_act * z[:, _C_AZ] + outlier * sign_az * station.outlier_size)
+    az = wrap_angle(az0 + saz_act * z[:, _C_AZ] + outlier * sign_az * size)
     if station.dims == 2:
         sel_act = station.sigma_el * f
         sign_el = np.where(z[:, _C_SIGN_EL] >= 0.0, 1.0, -1.0)
-        el = np.clip(el0 + sel_act * z[:, _C_EL] + outlier * sign_el * station.outlier_size,
+        el = np.clip(el0 + sel_act * z[:, _C_EL] + outlier * sign_el * size,
                      -MAX_ELEVATION, MAX_ELEVATION)
     else:
         sel_act = np.full(K, np.nan)
@@ -543,7 +552,8 @@ MOTION_KEYS = ('position', 'geodetic', 'velocity', 'waypoints', 'speed', 'times'
 STATION_KEYS = ('id', 'dims', 'sigma_az', 'sigma_az_deg', 'sigma_el', 'sigma_el_deg', 'rate',
                 'phase', 'clock_offset', 'clock_jitter', 'clock_drift_ppm', 'latency',
                 'latency_jitter', 'dropout', 'outlier', 'outlier_size', 'outlier_size_deg',
-                'position_sigma', 'sigma_growth') + MOTION_KEYS
+                'outlier_size_max', 'outlier_size_max_deg', 'position_sigma',
+                'sigma_growth') + MOTION_KEYS
 TARGET_KEYS = ('namespace', 'kind', 'box_min', 'box_max', 'count') + MOTION_KEYS
 GROWTH_KEYS = ('range_ref', 'min_factor', 'max_factor', 'report')
 GEODETIC_KEYS = ('lat_deg', 'lon_deg', 'alt')
@@ -690,7 +700,7 @@ def _station(src, raw, k, defaults, origin):
     where = f'stations[{k}].'
     _mapping(src, raw, f'stations[{k}]', STATION_KEYS)
     d = dict(defaults)
-    for base in ('sigma_az', 'sigma_el', 'outlier_size'):
+    for base in ('sigma_az', 'sigma_el', 'outlier_size', 'outlier_size_max'):
         if base in raw or f'{base}_deg' in raw:
             d.pop(base, None)
             d.pop(f'{base}_deg', None)
@@ -715,6 +725,12 @@ def _station(src, raw, k, defaults, origin):
         fmax = _float(src, g, 'max_factor', f'{gw}.', math.inf, lo=fmin)
         growth = SigmaGrowth(_float(src, g, 'range_ref', f'{gw}.', lo=0.0, lo_open=True,
                                     required=True), fmin, fmax, report)
+    outlier_size = _angle(src, d, 'outlier_size', where, math.radians(10.0), lo_open=False)
+    size_max = None
+    if 'outlier_size_max' in d or 'outlier_size_max_deg' in d:
+        size_max = _angle(src, d, 'outlier_size_max', where, None, lo_open=False)
+        if not outlier_size <= size_max <= math.pi:
+            raise src.error(f'{where}outlier_size_max', 'must be in [outlier_size, 180 deg]')
     rate = _float(src, d, 'rate', where, 1.0, lo=0.0, lo_open=True)
     if rate > 1e6:
         raise src.error(f'{where}rate', f'must be <= 1e6 Hz (got {rate})')
@@ -728,7 +744,7 @@ def _station(src, raw, k, defaults, origin):
         latency_jitter=_float(src, d, 'latency_jitter', where, 0.0, lo=0.0),
         dropout=_float(src, d, 'dropout', where, 0.0, lo=0.0, hi=1.0),
         outlier=_float(src, d, 'outlier', where, 0.0, lo=0.0, hi=1.0),
-        outlier_size=_angle(src, d, 'outlier_size', where, math.radians(10.0), lo_open=False),
+        outlier_size=outlier_size, outlier_size_max=size_max,
         position_sigma=_float(src, d, 'position_sigma', where, 0.0, lo=0.0),
         sigma_growth=growth)
 
