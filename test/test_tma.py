@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from bearing_loc_ros.core import tma as T
+from bearing_loc_ros.core.bearings import BearingSet
 from bearing_loc_ros.core.conventions import enu_to_compass, los_vector
 
 TIMES = np.arange(0.0, 100.0 + 1e-9, 0.2)
@@ -299,7 +300,7 @@ def test_invalid_input_names_the_field():
         args.update(kw)
         with pytest.raises(ValueError, match=msg):
             T.tma(args['method'], bs, args['times'], args['speed'], **args['options'])
-    azonly = T.BearingSet.from_arrays(bs.positions, bs.azimuth, None, SIG, validate=False)
+    azonly = BearingSet.from_arrays(bs.positions, bs.azimuth, None, SIG, validate=False)
     with pytest.raises(ValueError, match='elevation'):
         T.tma_ctls(azonly, t, 380.0)
     acc = T.TmaAccumulator(380.0, window=10.0)

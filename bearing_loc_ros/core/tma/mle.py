@@ -1,0 +1,176 @@
+"""Maximum likelihood TMA with the speed constraint (T17), started from the closed forms.
+
+Conventions as :mod:`bearing_loc_ros.core.tma`.
+"""
+
+import numpy as np
+
+from ..conventions import azimuth_elevation, wrap_angle
+from ..crlb import angle_jacobians
+from ..estimator_spec import BEARING_SIGMA, declare, TMA
+from ..fix import STATUS_DEGENERATE, STATUS_MAX_ITERATIONS, STATUS_OK
+from .closed_form import estimate_from_sums
+from .model import _Data, prepare, TMA_OPTIONS
+from .observability import finish
+from .sums import batch_sums
+
+
+def _options(options, fn=None):
+    """Options merged over the defaults of :data:`TMA_OPTIONS`, each value validated."""
+    return (fn or tma_mle).spec.parse(options)
+
+
+def _tangent_basis(s):
+    """Orthonormal basis E (M, 3, 2) of the plane normal to unit vectors s (M, 3)."""
+    a = np.where((np.abs(s[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    e1 = a - np.sum(a * s, -1, keepdims=True) * s
+    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
+    e2 = np.cross(s, e1)
+    return np.stack([e1, e2], axis=-1)
+
+
+def _residuals(data, p0, v):
+    """Whitened residuals (M, K, 2) = [wrap(θ̂ − θ)/σ_θ, (ψ̂ − ψ)/σ_ψ] and d = p_k (T3)-(T4)."""
+    d = p0[:, None, :] + v[:, None, :] * data.tau[..., None] - data.delta
+    az, el = azimuth_elevation(d)
+    e = np.stack([wrap_angle(az - data.az) / data.s_az, (el - data.el) / data.s_el], -1)
+    return e, d
+
+
+def _mle_start(data, sums, opts, methods=('ctls', 'ctls6', 'ple')):
+    """Start of :func:`tma_mle`: of the closed forms, the one with the lowest ML cost (T17).
+
+    Returns (p0, v, status, reason); status/reason of the first method where none is ok.
+    """
+    best = None
+    best_cost = np.full(data.M, np.inf)
+    for m in methods:
+        p0, v, st, rs = estimate_from_sums(sums, m, data.speed, opts['speed_reference'],
+                                           opts['min_bearings'], opts['alpha'])
+        if best is None:
+            best = [p0.copy(), v.copy(), st.copy(), rs.copy()]
+        ok = st == STATUS_OK
+        if np.any(ok):
+            e, _ = _residuals(data, np.where(ok[:, None], p0, 0.0),
+                              np.where(ok[:, None], v, 0.0))
+            c = np.where(ok, np.sum(e * e, axis=(1, 2)), np.inf)
+            c = np.where(np.isfinite(c), c, np.inf)
+            use = c < best_cost
+            best_cost[use] = c[use]
+            for arr, new in zip(best, (p0, v, st, rs)):
+                arr[use] = new[use]
+    return tuple(best)
+
+
+@declare('tma_mle', TMA, TMA_OPTIONS, BEARING_SIGMA, inputs=('times', 'speed'))
+def tma_mle(bearings, times, speed, **options):
+    """Maximum likelihood TMA with the speed constraint, Gauss-Newton/Levenberg-Marquardt (T17).
+
+    Minimises Σ_k wrap(θ̂_k − θ_k)²/σ_θk² + (ψ̂_k − ψ_k)²/σ_ψk² over x = (p0, v) with the angles
+    θ̂, ψ̂ of p_k = p0 + v τ_k − δ_k (T3, the observer positions are used exactly) subject to
+    (T5). The constraint is kept exactly by the parametrisation v = v_c s (− v_o for
+    'ground') with s a unit vector updated on its tangent plane, s ← normalise(s + E δ):
+    5 unknowns (p0, δ). Marquardt damping with Nielsen's gain-ratio update: a step is
+    accepted only if it lowers the cost, so the result is never worse than the start and
+    never NaN. Converged when the step is shorter than ``dtol`` (1e-3) standard deviations
+    (hᵀJᵀJh < dtol²: far below the statistical error) or ``xtol`` (1e-10) relative.
+    Start: ``start`` = (p0, v) arrays,
+    else the closed form (:func:`tma_ctls`, :func:`tma_ctls6`, :func:`tma_ple`) with the lowest
+    cost.
+    Efficient (reaches the CRLB (T15)) at small noise: the reference of the benchmark.
+    Options as :func:`tma_ple` plus ``start``, ``max_iterations`` (50), ``dtol``, ``xtol``.
+    Status max_iterations: not converged, estimate kept (cost reduced).
+    """
+    opts = _options(options, tma_mle)
+    start = opts.pop('start', None)
+    max_it = int(opts.pop('max_iterations', 50))
+    xtol = float(opts.pop('xtol', 1e-10))
+    dtol = float(opts.pop('dtol', 1e-3))
+    data = prepare(bearings, times, speed, opts['speed_reference'])
+    if start is None:
+        sums = batch_sums(bearings, times)
+        p0, v, status, reason = _mle_start(data, sums, opts)
+    else:
+        p0 = np.array(np.broadcast_to(np.asarray(start[0], float), (data.M, 3)))
+        v = np.array(np.broadcast_to(np.asarray(start[1], float), (data.M, 3)))
+        status = np.full(data.M, STATUS_OK, dtype=object)
+        reason = np.full(data.M, '', dtype=object)
+        bad = ~(np.all(np.isfinite(p0), -1) & np.all(np.isfinite(v), -1))
+        status[bad], reason[bad] = STATUS_DEGENERATE, 'start: non-finite initial state'
+    M = data.M
+    vc = data.speed
+    off = data.v_o if opts['speed_reference'] == 'ground' else np.zeros((M, 3))
+    active = status == STATUS_OK
+    # Project the start onto the constraint manifold (T5).
+    s = np.where(active[:, None], v + off, [1.0, 0.0, 0.0])
+    s = s / np.where(np.linalg.norm(s, axis=-1) > 0, np.linalg.norm(s, axis=-1), 1.0)[:, None]
+    p0 = np.where(active[:, None], p0, 0.0)
+    v = vc[:, None] * s - off
+    e, d = _residuals(data, p0, v)
+    cost = np.sum(e * e, axis=(1, 2))
+    mu = np.full(M, 1e-9)
+    nu = np.full(M, 2.0)
+    iters = np.zeros(M, dtype=int)
+    converged = np.zeros(M, dtype=bool)
+    running = active & np.isfinite(cost)
+    for _ in range(max_it):
+        if not np.any(running):
+            break
+        r = np.nonzero(running)[0]
+        iters[r] += 1
+        E = _tangent_basis(s[r])
+        g_t, g_p = angle_jacobians(np.zeros((len(r), 3)), -d[r])
+        G = np.stack([g_t / data.s_az[r][..., None], g_p / data.s_el[r][..., None]], -2)
+        Jv = (G @ (vc[r, None, None] * E)[:, None]) * data.tau[r][..., None, None]
+        J = np.concatenate([G, Jv], axis=-1).reshape(len(r), -1, 5)     # (m, 2K, 5)
+        Jt = np.swapaxes(J, -1, -2)
+        JtJ = Jt @ J
+        Jte = (Jt @ e[r].reshape(len(r), -1, 1))[..., 0]
+        dg = np.diagonal(JtJ, axis1=1, axis2=2)
+        dg = np.where(dg > 0, dg, 1.0)
+        A = JtJ + (mu[r, None] * dg)[:, :, None] * np.eye(5)
+        try:
+            step = -np.linalg.solve(A, Jte[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            step = np.stack([-np.linalg.lstsq(a, b_, rcond=None)[0]
+                             for a, b_ in zip(A, Jte)])
+        p_new = p0[r] + step[:, :3]
+        s_new = s[r] + np.einsum('mij,mj->mi', E, step[:, 3:])
+        s_new /= np.linalg.norm(s_new, axis=-1, keepdims=True)
+        v_new = vc[r, None] * s_new - off[r]
+        sub = _Data(data.tau[r], data.t0[r], data.obs[r], data.az[r], data.el[r],
+                    data.s_az[r], data.s_el[r], vc[r], data.v_o[r], data.delta[r])
+        e_new, d_new = _residuals(sub, p_new, v_new)
+        c_new = np.sum(e_new * e_new, axis=(1, 2))
+        # Gain ratio ρ = actual / predicted decrease of the cost |e + J h|² (Nielsen 1999).
+        dec = np.einsum('mi,mij,mj->m', step, JtJ, step)
+        pred = -2.0 * np.sum(step * Jte, -1) - dec
+        acc = np.isfinite(c_new) & (c_new < cost[r])
+        with np.errstate(divide='ignore', invalid='ignore'):
+            rho = np.where(pred > 0, (cost[r] - c_new) / pred, 0.0)
+        ra = r[acc]
+        p0[ra], s[ra], v[ra] = p_new[acc], s_new[acc], v_new[acc]
+        e[ra], d[ra], cost[ra] = e_new[acc], d_new[acc], c_new[acc]
+        mu[ra] *= np.maximum(1.0 / 3.0, 1.0 - (2.0 * np.clip(rho[acc], 0, 1) - 1.0) ** 3)
+        mu[ra] = np.maximum(mu[ra], 1e-15)
+        nu[ra] = 2.0
+        rj = r[~acc]
+        mu[rj] *= nu[rj]
+        nu[rj] *= 2.0
+        rel = np.maximum(np.linalg.norm(step[:, :3], axis=-1)
+                         / np.maximum(np.linalg.norm(p_new, axis=-1), 1e-300),
+                         np.linalg.norm(step[:, 3:], axis=-1))
+        # Converged when the step is below dtol standard deviations (its Mahalanobis length
+        # in the Fisher information JᵀJ) or below xtol relative; a rejected step that small
+        # also ends the iteration (rounding), the current estimate is kept.
+        done = (dec < dtol ** 2) | (rel < xtol) | (mu[r] > 1e12)
+        converged[r[done]] = True
+        running[r[done]] = False
+    status = status.copy()
+    reason = reason.copy()
+    nc = active & ~converged
+    status[nc] = STATUS_MAX_ITERATIONS
+    reason[nc] = f'mle: not converged in {max_it} iterations (estimate kept, cost reduced)'
+    p0 = np.where(active[:, None], p0, np.nan)
+    v = np.where(active[:, None], v, np.nan)
+    return finish('mle', data, p0, v, status, reason, iters, converged, opts)
