@@ -46,7 +46,7 @@ def test_single_problem_in_process(tmp_path, capsys):
     assert code == 0 and err == ''
     res = json.loads(out)
     assert set(res) == {'estimator', 'method', 'position', 'covariance', 'crlb', 'converged',
-                        'iterations', 'status'}
+                        'iterations', 'status', 'solve'}
     assert res['estimator'] == 'mle' and res['status'] == 'ok' and res['converged'] is True
     np.testing.assert_allclose(res['position'], TARGET, atol=1e-3)
     assert np.array(res['covariance']).shape == (3, 3) and np.array(res['crlb']).shape == (3, 3)
@@ -151,7 +151,7 @@ BAD_CASES = [
      'options.max_iterations: must be an integer >= 1'),
     ({'estimator': 'mle', 'bearings': bearings_json()[:1]}, 'bearings: 1 bearing(s)'),
     ({'estimator': 'mle', 'bearings': bearings_json(one_d=(0, 1, 2))},
-     'bearings: elevation: no bearing measures elevation'),
+     'target_altitude: required because the bearings do not observe the height'),
     ({'estimator': 'mle', 'problems': [{'bearings': bearings_json()},
                                        {'bearings': _bad(b1__sigma_azimuth=0.0)['bearings']}]},
      'problems[1].bearings[1].sigma_azimuth: must be > 0'),

@@ -80,7 +80,6 @@ MUTATIONS = [
     (lambda b: b[1].update(colour='red'), 'bearings[1].colour: unknown field'),
     (lambda b: b[1].update(station=7), 'bearings[1].station: must be a string'),
     (lambda b: b.__setitem__(0, 5), 'bearings[0]: must be an object'),
-    (lambda b: [x.update(elevation=None) for x in b], 'bearings: elevation: no bearing'),
     (lambda b: b.__delitem__(slice(1, None)), 'bearings: 1 bearing(s)'),
 ]
 
@@ -271,10 +270,10 @@ def test_table_error_names_line_problem_and_column(tmp_path, capsys, column, val
     (lambda h, rows: (h + ['azimuth_deg'], [r + [1.0] for r in rows]),
      'input: give azimuth or azimuth_deg, not both'),
     (lambda h, rows: (h, [r for r in rows if not (r[0] == 103 and r[-1] != 's0')]),
-     'problem 103: 1 bearing(s); a 3D fix needs at least two'),
+     'problem 103: 1 bearing(s); a fix needs at least two'),
     (lambda h, rows: (h, [r[:5] + [float('nan')] + r[6:] if r[0] == 102 else r
                           for r in rows]),
-     'problem 102: elevation: no bearing measures elevation'),
+     'problem 102: target_altitude: required'),
     (lambda h, rows: (h, rows[:3] + [rows[3][:-2]] + rows[4:]),
      'line 5: 7 fields, the header has 9'),
 ])

@@ -141,3 +141,49 @@ def test_robust_keeps_a_clean_fix_unchanged():
 def test_robust_is_refused_by_estimators_without_it():
     with pytest.raises(ValueError, match='^options.robust:'):
         registry.solve('ls', az_only(), target_altitude=0.0, robust=True)
+
+
+def _locate(tmp_path, capsys, doc, *flags):
+    import json
+    from bearing_loc_ros.cli import main
+    path = tmp_path / 'in.json'
+    path.write_text(json.dumps(doc))
+    capsys.readouterr()
+    code = main(['locate', str(path), *flags])
+    out, err = capsys.readouterr()
+    return code, (json.loads(out) if out else None), err
+
+
+def _json_bearings(bs):
+    return [{'station': f's{i}', 'position': bs.positions[0, i].tolist(),
+             'azimuth': float(bs.azimuth[0, i]), 'sigma_azimuth': float(bs.sigma_az[0, i])}
+            for i in range(bs.N)]
+
+
+def test_cli_locate_azimuth_only(tmp_path, capsys):
+    """locate: flags and JSON options, the solve and the stated altitude in the output,
+    the CRLB of the horizontal solve; clear errors for no altitude, NaN, collinear."""
+    doc = {'estimator': 'mle', 'bearings': _json_bearings(az_only())}
+    code, res, err = _locate(tmp_path, capsys, doc, '--target-altitude', '500',
+                             '--target-altitude-sigma', '5')
+    assert code == 0, err
+    assert res['solve'] == 'horizontal' and res['target_altitude'] == 500.0
+    np.testing.assert_allclose(res['position'], TARGET, atol=1e-6)
+    np.testing.assert_allclose(res['crlb'], horizontal_crlb(TARGET, STATIONS, 0.0015,
+                                                            sigma_z=5.0)[0], rtol=1e-9)
+    doc['options'] = {'target_altitude': 500.0, 'dimension': 'horizontal'}
+    code, res, _ = _locate(tmp_path, capsys, doc)
+    assert code == 0 and res['solve'] == 'horizontal'
+    doc.pop('options')
+    code, res, err = _locate(tmp_path, capsys, doc)
+    assert code == 2 and res is None and err.strip().endswith(
+        'target_altitude: required because the bearings do not observe the height (no usable '
+        'elevation geometry); state the target altitude (m, world frame) and its standard '
+        'deviation')
+    code, res, err = _locate(tmp_path, capsys, doc, '--target-altitude', 'nan')
+    assert code == 2 and 'options.target_altitude: must be finite' in err
+    st = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0], [2500.0, 0.0, 0.0]])
+    doc = {'bearings': _json_bearings(az_only(target=np.array([4000.0, 0.0, 0.0]),
+                                              stations=st))}
+    code, res, err = _locate(tmp_path, capsys, doc, '--target-altitude', '0')
+    assert code == 0 and res['status'] == 'degenerate_geometry' and res['position'] == [None] * 3

@@ -6,7 +6,8 @@ solved in one vectorised call and nothing is built per problem.
 
 JSON batches (``{"problems": [...]}``) are checked column by column with numpy under the
 same rules as the per-problem parser of ``cli.locate`` (finite JSON numbers, σ in
-[SIGMA_MIN, SIGMA_MAX] rad, |ψ| < π/2, at least two bearings and one elevation per problem).
+[SIGMA_MIN, SIGMA_MAX] rad, |ψ| < π/2, at least two bearings per problem; azimuth-only
+problems need the target altitude, which the solve checks).
 A problem that fails any rule is handed to that parser, which raises the one error message
 naming the problem index and the field; problems are visited in order, so the message is the
 same as checking one problem after the other.
@@ -175,7 +176,6 @@ def json_problems(problems, parse_problem):
     owner = np.repeat(np.arange(len(problems)), counts)
     bad = ~np.array(shaped, dtype=bool)
     bad |= np.bincount(owner, weights=~good, minlength=len(problems)) > 0
-    bad |= np.bincount(owner, weights=has_el, minlength=len(problems)) == 0
     offsets = np.concatenate([[0], np.cumsum(counts)])
     columns = [coords.reshape(-1, 3), az, el, saz, sel]
     for k in np.flatnonzero(bad).tolist():
@@ -197,7 +197,7 @@ def grouped(columns, counts, stations=None, ids=None):
         rows = (offsets[idx][:, None] + np.arange(n)).ravel()
         arrays = [c[rows].reshape((len(idx), n) + c.shape[1:]) for c in columns]
         try:
-            bs = BearingSet(*arrays).validate()
+            bs = BearingSet(*arrays).validate(require_elevation=False)
         except ValueError as exc:       # not reached: every rule was checked above
             raise InputError(f'problems: {exc}') from None
         groups.append((idx, bs))
@@ -401,14 +401,12 @@ def _table_problems(columns, row_name):
     problem = rank[inverse.ravel()]
     order = np.argsort(problem, kind='stable')
     counts = np.bincount(problem, minlength=len(uniq))
-    n_el = np.bincount(problem, weights=has_el, minlength=len(uniq))
     in_order = ids[np.sort(first)]
-    for k in np.flatnonzero((counts < 2) | (n_el == 0)).tolist()[:1]:
-        if counts[k] < 2:
-            raise InputError(f'problem {in_order[k]}: {counts[k]} bearing(s); a 3D fix needs '
-                             'at least two')
-        raise InputError(f'problem {in_order[k]}: elevation: no bearing measures elevation; '
-                         'azimuths alone cannot fix the height (need at least one 2D station)')
+    # Azimuth-only problems are valid input: the solve needs the stated target altitude
+    # then (core.registry.solve names it), so only the count is checked here.
+    for k in np.flatnonzero(counts < 2).tolist()[:1]:
+        raise InputError(f'problem {in_order[k]}: {counts[k]} bearing(s); a fix needs at '
+                         'least two')
     sel = np.where(has_el, sel, np.nan)
     cols = [pos[order], az[order], el[order], saz[order], sel[order]]
     station = columns.get('station')

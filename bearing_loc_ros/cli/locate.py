@@ -13,11 +13,17 @@ Input (a file argument, or stdin when the argument is ``-`` or absent), one prob
                   ...]}
 
 or a batch ``{"estimator": ..., "options": ..., "problems": [{"bearings": [...]}]}``.
+Azimuth-only bearings need the target altitude: options ``target_altitude`` (m, world
+frame), ``target_altitude_sigma`` (m), ``dimension`` (``auto | 3d | horizontal``) and
+``use_elevations`` (core.horizontal), or the flags ``--target-altitude``,
+``--target-altitude-sigma``, ``--dimension`` and ``--ignore-elevations``.
 The former key ``method`` is accepted with a deprecation warning. Large batches may come as a
 CSV or NPZ table with one row per bearing (``--format``, columns in cli.batch_input); the
 estimator and its options then come from ``--estimator`` and ``--options``.
 Output (stdout): ``{"estimator", "method" (the same, deprecated), "position", "covariance",
-"crlb", "converged", "iterations", "status"}`` for one problem, ``{"results": [...]}``
+"crlb", "converged", "iterations", "status", "solve"}`` for one problem (``solve``: ``3d`` or
+``horizontal``; a horizontal fix also gives ``target_altitude`` and
+``target_altitude_sigma``), ``{"results": [...]}``
 (same order) for a batch (for a table, each result also carries its ``problem`` id).
 Non-finite numbers (the inf covariance of a degenerate fix, its NaN
 position) are written as ``null``, so the output is always strict JSON. Exit 0 when every
@@ -59,6 +65,35 @@ def add_arguments(parser):
                         replacement='--estimator',
                         choices=registry.names(registry.MODE_MULTISTATION))
     add_table_arguments(parser)
+    add_dimension_arguments(parser)
+
+
+def add_dimension_arguments(parser):
+    """``--dimension``, ``--target-altitude``, ``--target-altitude-sigma`` and
+    ``--ignore-elevations``: the solve-level options (core.horizontal), overriding the
+    input's ``options`` of the same names."""
+    parser.add_argument('--dimension', choices=('auto', '3d', 'horizontal'), default=None,
+                        help='auto (3d when the bearings observe the height, else '
+                             'horizontal), 3d, or horizontal (needs --target-altitude)')
+    parser.add_argument('--target-altitude', type=float, default=None, metavar='M',
+                        help='target altitude (m, world frame) of the horizontal solve')
+    parser.add_argument('--target-altitude-sigma', type=float, default=None, metavar='M',
+                        help='its standard deviation, m (default 0: exactly known)')
+    parser.add_argument('--ignore-elevations', action='store_true',
+                        help='horizontal solve: do not use measured elevations')
+
+
+def dimension_options(args, options):
+    """``options`` with the dimension flags of ``args`` applied (flags win)."""
+    out = dict(options)
+    for flag, key in (('dimension', 'dimension'), ('target_altitude', 'target_altitude'),
+                      ('target_altitude_sigma', 'target_altitude_sigma')):
+        v = getattr(args, flag, None)
+        if v is not None:
+            out[key] = v
+    if getattr(args, 'ignore_elevations', False):
+        out['use_elevations'] = False
+    return out
 
 
 def add_table_arguments(parser):
@@ -76,7 +111,7 @@ def parse_bearings(items, where='bearings'):
     if not isinstance(items, list):
         raise InputError(f'{where}: must be a list of bearing objects')
     if len(items) < 2:
-        raise InputError(f'{where}: {len(items)} bearing(s); a 3D fix needs at least two')
+        raise InputError(f'{where}: {len(items)} bearing(s); a fix needs at least two')
     pos, az, el, saz, sel, names = [], [], [], [], [], []
     for i, b in enumerate(items):
         f = f'{where}[{i}]'
@@ -109,7 +144,7 @@ def parse_bearings(items, where='bearings'):
         names.append(station)
     try:
         return BearingSet.from_arrays(np.array(pos), np.array(az), np.array(el), np.array(saz),
-                                      np.array(sel), stations=names)
+                                      np.array(sel), stations=names, require_elevation=False)
     except ValueError as exc:
         raise InputError(f'{where}: {exc}') from None
 
@@ -157,19 +192,35 @@ def solve(method, options, sets):
         try:
             res = registry.solve(method, batch, **options)
         except ValueError as exc:
-            raise InputError(str(exc)) from None
-        bound = registry.noise_crlb(method, res.position, batch, **options)
-        for k, pos, cov, crlb, conv, it, status in zip(
+            raise InputError(_name_problem(str(exc), idx, batch, sets.ids)) from None
+        bound = registry.noise_crlb(method, res.position, batch, solve=res.solve, **options)
+        solved = res.solve.tolist() if res.solve is not None else ['3d'] * len(idx)
+        for j, (k, pos, cov, crlb, conv, it, status) in enumerate(zip(
                 idx.tolist(), finite_rows(res.position), finite_rows(res.covariance),
                 finite_rows(bound), res.converged.tolist(), res.iterations.tolist(),
-                res.status.tolist()):
+                res.status.tolist())):
             out[k] = {'estimator': method, 'method': method, 'position': pos,
                       'covariance': cov, 'crlb': crlb, 'converged': bool(conv),
-                      'iterations': int(it), 'status': str(status)}
+                      'iterations': int(it), 'status': str(status), 'solve': solved[j]}
+            if solved[j] == 'horizontal':
+                out[k]['target_altitude'] = float(res.target_altitude[j])
+                out[k]['target_altitude_sigma'] = float(res.target_altitude_sigma[j])
     if sets.ids is not None:
         for r, problem in zip(out, sets.ids):
             r['problem'] = problem
     return out
+
+
+def _name_problem(message, idx, batch, ids):
+    """Prefix a solve error about a missing target altitude with the first problem that has
+    no elevation (``problem <id>`` of a table, ``problems[k]`` of a JSON batch)."""
+    if not message.startswith('target_altitude:') or len(idx) < 1:
+        return message
+    az_only = np.flatnonzero(~np.any(batch.has_elevation, axis=1))
+    if az_only.size == 0 or (len(idx) == 1 and ids is None):
+        return message
+    k = int(idx[az_only[0]])
+    return f'problem {ids[k]}: {message}' if ids is not None else f'problems[{k}]: {message}'
 
 
 def read_request(args):
@@ -202,6 +253,6 @@ def run(args):
     from . import gisargs
     gisargs.check(args)
     method, options, sets, batch = read_request(args)
-    results = solve(method, options, sets)
+    results = solve(method, dimension_options(args, options), sets)
     gisargs.export_locate(args, results, sets)
     return write_results(results, batch, args.indent)
