@@ -305,7 +305,7 @@ def _station_schema():
           'publisher: best_effort (sensor data, no retransmission) or reliable (needed by '
           'reliable subscribers)', choices=('best_effort', 'reliable')),
         P('qos_depth', INTEGER, 10, 'Keep-last depth of the bearing publisher', '', 1, 10000),
-    ) + receiver_params.node_params()
+    ) + receiver_params.node_params(Param)
 
 
 def _simulator_schema():

@@ -95,24 +95,24 @@ EXAMPLES = {'kraken.url': 'http://192.168.1.50:8081/doa.xml',
             'kraken.channel_bands_mhz': [430.0, 440.0, 144.0, 146.0]}
 
 
-def node_params():
-    """:data:`PARAMETERS` as station node schema entries
-    (:class:`bearing_loc_ros.core.parameters.Param`), appended to the station node's schema:
-    the type follows the default (``[]``: string array for :data:`STRING_ARRAYS`, double
-    array else), a numeric rule is the inclusive range, a string rule the choices."""
-    from . import parameters as sch
+def node_params(param_class):
+    """:data:`PARAMETERS` as station node schema entries, instances of ``param_class``
+    (:class:`bearing_loc_ros.core.parameters.Param`, passed in so that this table does not
+    import the schema that includes it), appended to the station node's schema: the type
+    follows the default (``[]``: string array for :data:`STRING_ARRAYS`, double array
+    else), a numeric rule is the inclusive range, a string rule the choices."""
     out = []
     for name, default, text, rule in PARAMETERS:
         if isinstance(default, bool):
-            kind = sch.BOOL
+            kind = 'bool'
         elif isinstance(default, int):
-            kind = sch.INTEGER
+            kind = 'integer'
         elif isinstance(default, float):
-            kind = sch.DOUBLE
+            kind = 'double'
         elif isinstance(default, str):
-            kind = sch.STRING
+            kind = 'string'
         else:
-            kind = sch.STRING_ARRAY if name in STRING_ARRAYS else sch.DOUBLE_ARRAY
+            kind = 'string_array' if name in STRING_ARRAYS else 'double_array'
         unit = UNITS.get(name, 'deg' if name.endswith('_deg') else '')
         lo = hi = None
         choices = ()
@@ -120,9 +120,8 @@ def node_params():
             choices = rule
         elif isinstance(rule, tuple):
             lo, hi = rule
-        out.append(sch.Param(name, kind, default, text, unit, lo, hi, choices=choices,
-                             example=EXAMPLES.get(name),
-                             commented=name in EXAMPLES))
+        out.append(param_class(name, kind, default, text, unit, lo, hi, choices=choices,
+                               example=EXAMPLES.get(name), commented=name in EXAMPLES))
     return tuple(out)
 
 
