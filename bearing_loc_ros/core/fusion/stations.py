@@ -373,7 +373,7 @@ class StationRegistry:
         if newest is not None and (last is None or newest > last):
             # A station reports again before the pending epoch closed: a new cycle began.
             rep = self.repeat_stamp_ns
-            self.repeat_stamp_ns = newest if rep is None or newest < rep else rep
+            self.repeat_stamp_ns = newest if rep is None or newest > rep else rep
         st.evicted += buf.push(bearing)
         st.accepted += 1
         st.last_stamp_ns = stamp

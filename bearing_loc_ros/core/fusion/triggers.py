@@ -13,9 +13,11 @@
      ``min_stations`` pending stations: the bearing of the station that was lost will not
      come.
 
-  In cases 2 and 3, t = the oldest of the pending stations' stamps of this cycle (for a
-  station that reported again, its previous stamp). On a link that loses bearings, an
-  epoch is thus fixed whenever two or more stations' bearings of a cycle arrive.
+  In cases 2 and 3, t = the oldest stamp after the previous epoch of a live station at
+  which ``min_stations`` stations have a bearing within ``sync_tolerance``
+  (:func:`closable_time`; in case 3 no later than the repeating station's previous stamp);
+  a cycle of which a single bearing arrived is passed over. On a link that loses bearings,
+  an epoch is thus fixed whenever two or more stations' bearings of a cycle arrive.
 * ``timer``: at each tick ``now``, every grid time t_k = k · period (period = 1 / rate,
   integer ns) with t_k <= now − max_latency not yet processed; after a gap, at most
   buffer_age / period of them (older epochs would find their bearings pruned). Lost
@@ -41,17 +43,33 @@ def event_epoch_time(registry, now):
         return t
     opened = registry.open_since_ns
     repeat = registry.repeat_stamp_ns
-    if opened is None or (repeat is None and now < opened + registry.max_latency_ns):
+    deadline = opened is not None and now >= opened + registry.max_latency_ns
+    if opened is None or (repeat is None and not deadline):
         return None
-    pending, t = 0, repeat
-    for s in registry.live_stations():
-        n = registry.buffer(s).newest_stamp_ns
-        if n is not None and (last is None or n > last):
-            pending += 1
-            t = n if t is None or n < t else t
-    if pending < registry.config.min_stations:
-        return None
-    return t
+    return closable_time(registry, last, None if deadline else repeat)
+
+
+def closable_time(registry, last, limit=None):
+    """The oldest time t (ns) among the live stations' stamps after ``last`` (the
+    previous epoch; None: any), t <= ``limit`` when given, at which at least
+    ``min_stations`` stations have a bearing after ``last`` within sync_tolerance of t;
+    None when there is none. A cycle of which only one bearing arrived is passed over."""
+    tol = registry.align.sync_tolerance_ns
+    after = last if last is not None else -2 ** 63
+    bufs = [registry.buffer(s) for s in registry.live_stations()]
+    stamps = sorted({b.stamp_ns for buf in bufs if (buf.newest_stamp_ns or after) > after
+                     for b in buf.bearings if b.stamp_ns > after})
+    need = registry.config.min_stations
+    for t in stamps:
+        if limit is not None and t > limit:
+            break
+        n = 0
+        for buf in bufs:
+            if buf.nearest(t, tol, after_ns=after) is not None:
+                n += 1
+                if n >= need:
+                    return t
+    return None
 
 
 def timer_epoch_times(now, period_ns, max_latency_ns, last_epoch_ns, buffer_age_ns):
