@@ -187,3 +187,41 @@ def test_cli_locate_azimuth_only(tmp_path, capsys):
                                               stations=st))}
     code, res, err = _locate(tmp_path, capsys, doc, '--target-altitude', '0')
     assert code == 0 and res['status'] == 'degenerate_geometry' and res['position'] == [None] * 3
+
+
+def test_planning_maps_of_azimuth_only_layouts():
+    """The accuracy map and placement of an azimuth-only layout: the horizontal GDOP
+    sqrt(P_xx + P_yy) of core.horizontal_crlb at z = the map altitude."""
+    from bearing_loc_ros.core.horizontal_crlb import horizontal_gdop
+    from bearing_loc_ros.core.planning import (accuracy_map, GridSpec, place_station,
+                                               position_error, Stations)
+    st = Stations.from_arrays(STATIONS, 0.0015, has_elevation=False)
+    pts = np.array([[10e3, 30e3, 500.0], [-5e3, 12e3, 500.0], [40e3, -3e3, 500.0]])
+    err = position_error(pts, st)
+    ref = horizontal_gdop(horizontal_crlb(pts, STATIONS, 0.0015))
+    np.testing.assert_allclose(err, ref, rtol=1e-9)
+    assert np.all(np.isinf(position_error(pts, st, dimension='3d')))
+    with pytest.raises(ValueError, match='^model:'):
+        position_error(pts, st, model='ctls')
+    grid = GridSpec(-10e3, -10e3, 1000.0, 40, 50, 500.0)
+    amap = accuracy_map(st, grid)
+    assert amap.solve == 'horizontal'
+    assert amap.stats()['finite_cells'] > 0.9 * amap.error.size
+    two = Stations.from_arrays(STATIONS[:2], 0.0015, has_elevation=False)
+    area = GridSpec(0.0, 5e3, 1000.0, 20, 20, 500.0)
+    res = place_station(two, area, (-10e3, 30e3, -10e3, 40e3), has_elevation=False,
+                        candidates=9)
+    assert np.isfinite(res.after) and res.after < res.before
+
+
+def test_plan_cli_azimuth_only(capsys):
+    import json
+    from bearing_loc_ros.cli import main
+    assert main(['plan', 'map', '--stations', '0,0,0,1d;20,0,0,1d;20,20,0,1d',
+                 '--altitude', '500', '--sigma-deg', '0.1', '--extent-km', '-20,40,-20,40',
+                 '--resolution', '2000']) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out['solve'] == 'horizontal' and out['stats']['finite_cells'] > 0
+    assert main(['plan', 'cut-angle', '--sigmas-deg', '1', '1']) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out['cut_angle_deg'] == pytest.approx(np.degrees(np.arccos(-1.0 / 3.0)))

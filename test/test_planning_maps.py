@@ -112,10 +112,12 @@ def test_grid_layout_is_occupancy_grid_order():
 
 
 def test_unobservable_and_on_axis_cells():
-    # Two 1D stations never fix the height: every cell is +inf (unobservable).
+    # Two 1D stations never fix the height: in 3D every cell is +inf (unobservable); the
+    # default (auto) assesses them with the horizontal solve, altitude known.
     st = Stations.from_arrays(SEED000[:2], 1e-3, has_elevation=False)
     g = GridSpec.from_extent(-10 * KM, 10 * KM, -10 * KM, 10 * KM, 5 * KM, 1 * KM)
-    m = accuracy_map(st, g)
+    assert accuracy_map(st, g).solve == 'horizontal'
+    m = accuracy_map(st, g, dimension='3d')
     assert np.all(np.isposinf(m.error))
     assert m.stats()['unobservable_cells'] == 16
     # A cell centre on a station's vertical axis (azimuth undefined) is NaN, not a number.

@@ -53,6 +53,10 @@ def add_arguments(parser):
     p.add_argument('--k2-values', default='0,0.2,0.5,0.8',
                    help='k2 list for --table (default 0,0.2,0.5,0.8: tables 1-4)')
     p.add_argument('--json', action='store_true', help='--table as a JSON list')
+    p.add_argument('--sigmas-deg', type=float, nargs=2, default=None, metavar=('S1', 'S2'),
+                   help='two azimuth-only (1D + 1D) sensors with azimuth sigmas S1, S2 (deg): '
+                        'the optimum on a fixed baseline (equal sigmas: 109.47 deg; 90 deg is '
+                        'the optimum for fixed target ranges)')
 
     for name, help_text, example in (
             ('map', 'expected-error map of a station layout',
@@ -71,6 +75,10 @@ def add_arguments(parser):
                        help='unit of --stations coordinates (default km)')
         p.add_argument('--altitude', type=float, required=True,
                        help='target altitude (ENU z), m')
+        p.add_argument('--dimension', choices=('auto', '3d', 'horizontal'), default='auto',
+                       help='auto (default: the horizontal solve, altitude known, when no '
+                            'station measures elevation), 3d or horizontal (error sqrt(Pxx + '
+                            'Pyy) of the 2 x 2 CRLB)')
         p.add_argument('--sigma-deg', type=float, default=None,
                        help="azimuth and elevation sigma of every station, degrees (default: "
                             "the scenario's; with --stations this or --sigma-azimuth-deg is "
@@ -151,6 +159,8 @@ def _ratio_bound(values, flag):
 def run_cut_angle(args):
     """Print the optimum (JSON) or the tables of Wang, Su, Bai & Zhong 2009."""
     from ..core.cutangle import cut_angle_table, optimal_cut_angle
+    if args.sigmas_deg is not None:
+        return run_two_azimuth(args)
     el = math.radians(finite(args.elevation_deg, '--elevation-deg'))
     if abs(args.elevation_deg) >= 89.0:
         raise InputError('--elevation-deg: |elevation| must be < 89')
@@ -187,6 +197,22 @@ def run_cut_angle(args):
         print(f'{r["k1"]:6.3g} {r["k2"]:6.3g} {r["elevation_deg"]:6.3g} '
               f'{r["theta1_deg"]:9.3f} {r["theta2_deg"]:9.3f} {r["cut_angle_deg"]:9.3f} '
               f'{r["f_min"]:9.5f}  {"yes" if r["feasible"] else "no"}')
+    return 0
+
+
+def run_two_azimuth(args):
+    """Two azimuth-only sensors (Wang, Su, Bai & Zhong 2009, 1D + 1D): print the optimum."""
+    from ..core.horizontal_crlb import optimal_cut_angle_two_azimuth
+    s1, s2 = (finite(v, '--sigmas-deg', True) for v in args.sigmas_deg)
+    try:
+        r = optimal_cut_angle_two_azimuth(math.radians(s1), math.radians(s2))
+    except ValueError as exc:
+        raise InputError(f'--sigmas-deg: {exc}') from None
+    print(json.dumps({'sensors': '1D+1D', 'sigma1_deg': s1, 'sigma2_deg': s2, 'k': r.k,
+                      'theta1_deg': math.degrees(r.theta1),
+                      'theta2_deg': math.degrees(r.theta2),
+                      'cut_angle_deg': math.degrees(r.cut_angle), 'f_min': r.f,
+                      'feasible': bool(r.feasible), 'fixed_range_cut_angle_deg': 90.0}))
     return 0
 
 
@@ -299,9 +325,12 @@ def run_map(args):
     for flag, v in (('--vmin', args.vmin), ('--vmax', args.vmax)):
         if v is not None:
             finite(v, flag, True)
-    amap = accuracy_map(st, grid, args.model, ctls_unit(args))
-    out = {'model': args.model, 'stations': _stations_json(st), 'grid': _grid_json(grid),
-           'stats': amap.stats()}
+    try:
+        amap = accuracy_map(st, grid, args.model, ctls_unit(args), args.dimension)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    out = {'model': args.model, 'solve': amap.solve, 'stations': _stations_json(st),
+           'grid': _grid_json(grid), 'stats': amap.stats()}
     csv = args.csv
     if csv is None and args.png:
         csv = os.path.splitext(args.png)[0] + '.csv'
@@ -335,12 +364,18 @@ def run_place(args):
     res = max(area[1] - area[0], area[3] - area[2]) / args.area_cells
     area_grid = GridSpec(area[0], area[2], res, max(1, round((area[1] - area[0]) / res)),
                          max(1, round((area[3] - area[2]) / res)), alt)
-    res_new = place_station(st, area_grid, region, height, has_elevation=not args.new_1d,
-                            objective=args.objective, model=args.model,
-                            candidates=args.candidates, length_unit=ctls_unit(args))
+    from ..core.planning import horizontal_solve
+    try:
+        res_new = place_station(st, area_grid, region, height, has_elevation=not args.new_1d,
+                                objective=args.objective, model=args.model,
+                                candidates=args.candidates, length_unit=ctls_unit(args),
+                                dimension=args.dimension)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    dim = 'horizontal' if horizontal_solve(st, args.dimension, not args.new_1d) else '3d'
     out = res_new.as_dict()
     out.update(model=args.model, stations=_stations_json(st), area_m=list(area),
-               region_m=list(region), new_station_dims=1 if args.new_1d else 2)
+               region_m=list(region), new_station_dims=1 if args.new_1d else 2, solve=dim)
     if args.png_before or args.png_after:
         box = (min(area[0], region[0]), max(area[1], region[1]),
                min(area[2], region[2]), max(area[3], region[3]))
@@ -354,14 +389,14 @@ def run_place(args):
         extra = {'area': area, 'region': region}
         maps = {'before': (args.png_before, st), 'after': (args.png_after, after_st)}
         # One colour scale for both maps so they can be compared.
-        before = accuracy_map(st, grid, args.model, ctls_unit(args))
+        before = accuracy_map(st, grid, args.model, ctls_unit(args), dim)
         fin = before.error[np.isfinite(before.error)]
         vmax = args.vmax or (float(np.percentile(fin, 99)) if fin.size else None)
         for key, (path, layout) in maps.items():
             if not path:
                 continue
             amap = before if key == 'before' else accuracy_map(layout, grid, args.model,
-                                                               ctls_unit(args))
+                                                               ctls_unit(args), dim)
             ex = dict(extra, new=res_new.position) if key == 'after' else extra
             with writing(f'--png-{key}', path):
                 plot_map(amap, path, f'{args.model.upper()} error {key} adding a station, '

@@ -341,13 +341,21 @@ def _inv3(A, rcond=1e-12):
     return inv, ok
 
 
-def _error_from_terms(A, B=None):
+def _error_from_terms(A, B=None, horizontal=False):
     """sqrt(trace(A⁻¹ B A⁻¹)) (or sqrt(trace A⁻¹) when B is None), +inf where A is singular.
 
-    NaN terms (a target on a station's vertical axis, where the azimuth is undefined)
-    give NaN.
+    ``horizontal`` (the horizontal solve with the target altitude known, core.horizontal,
+    CRLB only): sqrt(trace (A_h)⁻¹), A_h the 2 × 2 (x, y) block of the Fisher information
+    (z fixed: the horizontal GDOP of core.horizontal_crlb with σ_z = 0). NaN terms (a
+    target on a station's vertical axis, where the azimuth is undefined) give NaN.
     """
     nan = np.any(np.isnan(A), axis=(-2, -1))
+    if horizontal:
+        from .horizontal_crlb import inverse2
+        Ainv, ok = inverse2(np.where(nan[..., None, None], 1.0, A[..., :2, :2]))
+        out = np.where(ok, np.sqrt(np.abs(Ainv[..., 0, 0] + Ainv[..., 1, 1])), np.inf)
+        out[nan] = np.nan
+        return out
     Ainv, ok = _inv3(np.where(nan[..., None, None], 0.0, A))
     if B is None:
         tr = np.trace(Ainv, axis1=-2, axis2=-1)
@@ -365,16 +373,39 @@ def _terms(targets, positions, sigma_az, sigma_el, model, length_unit):
     return _ctls_terms(targets, positions, sigma_az, sigma_el, length_unit)
 
 
-def position_error(targets, stations, model='crlb', length_unit=1.0):
-    """Expected 3D position error ε = sqrt(trace P), m, at each target (M,) (seed 000 (32)).
+def horizontal_solve(stations, dimension='auto', new_has_elevation=False):
+    """True when a layout is assessed with the horizontal solve (core.horizontal): dimension
+    ``horizontal``, or ``auto`` and no 2D station (``new_has_elevation``: a station to be
+    added). ValueError naming ``dimension`` for another value."""
+    if dimension not in ('auto', '3d', 'horizontal'):
+        raise ValueError(f'dimension: must be one of auto, 3d, horizontal, got {dimension!r}')
+    if dimension == 'auto':
+        return not (np.any(stations.has_elevation) or bool(new_has_elevation))
+    return dimension == 'horizontal'
 
-    P is the CRLB (``model='crlb'``) or seed 000's CTLS error model eq. (30)/(31)
-    (``model='ctls'``, see :func:`ctls_error_covariance`). ``targets`` (M, 3) or (3,), m.
-    +inf where the geometry is unobservable (for example only 1D stations, or a target on the
-    line through two 1D stations), NaN on a station's vertical axis (azimuth undefined).
-    Vectorised in blocks of 65536 targets.
+
+def _check_horizontal(model, horizontal):
+    if horizontal and model != 'crlb':
+        raise ValueError('model: the CTLS error model (Wang, Zhang & Wu eq. (30)) is 3D; '
+                         'azimuth-only layouts (the horizontal solve) use model crlb')
+
+
+def position_error(targets, stations, model='crlb', length_unit=1.0, dimension='auto'):
+    """Expected position error ε, m, at each target (M,) (Wang, Zhang & Wu eq. (32)).
+
+    3D solve: ε = sqrt(trace P), P the CRLB (``model='crlb'``) or Wang, Zhang & Wu's CTLS
+    error model eq. (30)/(31) (``model='ctls'``, see :func:`ctls_error_covariance`).
+    Horizontal solve (``dimension`` ``horizontal``, or ``auto`` for a layout of 1D
+    stations only, :func:`horizontal_solve`): the target altitude is known (the target's
+    z), ε = sqrt(P_xx + P_yy) with P the 2 × 2 CRLB of (x, y) (core.horizontal_crlb,
+    σ_z = 0; CRLB model only). ``targets`` (M, 3) or (3,), m. +inf where the geometry is
+    unobservable (for example only 1D stations in 3D, or a target on the line through all
+    1D stations), NaN on a station's vertical axis (azimuth undefined). Vectorised in
+    blocks of 65536 targets.
     """
     _check_model(model)
+    horizontal = horizontal_solve(stations, dimension)
+    _check_horizontal(model, horizontal)
     tgt = np.atleast_2d(np.asarray(targets, dtype=float))
     if tgt.shape[-1] != 3 or not np.all(np.isfinite(tgt)):
         raise ValueError('targets: expected finite (M, 3) positions')
@@ -383,7 +414,7 @@ def position_error(targets, stations, model='crlb', length_unit=1.0):
         sl = slice(s, s + _CHUNK)
         A, B = _terms(tgt[sl], stations.positions, stations.sigma_az, stations.sigma_el,
                       model, length_unit)
-        out[sl] = _error_from_terms(A, B)
+        out[sl] = _error_from_terms(A, B, horizontal)
     return out
 
 
@@ -396,12 +427,14 @@ class AccuracyMap:
         error: (height, width) ε = sqrt(trace P), m (inf unobservable, NaN on a station axis).
         model: 'crlb' or 'ctls'.
         stations: the layout used.
+        solve: '3d' or 'horizontal' (ε = sqrt(P_xx + P_yy), altitude known).
     """
 
     grid: GridSpec
     error: np.ndarray
     model: str
     stations: Stations = None
+    solve: str = '3d'
 
     def stats(self, mask=None):
         """Summary of the finite errors (m): min, median, mean, p90, max, and counts."""
@@ -425,15 +458,16 @@ class AccuracyMap:
         return float('nan')
 
 
-def accuracy_map(stations, grid, model='crlb', length_unit=1.0):
-    """Expected-error map (seed 000 section 4 GDOP maps) of a layout over ``grid``.
+def accuracy_map(stations, grid, model='crlb', length_unit=1.0, dimension='auto'):
+    """Expected-error map (Wang, Zhang & Wu section 4 GDOP maps) of a layout over ``grid``.
 
-    ε(x, y) = sqrt(trace P) at each cell centre at ``grid.altitude`` (see
-    :func:`position_error`). A 400 × 400 grid takes well under a second (bench/bench_planning.py).
-    Returns an :class:`AccuracyMap`.
+    ε(x, y) at each cell centre at ``grid.altitude`` (see :func:`position_error`; for an
+    azimuth-only layout the horizontal GDOP with the altitude known). A 400 × 400 grid takes
+    well under a second (bench/bench_planning.py). Returns an :class:`AccuracyMap`.
     """
-    err = position_error(grid.points(), stations, model, length_unit)
-    return AccuracyMap(grid, err.reshape(grid.height, grid.width), model, stations)
+    err = position_error(grid.points(), stations, model, length_unit, dimension)
+    solve = 'horizontal' if horizontal_solve(stations, dimension) else '3d'
+    return AccuracyMap(grid, err.reshape(grid.height, grid.width), model, stations, solve)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -492,7 +526,7 @@ def _objective(err, objective):
 
 def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=None,
                   has_elevation=True, objective='mean', model='crlb', candidates=21,
-                  refine=True, length_unit=1.0):
+                  refine=True, length_unit=1.0, dimension='auto'):
     """Where to put one more station to minimise the mean (or worst) expected error.
 
     Objective: J(s) = mean (or max) over the area's cell centres of ε = sqrt(trace P) with
@@ -511,12 +545,16 @@ def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=No
         sigma_az, sigma_el, has_elevation: the new station's σ (rad; default: the first
             existing station's) and type.
         objective: 'mean' or 'max'. model: 'crlb' or 'ctls'.
+        dimension: ``auto`` (horizontal when neither the layout nor the new station has
+            an elevation), ``3d`` or ``horizontal`` (:func:`position_error`).
     Returns:
         :class:`PlacementResult`. Raises ValueError naming the bad argument, or when no
         candidate makes every area point observable.
     """
     from scipy.optimize import minimize
     _check_model(model)
+    horizontal = horizontal_solve(stations, dimension, has_elevation)
+    _check_horizontal(model, horizontal)
     if objective not in OBJECTIVES:
         raise ValueError(f'objective: choose one of {list(OBJECTIVES)}, got {objective!r}')
     try:
@@ -540,7 +578,7 @@ def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=No
     G = pts.shape[0]
     A0, B0 = _terms(pts, stations.positions, stations.sigma_az, stations.sigma_el, model,
                     length_unit)
-    err_before = _error_from_terms(A0, B0)
+    err_before = _error_from_terms(A0, B0, horizontal)
 
     def errors(cands):
         """(C, G) errors for candidate positions (C, 3)."""
@@ -550,7 +588,7 @@ def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=No
         A, B = _terms(tgt, pos, n_saz, n_sel, model, length_unit)
         A = A.reshape(C, G, 3, 3) + A0
         B = None if B is None else B.reshape(C, G, 3, 3) + B0
-        return _error_from_terms(A, B)
+        return _error_from_terms(A, B, horizontal)
 
     gx = np.linspace(xmin, xmax, candidates)
     gy = np.linspace(ymin, ymax, candidates)
@@ -563,7 +601,7 @@ def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=No
     order = np.argsort(np.where(np.isnan(J), np.inf, J))
     if not np.isfinite(J[order[0]]):
         raise ValueError('region: no candidate position makes every area point observable '
-                         '(add a 2D station or widen the region)')
+                         '(add a station, a 2D station or widen the region)')
     best = cands[order[0]].copy()
     grid_best = best.copy()
     best_J = J[order[0]]
