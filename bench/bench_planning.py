@@ -3,7 +3,7 @@
 Prints, best of ``--repeat`` runs on one thread:
 
 * accuracy map, 400 × 400 cells, seed 000 stations (3 × 2D), CRLB and CTLS model
-  (planning.accuracy_map), and the CTLS map through core.ctls.ctls_covariance (the
+  (planning.accuracy_map), and the CTLS map through core.constrained_tls.ctls_covariance (the
   estimator's own eq. (30) implementation, general but with 5-operand einsums) for reference;
 * accuracy map with N = 20 stations (mixed 1D/2D);
 * placement of a 4th station: 21 × 21 candidates, 30 × 30 area cells, refinement;
@@ -22,7 +22,7 @@ for _var in ('OMP_NUM_THREADS', 'OPENBLAS_NUM_THREADS', 'MKL_NUM_THREADS'):
 import numpy as np  # noqa: E402
 
 from bearing_loc_ros.core.bearings import simulate_bearings  # noqa: E402
-from bearing_loc_ros.core.ctls import ctls_covariance  # noqa: E402
+from bearing_loc_ros.core.constrained_tls import ctls_covariance  # noqa: E402
 from bearing_loc_ros.core.cutangle import cut_angle_table, optimal_cut_angle  # noqa: E402
 from bearing_loc_ros.core.planning import (GridSpec, Stations, accuracy_map,  # noqa: E402
                                            occupancy_error_map, place_station)
@@ -59,7 +59,7 @@ def main():
         return np.sqrt(np.trace(ctls_covariance(pts, bs), axis1=1, axis2=2))
     t, e = best_of(via_core_ctls, 1)
     ref = accuracy_map(st, g400, 'ctls').error.ravel()
-    rows.append(('map 400x400 via core.ctls.ctls_covariance', t,
+    rows.append(('map 400x400 via constrained_tls.ctls_covariance', t,
                  f'max rel diff {np.max(np.abs(e - ref) / ref):.1e}'))
     rng = np.random.default_rng(0)
     pos20 = np.column_stack([rng.uniform(-50e3, 50e3, (20, 2)), rng.uniform(0, 300, 20)])

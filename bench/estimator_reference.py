@@ -66,9 +66,9 @@ def run_multi(method, bs):
 
 
 def run_tma(method, bs, times, speed):
-    """TMA estimator ``method`` (short name) on the TMA problems."""
+    """TMA estimator ``tma_<method>`` on the TMA problems (stored under ``tma/<method>``)."""
     from bearing_loc_ros.core import tma
-    return tma.tma(method, bs, times, speed)
+    return tma.tma('tma_' + method, bs, times, speed)
 
 
 def compute():

@@ -41,7 +41,7 @@ def test_names_and_modes():
         assert registry.mode_of(name) == 'multistation'
     for name in TMA:
         assert registry.mode_of(name) == 'tma'
-        assert registry.TMA_ESTIMATORS[name] in tma.TMA_ESTIMATORS       # former short name
+        assert registry.spec(name).function is tma.TMA_FUNCTIONS[name]
     for bad in ('nope', None, 3, 'ple'):
         with pytest.raises(ValueError, match='^estimator: unknown estimator'):
             registry.mode_of(bad)

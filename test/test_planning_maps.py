@@ -62,9 +62,10 @@ def test_ctls_model_matches_dense_eq30(unit):
 
 
 def test_ctls_model_matches_core_ctls_covariance():
-    # The estimator engineer's eq. (30) (core.ctls, evaluated at the true target) and the
-    # planner's block formulas must agree: the planner predicts the estimator's error.
-    from bearing_loc_ros.core.ctls import ctls_covariance
+    # The CTLS covariance, Wang, Zhang & Wu eq. (30) (core.constrained_tls, evaluated at the
+    # true target), and the planner's block formulas must agree: the planner predicts the
+    # estimator's error.
+    from bearing_loc_ros.core.constrained_tls import ctls_covariance
     rng = np.random.default_rng(31)
     st = _random_layout(rng)
     tgt = np.column_stack([rng.uniform(-60e3, 60e3, (50, 2)), rng.uniform(1e3, 15e3, 50)])

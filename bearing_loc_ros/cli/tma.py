@@ -1,17 +1,17 @@
-"""``bearing_loc tma``: one moving station, target motion analysis (seed 001), JSON in/out.
+"""``bearing_loc tma``: one moving station, target motion analysis (Lin et al.), JSON in/out.
 
 Input (a file argument, or stdin when the argument is ``-`` or absent), one problem::
 
     {"estimator": "tma_ctls",          # optional: tma_ple | tma_ctls | tma_ctls6 | tma_mle
      "speed": 380.0,                   # prior speed v_c, m/s (> 0)
-     "speed_reference": "relative",    # optional: relative (seed 001) | ground
+     "speed_reference": "relative",    # optional: relative (Lin et al.) | ground
      "options": {"alpha": 1e-3},       # optional estimator options (core.tma.DEFAULTS)
      "sigma_azimuth": 0.0017,          # optional default σ_θ, rad
      "sigma_elevation": 0.0017,        # optional default σ_ψ, rad
      "observations": [{"t": 0.0,                 # s
                        "observer": [x, y, z],    # m, ENU world frame
                        "azimuth": 0.78,          # rad, ENU (CCW from East; --compass: CW
-                                                 #   from North as in seed 001)
+                                                 #   from North as in Lin et al.)
                        "elevation": 0.07,        # rad, above the horizontal (required)
                        "sigma_azimuth": 0.0017,  # rad, > 0 (or the default above)
                        "sigma_elevation": 0.0017},
@@ -36,7 +36,7 @@ import numpy as np
 from ..core.bearings import BearingSet
 from ..core.conventions import compass_to_enu
 from ..core import registry
-from ..core.tma import SPEED_REFERENCES, tma
+from ..core.tma import SPEED_REFERENCES
 from . import InputError
 from .deprecation import DeprecatedOption, tma_estimator
 from .jsonio import (add_io_arguments, check_object, finite_or_none, number, read_json,
@@ -163,7 +163,7 @@ def solve(method, options, problems):
     out = []
     for bs, t, speed in problems:
         try:
-            res = tma(method, bs, t, speed, **options)
+            res = registry.solve(method, bs, times=t, speed=speed, **options)
         except ValueError as exc:
             raise InputError(str(exc)) from None
         d = res.single(0)

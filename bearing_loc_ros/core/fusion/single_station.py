@@ -5,12 +5,12 @@ station; bearings of any other station are refused and counted as ``bad.not_trac
 through the registry's arrival checks and then, in O(1), into a
 :class:`~bearing_loc_ros.core.tma.TmaAccumulator` (the recursive P, Ω of Lin et al.,
 Table 1) bounded to the last ``window`` seconds. Each epoch solves the configured TMA
-estimator (``tma_ple``, ``tma_ctls``, ``tma_ctls6``, ``tma_mle``; core.registry maps the
-name to the method) with the speed prior |v| = ``target_speed`` (``speed_reference``
-'relative' or 'ground') and returns an :class:`Epoch` whose position (3,) m and velocity (3,)
-m/s are the target state at the newest bearing's stamp, ``covariance`` the (3, 3) position
-block and ``state_covariance`` the (6, 6) (position, velocity) constrained CRLB at the
-estimate, m², m²/s, m²/s².
+estimator (``tma_ple``, ``tma_ctls``, ``tma_ctls6``, ``tma_mle``: the registry names, passed
+to the accumulator as they are) with the speed prior |v| = ``target_speed``
+(``speed_reference`` 'relative' or 'ground') and returns an :class:`Epoch` whose position
+(3,) m and velocity (3,) m/s are the target state at the newest bearing's stamp,
+``covariance`` the (3, 3) position block and ``state_covariance`` the (6, 6) (position,
+velocity) constrained CRLB at the estimate, m², m²/s, m²/s².
 
 Triggers: ``event``: one epoch per accepted bearing; ``timer``: at most one epoch per tick,
 when bearings arrived since the last one (bounds the CPU of ``tma_mle``). No fix (a counted
@@ -25,7 +25,6 @@ import math
 import numpy as np
 
 from .. import estimators as _estimators
-from .. import registry as _registry
 from ..alignment import NEAREST
 from ..tma import STATUS_UNOBSERVABLE, TmaAccumulator
 from .config import MODE_TMA, NS_PER_S, TRIGGER_EVENT, TRIGGER_TIMER
@@ -156,8 +155,8 @@ class TmaStrategy:
         ep = Epoch(ESTIMATOR_ERROR, stamp_ns=int(b.stamp_ns), produced_ns=int(now),
                    estimator=cfg.estimator, bearings=[b], how={b.station: NEAREST})
         try:
-            res = self.accumulator.estimate(_registry.TMA_ESTIMATORS[cfg.estimator],
-                                            speed=float(cfg.target_speed), **opts)
+            res = self.accumulator.estimate(cfg.estimator, speed=float(cfg.target_speed),
+                                            **opts)
         except Exception as exc:  # noqa: B902 - any estimator failure is a counted no-fix
             ep.detail = f'{type(exc).__name__}: {exc}'
             return ep

@@ -36,23 +36,18 @@ Modules: :mod:`.model` (options, input checks, observer track, simulation), :mod
 Every public name is importable from ``bearing_loc_ros.core.tma``.
 """
 
-from ..fix import FixResult, STATUS_UNOBSERVABLE, TMA_STATUSES
+from ..fix import STATUS_UNOBSERVABLE, TMA_STATUSES
 from .accumulator import TmaAccumulator
 from .closed_form import estimate_from_sums, tma_ctls, tma_ctls6, tma_ple
-from .methods import TMA_ESTIMATORS, TMA_FUNCTIONS, tma, tma_function
+from .methods import TMA_FUNCTIONS, tma, tma_function
 from .mle import tma_mle
 from .model import DEFAULTS, observer_track, simulate_tma, SPEED_REFERENCES, TMA_OPTIONS
 from .observability import (constrained_crlb, constraint_gradient, fisher_terms,
                             state_transform, tma_crlb)
 from .sums import batch_sums, bearing_terms, prefix_sums, TmaSums
 
-__all__ = ['DEFAULTS', 'SPEED_REFERENCES', 'TMA_ESTIMATORS', 'TMA_FUNCTIONS', 'TmaResult',
-           'tma_function', 'STATUS_UNOBSERVABLE', 'TMA_OPTIONS', 'TMA_STATUSES',
-           'TmaAccumulator', 'TmaSums', 'batch_sums', 'bearing_terms', 'constrained_crlb',
-           'constraint_gradient', 'estimate_from_sums', 'fisher_terms', 'observer_track',
-           'prefix_sums', 'simulate_tma', 'state_transform', 'tma', 'tma_crlb', 'tma_ctls',
-           'tma_ctls6', 'tma_mle', 'tma_ple']
-
-#: Deprecated name of :class:`~bearing_loc_ros.core.fix.FixResult` (TMA results are
-#: FixResults with the velocity fields set).
-TmaResult = FixResult
+__all__ = ['DEFAULTS', 'SPEED_REFERENCES', 'STATUS_UNOBSERVABLE', 'TMA_FUNCTIONS', 'TMA_OPTIONS',
+           'TMA_STATUSES', 'TmaAccumulator', 'TmaSums', 'batch_sums', 'bearing_terms',
+           'constrained_crlb', 'constraint_gradient', 'estimate_from_sums', 'fisher_terms',
+           'observer_track', 'prefix_sums', 'simulate_tma', 'state_transform', 'tma',
+           'tma_crlb', 'tma_ctls', 'tma_ctls6', 'tma_function', 'tma_mle', 'tma_ple']

@@ -163,8 +163,7 @@ class TmaAccumulator:
     def estimate(self, method='tma_ctls', speed=None, **options):
         """Estimate for the current window with TMA estimator ``method`` -> FixResult (M = 1).
 
-        ``method``: ``tma_ple``, ``tma_ctls``, ``tma_ctls6`` or ``tma_mle`` (the former short
-        names ``ple`` ... are accepted too).
+        ``method``: ``tma_ple``, ``tma_ctls``, ``tma_ctls6`` or ``tma_mle``.
 
         ple/ctls come from the recursive sums in O(1) (the covariance, if requested, is an
         O(K) vectorised CRLB); mle starts from the recursive ctls (or ple) solution and
