@@ -79,3 +79,21 @@ def test_window_mode_converges_on_the_scenario():
     assert dof[0] == 2 and v[0] < 13.8
     assert err[-1] < 4.0 * sig[-1]
     assert core.station_stats('car').outliers > 0
+
+
+def test_evaluate_reports_rmse_over_crlb_and_nees_for_an_azimuth_only_scenario():
+    """seed000_azimuth_only (dims: 1, altitude from the scenario): the horizontal bound and
+    NEES with 2 dof. mle's RMSE/CRLB within 4 standard errors of 1 (+2 % for the
+    nonlinearity at ~200 m errors), its mean NEES inside the χ²_{2n}/n 99.9 % band."""
+    from scipy.stats import chi2
+    from bearing_loc_ros.cli.evaluate import run_evaluation
+    n = 2000
+    rows, meta = run_evaluation('seed000_azimuth_only', ['ls', 'mle'], [0.0859437], n,
+                                seed=5, sweep='none')
+    assert meta['dimension'] == 'auto' and meta['target_altitude_m'] == 'truth'
+    mle = next(r for r in rows if r.estimator == 'mle')
+    assert abs(mle.rmse_over_crlb - 1.0) < 4 * mle.rmse_se / mle.crlb + 0.02
+    lo, hi = chi2.ppf([0.0005, 0.9995], 2 * n) / n
+    assert lo < mle.mean_nees < hi
+    ls = next(r for r in rows if r.estimator == 'ls')
+    assert ls.rmse >= mle.rmse and ls.convergence_rate == 1.0

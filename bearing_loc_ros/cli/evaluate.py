@@ -64,6 +64,15 @@ def add_arguments(parser):
                         help='outlier bearings: a fraction F of the bearings get an extra '
                              'error of ±U(MIN_DEG, MAX_DEG) on azimuth and elevation, e.g. '
                              '0.1,20,90 (default none)')
+    parser.add_argument('--dimension', choices=('auto', '3d', 'horizontal'), default=None,
+                        help='solve: auto (3d when the bearings observe the height, else '
+                             'horizontal), 3d or horizontal (default: auto, and horizontal '
+                             'for a scenario of azimuth-only stations)')
+    parser.add_argument('--target-altitude', type=float, default=None, metavar='M',
+                        help='target altitude of the horizontal solve, m (default: the '
+                             "scenario target's own altitude in each trial)")
+    parser.add_argument('--target-altitude-sigma', type=float, default=0.0, metavar='M',
+                        help='its standard deviation, m (default 0: exactly known)')
     parser.add_argument('--out', default=None,
                         help='output directory for CSV, JSON and PNG files (created)')
     parser.add_argument('--no-plots', action='store_true', help='skip the PNG plots')
@@ -125,13 +134,36 @@ def parse_outliers(text):
     return (f, math.radians(a), math.radians(b))
 
 
+def _solve_options(tr, dimension, target_altitude, target_altitude_sigma):
+    """Solve-level options of the study (:func:`run_evaluation`); {} = the 3D solve."""
+    horizontal = dimension == 'horizontal' or (dimension in (None, 'auto')
+                                               and not tr.has_elevation.any())
+    for flag, v in (('target_altitude', target_altitude),
+                    ('target_altitude_sigma', target_altitude_sigma)):
+        if v is not None and not math.isfinite(v):
+            raise InputError(f'{flag}: must be a finite number (m), got {v}')
+    if target_altitude_sigma is not None and target_altitude_sigma < 0:
+        raise InputError(f'target_altitude_sigma: must be >= 0 m (got {target_altitude_sigma})')
+    if not horizontal and target_altitude is None:
+        return {} if dimension in (None, 'auto') else {'dimension': dimension}
+    z0 = tr.targets[:, 2].copy() if target_altitude is None else float(target_altitude)
+    return {'dimension': dimension or 'auto', 'target_altitude': z0,
+            'target_altitude_sigma': float(target_altitude_sigma or 0.0)}
+
+
 def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='both',
                    fixed_sigma_deg=0.5, progress=None, range_ref=None, outliers=None,
-                   robust=False):
+                   robust=False, dimension=None, target_altitude=None,
+                   target_altitude_sigma=0.0):
     """Run the study; returns (rows: list of Stats, meta: dict).
 
     ``outliers``: None or (fraction, min, max magnitude in rad) (:func:`parse_outliers`).
     ``robust``: pass option ``robust=True`` to the estimators that accept it.
+    ``dimension``, ``target_altitude``, ``target_altitude_sigma`` (m): the solve
+    (core.horizontal). A horizontal solve (forced, or a scenario whose stations are all
+    azimuth-only, ``dims: 1``) states the altitude: ``target_altitude``, else each trial's
+    true target altitude; RMSE/CRLB then uses the horizontal bound and NEES has 2 degrees
+    of freedom (σ_z = 0) or 3.
     """
     from ..core import evaluation as ev
     from ..core import registry
@@ -168,9 +200,10 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
             scoped = registry.check(e, dict(options.get(e, {}), robust=True))
             if 'robust' in scoped:
                 options[e] = scoped
+    solve_options = _solve_options(tr, dimension, target_altitude, target_altitude_sigma)
     t0 = time.perf_counter()
     rows = ev.evaluate(estimators, tr, sigmas, sweeps, seed, fixed_sigma_deg, options,
-                       progress, outliers=outliers)
+                       progress, outliers=outliers, solve_options=solve_options)
     elapsed = time.perf_counter() - t0
     meta = {'scenario': path, 'scenario_name': scenario.name, 'seed': seed,
             'trials': trials, 'problems_per_level': int(tr.M), 'estimators': estimators,
@@ -178,6 +211,10 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
             'options': options, 'elapsed_s': elapsed,
             'stations': tr.station_ids, 'reference_range_m': ref,
             'range_ref_override_m': range_ref, 'robust': bool(robust),
+            'dimension': solve_options.get('dimension', dimension or 'auto'),
+            'target_altitude_m': (None if solve_options.get('target_altitude') is None else
+                                  'truth' if target_altitude is None else target_altitude),
+            'target_altitude_sigma_m': solve_options.get('target_altitude_sigma'),
             'outliers': (None if outliers is None else
                          [outliers[0], math.degrees(outliers[1]), math.degrees(outliers[2])])}
     return rows, meta
@@ -316,7 +353,8 @@ def run(args):
     progress = Progress(enabled=not args.quiet and sys.stderr.isatty())
     rows, meta = run_evaluation(args.scenario, estimators, sigmas, args.trials, args.seed,
                                 args.sweep, args.fixed_sigma_deg, progress, args.range_ref,
-                                outliers, args.robust)
+                                outliers, args.robust, args.dimension, args.target_altitude,
+                                args.target_altitude_sigma)
     print(f'{meta["scenario"]}: {args.trials} trials x {len(sigmas)} σ x '
           f'{len(meta["sweeps"])} sweeps x {len(estimators)} estimators, seed {args.seed}, '
           f'{meta["elapsed_s"]:.2f} s')

@@ -344,11 +344,12 @@ def noisy_bearings(trials, sigma_az, sigma_el, rng, outliers=None):
     el = np.where(trials.has_elevation[None, :], el, np.nan)
     return BearingSet.from_arrays(trials.stations, wrap_angle(az), el,
                                   np.broadcast_to(sigma_az, (M, N)),
-                                  np.broadcast_to(sigma_el, (M, N)))
+                                  np.broadcast_to(sigma_el, (M, N)),
+                                  require_elevation=bool(np.any(trials.has_elevation)))
 
 
 def run_level(estimators, trials, level, rng, sweep='joint', options=None, locate=None,
-              on_run=None, outliers=None):
+              on_run=None, outliers=None, solve_options=None):
     """Evaluate ``estimators`` at one noise level on :class:`Trials`; returns [Stats].
 
     One noisy bearing batch (M = trials.M problems) is drawn from ``rng`` with the true
@@ -358,10 +359,20 @@ def run_level(estimators, trials, level, rng, sweep='joint', options=None, locat
     estimator is one vectorised ``locate(name, bearings, **options[name])`` call, timed with
     ``time.perf_counter``. The CRLB uses the true σ at the true targets. ``outliers``
     (fraction, min, max magnitude in rad) adds outlier bearings (:func:`noisy_bearings`).
+    ``solve_options`` (``dimension``, ``target_altitude`` (m, scalar or (M,)),
+    ``target_altitude_sigma``, ``use_elevations``; core.horizontal) run every estimator
+    through core.registry.solve with them; problems solved horizontally are measured against
+    the bound of the horizontal solve (core.horizontal_crlb: the stated altitude as a prior
+    N(z₀, σ_z²) at the true target) and their NEES has 2 degrees of freedom when σ_z = 0
+    (:func:`nees_values`).
     """
     if locate is None:
-        from .estimators import locate
+        if solve_options:
+            from .registry import solve as locate
+        else:
+            from .estimators import locate
     options = options or {}
+    solve_options = dict(solve_options or {})
     f = trials.sigma_factor()
     saz, sel = level.sigma_az * f, level.sigma_el * f
     noisy = noisy_bearings(trials, saz, sel, rng, outliers)
@@ -369,14 +380,36 @@ def run_level(estimators, trials, level, rng, sweep='joint', options=None, locat
     noisy.sigma_az = np.where(rep, saz, level.sigma_az)
     noisy.sigma_el = np.where(noisy.has_elevation, np.where(rep, sel, level.sigma_el), np.nan)
     bound = crlb_matrix(trials.targets, trials.stations, saz, sel, trials.has_elevation)
+    if solve_options.get('target_altitude') is not None:
+        bound = _horizontal_bound(bound, trials, noisy, saz, sel, solve_options)
     out = []
     for name in estimators:
         t0 = time.perf_counter()
-        res = locate(name, noisy, **options.get(name, {}))
+        res = locate(name, noisy, **options.get(name, {}), **solve_options)
         dt = time.perf_counter() - t0
         out.append(error_statistics(name, sweep, level, trials.targets, res, bound, dt))
         if on_run is not None:
             on_run()
+    return out
+
+
+def _horizontal_bound(bound, trials, noisy, saz, sel, solve_options):
+    """``bound`` with the problems the dimension selection solves horizontally replaced by
+    the horizontal CRLB (core.horizontal_crlb) at the true target (its z = the truth's)."""
+    from .horizontal import select_dimension, SOLVE_HORIZONTAL
+    from .horizontal_crlb import horizontal_crlb
+    horiz = select_dimension(noisy, solve_options.get('dimension', 'auto')) == SOLVE_HORIZONTAL
+    if not np.any(horiz):
+        return bound
+    M = trials.M
+    sz = np.broadcast_to(np.asarray(solve_options.get('target_altitude_sigma', 0.0),
+                                    dtype=float), (M,))
+    has_el = trials.has_elevation[None, :] & bool(solve_options.get('use_elevations', True))
+    has_el = np.broadcast_to(has_el, saz.shape)
+    idx = np.flatnonzero(horiz)
+    out = np.array(bound, dtype=float)
+    out[idx] = horizontal_crlb(trials.targets[idx], trials.stations[idx], saz[idx], sel[idx],
+                               has_el[idx], sz[idx])
     return out
 
 
@@ -396,13 +429,14 @@ def targets_rng(seed):
 
 
 def evaluate(estimators, trials, sigmas_deg, sweeps=('joint',), seed=0, fixed_sigma_deg=0.5,
-             options=None, progress=None, locate=None, outliers=None):
+             options=None, progress=None, locate=None, outliers=None, solve_options=None):
     """Full Monte Carlo study: every sweep × σ level × estimator; returns a list of Stats.
 
     ``trials`` (:class:`Trials`) are used for every level. ``progress(done, total)`` is
     called after each estimator run with the number of runs done and to do.
     Deterministic for a given ``seed`` (noise of level k of a sweep from
     :func:`level_rng`). The σ of the sweep replace the scenario's per-station σ_ref.
+    ``solve_options``: the dimension selection of every estimator (:func:`run_level`).
     """
     if not estimators:
         raise ValueError('estimators: need at least one')
@@ -421,7 +455,7 @@ def evaluate(estimators, trials, sigmas_deg, sweeps=('joint',), seed=0, fixed_si
 
     for sw, k, lv in all_levels:
         rows.extend(run_level(estimators, trials, lv, level_rng(seed, sw, k), sw, options,
-                              locate, on_run, outliers))
+                              locate, on_run, outliers, solve_options))
     return rows
 
 
