@@ -202,7 +202,8 @@ def test_planning_maps_of_azimuth_only_layouts():
     np.testing.assert_allclose(err, ref, rtol=1e-9)
     assert np.all(np.isinf(position_error(pts, st, dimension='3d')))
     with pytest.raises(ValueError, match='^model:'):
-        position_error(pts, st, model='ctls')
+        position_error(pts, st, model='ctls', dimension='horizontal')
+    assert np.all(np.isinf(position_error(pts, st, model='ctls')))   # auto: the 3D model
     grid = GridSpec(-10e3, -10e3, 1000.0, 40, 50, 500.0)
     amap = accuracy_map(st, grid)
     assert amap.solve == 'horizontal'

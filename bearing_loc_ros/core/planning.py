@@ -384,10 +384,16 @@ def horizontal_solve(stations, dimension='auto', new_has_elevation=False):
     return dimension == 'horizontal'
 
 
-def _check_horizontal(model, horizontal):
+def _check_horizontal(model, horizontal, dimension):
+    """Whether the CRLB of the horizontal solve applies: ``auto`` with the CTLS model keeps
+    the 3D model (unobservable, +inf, for azimuth-only layouts); a forced ``horizontal``
+    with it is a ValueError."""
+    if horizontal and model != 'crlb' and dimension == 'auto':
+        return False
     if horizontal and model != 'crlb':
         raise ValueError('model: the CTLS error model (Wang, Zhang & Wu eq. (30)) is 3D; '
                          'azimuth-only layouts (the horizontal solve) use model crlb')
+    return horizontal
 
 
 def position_error(targets, stations, model='crlb', length_unit=1.0, dimension='auto'):
@@ -398,14 +404,13 @@ def position_error(targets, stations, model='crlb', length_unit=1.0, dimension='
     Horizontal solve (``dimension`` ``horizontal``, or ``auto`` for a layout of 1D
     stations only, :func:`horizontal_solve`): the target altitude is known (the target's
     z), ε = sqrt(P_xx + P_yy) with P the 2 × 2 CRLB of (x, y) (core.horizontal_crlb,
-    σ_z = 0; CRLB model only). ``targets`` (M, 3) or (3,), m. +inf where the geometry is
-    unobservable (for example only 1D stations in 3D, or a target on the line through all
-    1D stations), NaN on a station's vertical axis (azimuth undefined). Vectorised in
-    blocks of 65536 targets.
+    σ_z = 0; CRLB model only: ``auto`` with the CTLS model stays 3D). ``targets`` (M, 3)
+    or (3,), m. +inf where the geometry is unobservable (for example only 1D stations in
+    3D, or a target on the line through all 1D stations), NaN on a station's vertical axis
+    (azimuth undefined). Vectorised in blocks of 65536 targets.
     """
     _check_model(model)
-    horizontal = horizontal_solve(stations, dimension)
-    _check_horizontal(model, horizontal)
+    horizontal = _check_horizontal(model, horizontal_solve(stations, dimension), dimension)
     tgt = np.atleast_2d(np.asarray(targets, dtype=float))
     if tgt.shape[-1] != 3 or not np.all(np.isfinite(tgt)):
         raise ValueError('targets: expected finite (M, 3) positions')
@@ -466,7 +471,8 @@ def accuracy_map(stations, grid, model='crlb', length_unit=1.0, dimension='auto'
     well under a second (bench/bench_planning.py). Returns an :class:`AccuracyMap`.
     """
     err = position_error(grid.points(), stations, model, length_unit, dimension)
-    solve = 'horizontal' if horizontal_solve(stations, dimension) else '3d'
+    solve = ('horizontal' if _check_horizontal(model, horizontal_solve(stations, dimension),
+                                               dimension) else '3d')
     return AccuracyMap(grid, err.reshape(grid.height, grid.width), model, stations, solve)
 
 
@@ -553,8 +559,8 @@ def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=No
     """
     from scipy.optimize import minimize
     _check_model(model)
-    horizontal = horizontal_solve(stations, dimension, has_elevation)
-    _check_horizontal(model, horizontal)
+    horizontal = _check_horizontal(model, horizontal_solve(stations, dimension, has_elevation),
+                                   dimension)
     if objective not in OBJECTIVES:
         raise ValueError(f'objective: choose one of {list(OBJECTIVES)}, got {objective!r}')
     try:
