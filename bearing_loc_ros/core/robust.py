@@ -6,40 +6,59 @@ fusion's per-station trust, :mod:`~bearing_loc_ros.core.station_trust`, feeds it
 not take on trust). It runs after the Gauss-Newton maximum likelihood estimate X̂ of
 Zong & Cui 2015 eqs. (3)-(11) (``mle``, ``wmle``):
 
-1. **Screen** (cheap, every fix). With the σ the estimator assumes at X̂ (σ_j, grown with
-   range for ``wmle``: σ_j = σ_ref,j d_k / d_ref, eqs. (9)-(10)), the whitened residuals
-   r_j = e_j / σ_j of the M_meas angles are computed. The fix is kept as it is when every
-   |r_j| ≤ c (c² = χ²₁ quantile of :data:`OUTLIER_PROBABILITY`), the residual χ² = Σ r_j²
-   lies inside the two-sided χ²_dof band (dof = M_meas − 3) and the nonlinearity ν (below)
-   is at most :data:`MAX_NONLINEARITY`. At high SNR this is every fix but a fraction of
-   1e-3, so the estimator stays the efficient ML of the paper.
-2. **Consensus** (screened-out fixes only). Candidate points: X̂, the pseudo-linear ``ls``
-   fix of all bearings (Wang, Zhang & Wu eq. (4)) and the ``ls`` fixes leaving out one
-   station and, for N ≥ 5, every pair of stations. Each is scored by the truncated
-   (mixture) negative log-likelihood S(X) = Σ_j min(r_j², c²) + Σ_{inliers} log σ_j², the
-   MSAC score (Torr & Zisserman 2000) with the log σ term of the exact Gaussian likelihood,
-   so that a range-grown σ cannot buy a small score by running away in range. The best
-   candidate starts step 3. With range-grown σ (``wmle``) steps 2-3 run for every fix.
+1. **Screen** (cheap, every converged fix with constant σ). With the σ the estimator
+   assumes at X̂, the whitened residuals r_j = e_j / σ_j of the M_meas angles are computed.
+   The fix is kept as it is when every |r_j| ≤ c (c² = χ²₁ quantile of
+   :data:`OUTLIER_PROBABILITY`), the residual χ² = Σ r_j² lies inside the two-sided χ²_dof
+   band (dof = M_meas − 3) and the nonlinearity ν (below) is at most
+   :data:`MAX_REGION_NONLINEARITY`. At high SNR this is every fix but a fraction of 1e-3, so
+   the estimator stays the efficient ML of the paper. A fix the estimator did not converge
+   on (``max_iterations``, ``diverged``: a run-away in range) always goes on to step 2, and
+   with range-grown σ (``wmle``, σ_j = σ_ref,j d_k / d_ref, eqs. (9)-(10)) every fix does.
+2. **Consensus**. Candidate points: X̂, the pseudo-linear ``ls`` fix of all bearings
+   (Wang, Zhang & Wu eq. (4)) and the ``ls`` fixes leaving out one station and, for N ≥ 5,
+   every pair of stations. Each is scored by the truncated (mixture) negative
+   log-likelihood S(X) = Σ_j min(r_j², c²) + Σ_{inliers} log σ_j², the MSAC score (Torr &
+   Zisserman 2000) with the log σ term of the exact Gaussian likelihood, so that a
+   range-grown σ cannot buy a small score by running away in range. The best candidate
+   starts step 3.
 3. **Refit.** Maximum likelihood on the inliers (|r_j| ≤ c), Levenberg-Marquardt on the
    *full* negative log-likelihood L(X) = Σ_j w_j (r_j² + log σ_j²), w_j ∈ {0, 1}: for
    ``wmle`` the log σ(d) term the paper's cost omits is included, whose absence makes the
    paper's cost fall toward 0 as the range grows (an attractor at infinity). Inliers are
    recomputed at the new estimate and the fit repeated until the set is stable (at most
-   :data:`REFIT_ROUNDS`). Excluded bearings are reported per angle.
-4. **Assess** (every fix). The covariance is the inverse Fisher information over the
-   inliers at the estimate (for range-grown σ inflated by (1 + 2ν)², since σ(d̂) and hence
-   the covariance scale with the estimated range); the fix
-   is ``ok`` only when (a) the residual χ² ≤ the χ²_dof quantile of
-   :data:`CONSISTENCY_PROBABILITY`, (b) ν ≤ :data:`MAX_NONLINEARITY` and (c) at most
-   ⌊(M_meas − 3)/2⌋ angles were excluded; otherwise ``low_confidence`` (position and
-   covariance kept, ``converged`` False).
+   :data:`REFIT_ROUNDS`). A bearing is called an outlier only when no fit of all the
+   bearings passes the residual χ² test (:func:`_prefer_all_bearings`): at low SNR a subset
+   can fit a wrong point near the stations, where range-grown σ are small. Excluded
+   bearings are reported per angle.
+4. **Assess** (every fix that went through steps 2-3). The covariance is the inverse
+   Fisher information over the inliers at the estimate; for range-grown σ it is widened
+   along its major axis to the far side of the test-inversion region
+   (:func:`test_inversion_covariance`): the covariance at the estimate understates the
+   region toward larger range, where σ(d) is larger. The fix is ``ok`` only when (a) the
+   residual χ² ≤ the χ²_dof quantile of :data:`CONSISTENCY_PROBABILITY`, (b) ν ≤
+   :func:`max_nonlinearity`, (c) at most ⌊(M_meas − 3)/2⌋ angles were excluded and (d) every
+   exclusion is decisive: the excluded angle is an outlier also given the fix's own
+   uncertainty, r² / (1 + gᵀPg) > the χ²₁ quantile of :data:`DECISIVE_PROBABILITY`, g the
+   whitened gradient. Otherwise ``low_confidence`` (position and covariance kept,
+   ``converged`` False).
 
-Nonlinearity ν = max_k sqrt(u_kᵀ P u_k) / d_k: the standard deviation of the range seen
-from station k (u_k the unit line of sight, P the covariance) relative to that range. The
-angles are functions of X / d_k, so their second-order terms over the confidence region are
-ν times the first-order ones (the parameter-effects curvature of Bates & Watts 1980 for a
-bearing); with ν small the error ellipsoid describes the confidence region, with ν ≳ 0.1
-the region is a banana elongated in range and a Gaussian covariance understates its tail.
+Nonlinearity ν = sqrt(λ_max(P)) / min_k d_k (:func:`region_nonlinearity`): the radius of
+the confidence region seen from the nearest station, relative to its range. The angles are
+functions of X / d_k, so their second-order terms over the confidence region are ν times
+the first-order ones (the parameter-effects curvature of Bates & Watts 1980 for a bearing);
+with ν small the error ellipsoid describes the confidence region, with ν large the region
+is a banana elongated in range and a Gaussian covariance understates its tail.
+
+Calibration (``bench/low_snr.py``, 2000 trials per σ, joint, azimuth and elevation
+sweeps): the largest ν bound at which the ``ok`` fixes' confident-wrong share (Mahalanobis
+error above the χ²₃ 0.9999 quantile) stays at the level it has for small ν. Constant σ
+(six stations, σ 1°-5°): 0.2 (ok share at 5° 33 % with 0.1, 99.7 % with 0.2, the
+confident-wrong share unchanged). Range-grown σ (Zong & Cui 2015 scenario, σ_ref 0.5°-5°):
+0.1 (with 0.15 the share rises to 2-9 % at σ_ref ≥ 2.5°). The test-inversion level z = 2
+(:data:`TEST_INVERSION_Z`) is the smallest that brought the ok fixes' mean NEES up to
+3 ± its 99 % band at σ_ref ≥ 1° without raising the confident-wrong share; larger z
+over-covers the bulk (mean NEES 2.3-2.5 at z = 4.6).
 
 Units: m, rad; ENU, azimuth θ CCW from East, elevation ψ above the horizontal.
 """
@@ -57,8 +76,18 @@ from .crlb import safe_inverse
 OUTLIER_PROBABILITY = 0.9999
 #: Probability of the residual χ² consistency test of an ``ok`` fix.
 CONSISTENCY_PROBABILITY = 0.999
-#: Largest nonlinearity ν of an ``ok`` fix (range σ / range seen from any station).
+#: Largest range σ / range (:func:`nonlinearity`) accepted by callers of that function.
 MAX_NONLINEARITY = 0.1
+#: Largest nonlinearity ν (:func:`region_nonlinearity`) of an ``ok`` fix, constant σ
+#: (``mle``); calibrated by measurement (module docstring).
+MAX_REGION_NONLINEARITY = 0.2
+#: The same for range-grown σ (``wmle``).
+MAX_REGION_NONLINEARITY_GROWN = 0.1
+#: An excluded angle must be an outlier also given the fix's uncertainty: its predictive
+#: residual r² / (1 + gᵀPg) must exceed the χ²₁ quantile of this probability (4.9 σ).
+DECISIVE_PROBABILITY = 1.0 - 1e-6
+#: Level z of the test-inversion covariance along the range axis (range-grown σ).
+TEST_INVERSION_Z = 2.0
 #: Rounds of inlier recomputation and refit.
 REFIT_ROUNDS = 3
 #: Levenberg-Marquardt iterations per refit.
@@ -68,6 +97,11 @@ REFIT_ITERATIONS = 40
 @lru_cache(maxsize=16)
 def _c2(p=OUTLIER_PROBABILITY):
     return float(_chi2.ppf(p, 1))
+
+
+def max_nonlinearity(grown):
+    """Largest ν of an ``ok`` fix: range-grown σ (``grown`` True) or constant σ."""
+    return MAX_REGION_NONLINEARITY_GROWN if grown else MAX_REGION_NONLINEARITY
 
 
 class Data:
@@ -159,6 +193,53 @@ def nonlinearity(P, u, d, present):
     nu = np.where(present, nu, -np.inf)
     out = nu.max(axis=-1)
     return np.where(np.isfinite(out), out, np.nan)
+
+
+def region_nonlinearity(P, d, present):
+    """ν = sqrt(λ_max(P)) / min_k d_k over stations ``present`` (…, N); NaN if none.
+
+    P (…, 3, 3) m², d (…, N) ranges, m. The angular radius of the confidence region seen
+    from the nearest station (module docstring); NaN where P is not finite.
+    """
+    finite = np.all(np.isfinite(P), axis=(-2, -1))
+    lam = np.linalg.eigvalsh(np.where(finite[..., None, None], P, 0.0))[..., -1]
+    dmin = np.where(present, d, np.inf).min(axis=-1)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        nu = np.sqrt(np.maximum(lam, 0.0)) / dmin
+    return np.where(finite & np.isfinite(nu), nu, np.nan)
+
+
+def test_inversion_covariance(data, X, wa, we, P, z=TEST_INVERSION_Z, iterations=4):
+    """P widened along its major axis to the far side of the test-inversion region, m².
+
+    With range-grown σ the covariance P(X) = (Σ w g gᵀ)⁻¹ at a point X grows with its range.
+    The confidence region of the truth is {X: (X̂ − X)ᵀ P(X)⁻¹ (X̂ − X) ≤ z²}, the points whose
+    own covariance puts the estimate X̂ within z σ. Along the major axis v of P(X̂) (oriented
+    away from the stations) its far boundary t solves t = z s(X̂ + t v), s(X)² = vᵀ P(X) v,
+    by fixed-point iteration from t = z s(X̂), t at most 10 times the largest station range
+    (where the region has no far boundary the fix is not ``ok`` anyway: its ν is large).
+    The variance along v becomes max(s(X̂)², (t / z)²); P is unchanged across v.
+    """
+    finite = np.all(np.isfinite(P), axis=(-2, -1))
+    Pf = np.where(finite[:, None, None], P, 0.0)
+    _, V = np.linalg.eigh(Pf)
+    v = V[..., -1]
+    _, _, _, _, u, d, _ = data.evaluate(X)
+    t_max = 10.0 * np.max(np.where(np.isfinite(d), d, 0.0), axis=-1)
+    out = np.sum(u * ((wa + we) > 0)[..., None], axis=1)
+    v = v * np.where(np.sum(v * out, axis=-1) < 0, -1.0, 1.0)[:, None]
+    s0 = np.sqrt(np.maximum(np.einsum('mi,mij,mj->m', v, Pf, v), 0.0))
+    t = z * s0
+    for _ in range(iterations):
+        _, _, ga, ge, _, _, _ = data.evaluate(X + t[:, None] * v)
+        Pt = safe_inverse(fisher(ga, ge, wa, we))
+        st = np.sqrt(np.maximum(np.einsum('mi,mij,mj->m', v, Pt, v), 0.0))
+        t = np.where(np.isfinite(st), np.minimum(z * st, t_max), t_max)
+    add = np.maximum((t / z) ** 2 - s0 * s0, 0.0)
+    with np.errstate(invalid='ignore'):
+        Pw = P + add[:, None, None] * np.einsum('mi,mj->mij', v, v)
+    bad = ~finite | ~np.isfinite(add)
+    return np.where(bad[:, None, None], np.inf, Pw)
 
 
 def chi2_band(dof, probability=CONSISTENCY_PROBABILITY):
@@ -314,17 +395,70 @@ def consensus_fit(data, X_ml, c2=None):
         wa, we = na, ne
         if np.all(same):
             break
+    return _prefer_all_bearings(data, X, wa, we, X_ml, cand[:, 1])
+
+
+def _cost(data, X, wa, we):
+    """Full negative log-likelihood L(X) = Σ w_j (r_j² + log σ_j²) (module docstring step 3)."""
+    ra, re, _, _, _, _, log_s2 = data.evaluate(X)
+    c = (wa * (ra * ra + log_s2) + we * (re * re + log_s2)).sum(axis=-1)
+    return np.where(np.isfinite(c), c, np.inf)
+
+
+def _prefer_all_bearings(data, X, wa, we, X_ml, X_ls):
+    """Keep every bearing when a consistent fit of all of them exists (steps 2-3).
+
+    A bearing is called an outlier only when no fit of *all* the bearings passes the
+    residual χ² test: for the problems with an excluded angle, the full likelihood of all
+    angles is refitted from the estimator's fix and from the all-station ``ls`` fix, the
+    better one kept; if its χ² ≤ the χ²_dof quantile of :data:`CONSISTENCY_PROBABILITY` it
+    replaces the fit with exclusions. (At low SNR a subset can fit a wrong point closer to
+    the stations, where range-grown σ are small, and exclude the good bearings that
+    contradict it.)
+    """
+    has = data.has_el
+    exc = np.any(wa == 0, axis=-1) | np.any(has & (we == 0), axis=-1)
+    idx = np.flatnonzero(exc)
+    if not idx.size:
+        return X, wa, we
+    sub = data.take(idx)
+    ones = np.ones_like(sub.az)
+    she = sub.has_el.astype(float)
+    best, cost = None, None
+    for start in (X_ml[idx], X_ls[idx]):
+        good = np.all(np.isfinite(start), axis=-1)
+        Xs = _refit(sub, np.where(good[:, None], start, X[idx]), ones, she)
+        cs = np.where(good, _cost(sub, Xs, ones, she), np.inf)
+        if best is None:
+            best, cost = Xs, cs
+        else:
+            better = cs < cost
+            best = np.where(better[:, None], Xs, best)
+            cost = np.where(better, cs, cost)
+    ra, re, *_ = sub.evaluate(best)
+    chi2 = (ra * ra + she * re * re).sum(axis=-1)
+    dof = sub.az.shape[1] + sub.has_el.sum(axis=-1) - 3
+    use = np.isfinite(cost) & (chi2 <= chi2_upper(dof))
+    if use.any():
+        X, wa, we = X.copy(), wa.copy(), we.copy()
+        k = idx[use]
+        X[k] = best[use]
+        wa[k] = 1.0
+        we[k] = has[k].astype(float)
     return X, wa, we
 
 
-def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY,
-           max_nonlinearity=MAX_NONLINEARITY):
+def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY, max_nu=None):
     """Step 4 of the module docstring: (covariance (M, 3, 3), ok (M,), chi2, dof, ν).
 
-    ``ok``: χ² ≤ the χ²_dof ``probability`` quantile, ν ≤ ``max_nonlinearity`` and at most
-    ⌊(M_meas − 3)/2⌋ angles excluded. The covariance is (Σ w g gᵀ)⁻¹, m², times (1 + 2ν)²
-    for range-grown σ.
+    ``ok``: χ² ≤ the χ²_dof ``probability`` quantile, ν ≤ ``max_nu`` (default
+    :func:`max_nonlinearity`), at most ⌊(M_meas − 3)/2⌋ angles excluded, and every
+    excluded angle decisive (predictive residual r² / (1 + gᵀPg) above the χ²₁ quantile of
+    :data:`DECISIVE_PROBABILITY`). The covariance is (Σ w g gᵀ)⁻¹, m², for range-grown σ
+    widened by :func:`test_inversion_covariance`.
     """
+    grown = data.d_ref is not None
+    max_nu = max_nonlinearity(grown) if max_nu is None else max_nu
     ra, re, ga, ge, u, d, _ = data.evaluate(X)
     P = safe_inverse(fisher(ga, ge, wa, we))
     chi2 = (wa * ra * ra + we * re * re).sum(axis=-1)
@@ -332,36 +466,47 @@ def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY,
     n_all = data.az.shape[1] + data.has_el.sum(axis=-1)
     dof = (n_kept - 3).astype(int)
     present = (wa + we) > 0
-    nu = nonlinearity(P, u, d, present)
+    finite = np.all(np.isfinite(P), axis=(-2, -1))
+    Pf = np.where(finite[:, None, None], P, 0.0)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        qa = ra * ra / (1.0 + np.einsum('mni,mij,mnj->mn', ga, Pf, ga))
+        qe = re * re / (1.0 + np.einsum('mni,mij,mnj->mn', ge, Pf, ge))
+    cd = _c2(DECISIVE_PROBABILITY)
+    marginal = ((wa == 0) & ~(qa > cd)) | ((we == 0) & data.has_el & ~(qe > cd))
+    nu = region_nonlinearity(P, d, present)
+    if grown:
+        P = test_inversion_covariance(data, X, wa, we, P)
     excluded = n_all - n_kept
-    ok = ((chi2 <= chi2_upper(dof, probability)) & (nu <= max_nonlinearity)
-          & (excluded <= np.floor((n_all - 3) / 2.0)) & np.all(np.isfinite(P), axis=(-2, -1)))
-    if data.d_ref is not None:
-        # σ(d̂) ∝ d̂: the covariance scales with d̂², so a range off by 2ν makes it too small
-        # by (1 + 2ν)²; the covariance is inflated by that factor (range-grown σ only).
-        P = P * ((1.0 + 2.0 * np.nan_to_num(nu, nan=0.0)) ** 2)[:, None, None]
+    ok = ((chi2 <= chi2_upper(dof, probability)) & (nu <= max_nu)
+          & (excluded <= np.floor((n_all - 3) / 2.0)) & ~marginal.any(axis=-1)
+          & np.all(np.isfinite(P), axis=(-2, -1)))
     return P, ok, chi2, dof, nu
 
 
-def screen(data, X, P, probability=CONSISTENCY_PROBABILITY, c2=None,
-           max_nonlinearity=MAX_NONLINEARITY):
+def screen(data, X, P, probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None):
     """Step 1: (M,) True where the fix needs the consensus and refit (module docstring)."""
     c2 = _c2() if c2 is None else c2
-    ra, re, _, _, u, d, _ = data.evaluate(X)
+    max_nu = max_nonlinearity(data.d_ref is not None) if max_nu is None else max_nu
+    ra, re, _, _, _, d, _ = data.evaluate(X)
     qa, qe = ra * ra, re * re
     chi2 = (qa + qe).sum(axis=-1)
     dof = data.az.shape[1] + data.has_el.sum(axis=-1) - 3
     lo, hi = chi2_band(dof, probability)
-    nu = nonlinearity(P, u, d, np.ones_like(d, dtype=bool))
+    nu = region_nonlinearity(P, d, np.ones_like(d, dtype=bool))
     calm = ((qa.max(axis=-1) <= c2) & (qe.max(axis=-1) <= c2) & (chi2 >= lo) & (chi2 <= hi)
-            & (nu <= max_nonlinearity))
+            & (nu <= max_nu))
     return ~calm
 
 
 def screen_one(bearings, x, d_ref, P, c2=None, probability=CONSISTENCY_PROBABILITY,
-               max_nonlinearity=MAX_NONLINEARITY):
-    """:func:`screen` for one problem on Python floats (the fusion's one-fix path)."""
+               max_nu=None):
+    """:func:`screen` for one problem on Python floats (the fusion's one-fix path).
+
+    ``x`` (3,) m, ``P`` (3, 3) m² (array or nested lists); True when the fix needs the
+    consensus and refit. The same decisions as :func:`screen` (tested).
+    """
     c2 = _c2() if c2 is None else c2
+    max_nu = max_nonlinearity(d_ref is not None) if max_nu is None else max_nu
     pos = bearings.positions[0].tolist()
     az = bearings.azimuth[0].tolist()
     el = bearings.elevation[0].tolist()
@@ -370,8 +515,7 @@ def screen_one(bearings, x, d_ref, P, c2=None, probability=CONSISTENCY_PROBABILI
     x0, x1, x2 = x
     chi2 = 0.0
     n = 0
-    nu = 0.0
-    p = P.tolist()
+    dmin = math.inf
     for (px, py, pz), a, e, s1, s2 in zip(pos, az, el, sa, se):
         dx, dy, dz = x0 - px, x1 - py, x2 - pz
         rho = math.hypot(dx, dy)
@@ -390,13 +534,34 @@ def screen_one(bearings, x, d_ref, P, c2=None, probability=CONSISTENCY_PROBABILI
                 return True
             chi2 += q
             n += 1
-        ux, uy, uz = dx / d, dy / d, dz / d
-        v = (ux * (p[0][0] * ux + p[0][1] * uy + p[0][2] * uz)
-             + uy * (p[1][0] * ux + p[1][1] * uy + p[1][2] * uz)
-             + uz * (p[2][0] * ux + p[2][1] * uy + p[2][2] * uz))
-        nu = max(nu, math.sqrt(max(v, 0.0)) / d)
+        dmin = min(dmin, d)
     lo, hi = _band_cached(n - 3, probability)
-    return not (lo <= chi2 <= hi and nu <= max_nonlinearity)
+    if not lo <= chi2 <= hi:
+        return True
+    lam = _lambda_max(P.tolist() if hasattr(P, 'tolist') else P)
+    return not math.sqrt(max(lam, 0.0)) <= max_nu * dmin
+
+
+def _lambda_max(p):
+    """Largest eigenvalue of a symmetric 3 × 3 matrix (nested lists), closed form.
+
+    The trigonometric solution of the characteristic cubic (Smith 1961): with q = tr/3,
+    B = (A − qI)/r, r² = tr((A − qI)²)/6, λ_max = q + 2r cos(acos(det B / 2) / 3).
+    NaN for a non-finite matrix.
+    """
+    a, b, c = p[0][0], p[1][1], p[2][2]
+    d, e, f = p[0][1], p[1][2], p[0][2]
+    off = d * d + e * e + f * f
+    q = (a + b + c) / 3.0
+    if off == 0.0:
+        return max(a, b, c)
+    aa, bb, cc = a - q, b - q, c - q
+    r = math.sqrt((aa * aa + bb * bb + cc * cc + 2.0 * off) / 6.0)
+    if not r > 0.0:
+        return q if r == 0.0 else math.nan
+    det = (aa * (bb * cc - e * e) - d * (d * cc - e * f) + f * (d * e - bb * f)) / r ** 3
+    phi = math.acos(min(1.0, max(-1.0, det / 2.0))) / 3.0
+    return q + 2.0 * r * math.cos(phi)
 
 
 _BANDS = {}
@@ -414,13 +579,15 @@ def confident_result(result, bearings, d_ref=None):
     """The estimator's FixResult after screen, consensus, refit and assessment (module doc).
 
     ``result``: an ``mle`` (``d_ref`` None) or ``wmle`` (``d_ref`` = reference range, m)
-    FixResult of ``bearings``. Problems whose status is not ``ok`` are returned unchanged.
-    Every ``ok`` problem ends ``ok`` or ``low_confidence`` with a finite position, or
-    ``degenerate_geometry`` when no usable fix exists; ``excluded`` (M, N, 2) and
+    FixResult of ``bearings``. Problems of status ``degenerate_geometry`` are returned
+    unchanged. Every ``ok``, ``max_iterations`` or ``diverged`` problem ends ``ok`` or
+    ``low_confidence`` with a finite position, or ``degenerate_geometry`` when no usable
+    fix exists; ``excluded`` (M, N, 2) and
     ``nonlinearity`` (M,) are filled. A problem that passes the screen keeps the
     estimator's own position, covariance and status.
     """
-    from .fix import FixResult, STATUS_DEGENERATE, STATUS_LOW_CONFIDENCE, STATUS_OK
+    from .fix import (FixResult, STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_LOW_CONFIDENCE,
+                      STATUS_MAX_ITERATIONS, STATUS_OK)
     M, N = bearings.M, bearings.N
     pos = np.array(result.position, dtype=float)
     cov = np.array(result.covariance, dtype=float)
@@ -442,13 +609,16 @@ def confident_result(result, bearings, d_ref=None):
         if calm_idx.size:
             sub = data.take(calm_idx)
             trigger[calm_idx] = screen(sub, pos[calm_idx], cov[calm_idx])
-    # Only converged fixes are screened: max_iterations/diverged keep the estimator's
-    # status (its iteration limit and run-away tests stand).
-    trigger &= usable & (status == STATUS_OK)
+    # A fix the estimator did not converge on (max_iterations, diverged: typically a run-away
+    # in range) always goes to the consensus, with its own position as one candidate when
+    # finite; degenerate geometry stays as it is.
+    trigger = np.where(status == STATUS_OK, trigger & usable,
+                       np.isin(status, (STATUS_MAX_ITERATIONS, STATUS_DIVERGED)))
     idx = np.flatnonzero(trigger)
     if idx.size:
         data = Data(bearings, d_ref).take(idx)
-        X, wa, we = consensus_fit(data, pos[idx])
+        start = np.where(np.all(np.isfinite(pos[idx]), axis=1)[:, None], pos[idx], np.nan)
+        X, wa, we = consensus_fit(data, start)
         P, ok, _, _, nux = assess(data, X, wa, we)
         finite = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
         pos[idx] = np.where(finite[:, None], X, np.nan)
