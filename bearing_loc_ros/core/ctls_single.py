@@ -94,19 +94,24 @@ def _station(p, th, ps, s_az, s_el, has_el, pe=None):
             *gi, *pe)
 
 
+# cost() and derivatives() share their first lines (H_X, S⁻¹ and r of one station): kept inline
+# on purpose, a helper call per station would cost more than the arithmetic it shares. Both
+# use G⁻¹ = P_E = diag(g0, g3) (Abatzoglou-Mendel): the terms of the general 2 × 2 products
+# with G⁻¹'s zero off-diagonal entries, F_3's zero first row and F_2's zero first column are
+# left out (they add exact zeros in constrained_tls._CTLSProblem).
+
 def cost(stations, X):
     """f(X) of Wang, Zhang & Wu eq. (11) (constrained_tls._CTLSProblem.cost)."""
     x, y, z = X
     f = 0.0
     for (_, _, _, has_el, F0a, F0c, F0d, F1a, F1c, F1d, F2d, F3a, F3c, F3d, h00, h01, h10,
-         h11, h12, y0, y1, g0, g1, g2, g3, _, _) in stations:
+         h11, h12, y0, y1, g0, _, _, g3, _, _) in stations:
         a = x * F0a + y * F1a - F3a                         # H_X = Σ a_j F_j − F_4
         c = x * F0c + y * F1c - F3c
         d = x * F0d + y * F1d + z * F2d - F3d
-        k00, k01 = a * g0, a * g1                           # H_X G⁻¹
-        k10, k11 = c * g0 + d * g2, c * g1 + d * g3
-        s00, s01, s10 = k00 * a, k00 * c + k01 * d, k10 * a  # S = H_X G⁻¹ H_Xᵀ
-        s11 = k10 * c + k11 * d if has_el else 1.0
+        k00, k10 = a * g0, c * g0                           # H_X G⁻¹ (k01 = 0)
+        s00, s01, s10 = k00 * a, k00 * c, k10 * a           # S = H_X G⁻¹ H_Xᵀ
+        s11 = k10 * c + d * g3 * d if has_el else 1.0
         det = s00 * s11 - s01 * s10
         inv = 1.0 / det if det != 0 else math.nan
         r0 = h00 * x + h01 * y - y0                         # r = H X − Y
@@ -120,20 +125,21 @@ def derivatives(stations, X):
 
     Per station (see constrained_tls._CTLSProblem.derivatives): U = S⁻¹r, B3 column j =
     F_jᵀU, B1 = H_X G⁻¹ B3, K = (H_X G⁻¹)ᵀU, B2 column j = F_j K, D = H − B1 − B2,
-    T += 2 Uᵀ(H − B1), H_gn += 2 DᵀS⁻¹D, H_n = H_gn − 2 Σ B3ᵀG⁻¹B3.
+    T += 2 Uᵀ(H − B1), H_gn += 2 DᵀS⁻¹D, H_n = H_gn − 2 Σ B3ᵀG⁻¹B3. Also returns the rms
+    distance of X from the stations (m), the scale of the step test.
     """
     x, y, z = X
-    f = t0 = t1 = t2 = 0.0
+    f = t0 = t1 = t2 = s2 = 0.0
     g00 = g01 = g02 = g11 = g12 = g22 = 0.0
     c00 = c01 = c02 = c11 = c12 = c22 = 0.0
-    for (_, _, _, has_el, F0a, F0c, F0d, F1a, F1c, F1d, F2d, F3a, F3c, F3d, h00, h01, h10,
-         h11, h12, y0, y1, g0, g1, g2, g3, _, _) in stations:
+    for (px, py, pz, has_el, F0a, F0c, F0d, F1a, F1c, F1d, F2d, F3a, F3c, F3d, h00, h01, h10,
+         h11, h12, y0, y1, g0, _, _, g3, _, _) in stations:
         a = x * F0a + y * F1a - F3a
         c = x * F0c + y * F1c - F3c
         d = x * F0d + y * F1d + z * F2d - F3d
-        k00, k01 = a * g0, a * g1
-        k10, k11 = c * g0 + d * g2, c * g1 + d * g3
-        s00, s01, s10 = k00 * a, k00 * c + k01 * d, k10 * a
+        k00, k10 = a * g0, c * g0
+        k11 = d * g3
+        s00, s01, s10 = k00 * a, k00 * c, k10 * a
         s11 = k10 * c + k11 * d if has_el else 1.0
         det = s00 * s11 - s01 * s10
         inv = 1.0 / det if det != 0 else math.nan
@@ -143,46 +149,46 @@ def derivatives(stations, X):
         u0 = si0 * r0 + si1 * r1
         u1 = si2 * r0 + si3 * r1
         f += r0 * u0 + r1 * u1
-        # B3 = [F_jᵀU] (rows 0, 1 of columns 0, 1, 2)
-        p0, p1, p2 = F0a * u0 + F0c * u1, F1a * u0 + F1c * u1, 0.0
+        # B3 = [F_jᵀU]: rows p (p2 = 0) and q
+        p0, p1 = F0a * u0 + F0c * u1, F1a * u0 + F1c * u1
         q0, q1, q2 = F0d * u1, F1d * u1, F2d * u1
-        # B1 = H_X G⁻¹ B3
-        m0, m1, m2 = k00 * p0 + k01 * q0, k00 * p1 + k01 * q1, k00 * p2 + k01 * q2
-        n0, n1, n2 = k10 * p0 + k11 * q0, k10 * p1 + k11 * q1, k10 * p2 + k11 * q2
-        # K = (H_X G⁻¹)ᵀU; B2 = [F_j K]
+        # B1 = H_X G⁻¹ B3: rows m (m2 = 0) and n
+        m0, m1 = k00 * p0, k00 * p1
+        n0, n1, n2 = k10 * p0 + k11 * q0, k10 * p1 + k11 * q1, k11 * q2
+        # K = (H_X G⁻¹)ᵀU; B2 = [F_j K]; D = H − B1 − B2: rows e (e2 = 0) and o
         w0 = k00 * u0 + k10 * u1
-        w1 = k01 * u0 + k11 * u1
-        e0, e1, e2 = h00 - m0 - F0a * w0, h01 - m1 - F1a * w0, -m2
+        w1 = k11 * u1
+        e0, e1 = h00 - m0 - F0a * w0, h01 - m1 - F1a * w0
         o0 = h10 - n0 - (F0c * w0 + F0d * w1)
         o1 = h11 - n1 - (F1c * w0 + F1d * w1)
         o2 = h12 - n2 - F2d * w1
         t0 += 2.0 * (u0 * (h00 - m0) + u1 * (h10 - n0))
         t1 += 2.0 * (u0 * (h01 - m1) + u1 * (h11 - n1))
-        t2 += 2.0 * (u0 * (0.0 - m2) + u1 * (h12 - n2))
+        t2 += 2.0 * (u1 * (h12 - n2))
         # Dᵀ S⁻¹ (rows i) times D (columns j)
         a0, b0 = e0 * si0 + o0 * si2, e0 * si1 + o0 * si3
         a1, b1 = e1 * si0 + o1 * si2, e1 * si1 + o1 * si3
-        a2, b2 = e2 * si0 + o2 * si2, e2 * si1 + o2 * si3
         g00 += 2.0 * (a0 * e0 + b0 * o0)
         g01 += 2.0 * (a0 * e1 + b0 * o1)
-        g02 += 2.0 * (a0 * e2 + b0 * o2)
+        g02 += 2.0 * (b0 * o2)
         g11 += 2.0 * (a1 * e1 + b1 * o1)
-        g12 += 2.0 * (a1 * e2 + b1 * o2)
-        g22 += 2.0 * (a2 * e2 + b2 * o2)
+        g12 += 2.0 * (b1 * o2)
+        g22 += 2.0 * (o2 * si3 * o2)
         # B3ᵀ G⁻¹ (rows i) times B3 (columns j)
-        v0, z0 = p0 * g0 + q0 * g2, p0 * g1 + q0 * g3
-        v1, z1 = p1 * g0 + q1 * g2, p1 * g1 + q1 * g3
-        v2, z2 = p2 * g0 + q2 * g2, p2 * g1 + q2 * g3
+        v0, z0 = p0 * g0, q0 * g3
+        v1, z1 = p1 * g0, q1 * g3
         c00 += 2.0 * (v0 * p0 + z0 * q0)
         c01 += 2.0 * (v0 * p1 + z0 * q1)
-        c02 += 2.0 * (v0 * p2 + z0 * q2)
+        c02 += 2.0 * (z0 * q2)
         c11 += 2.0 * (v1 * p1 + z1 * q1)
-        c12 += 2.0 * (v1 * p2 + z1 * q2)
-        c22 += 2.0 * (v2 * p2 + z2 * q2)
+        c12 += 2.0 * (z1 * q2)
+        c22 += 2.0 * (q2 * g3 * q2)
+        dx, dy, dz = x - px, y - py, z - pz
+        s2 += dx * dx + dy * dy + dz * dz
     Hg = [[g00, g01, g02], [g01, g11, g12], [g02, g12, g22]]
     Hn = [[g00 - c00, g01 - c01, g02 - c02], [g01 - c01, g11 - c11, g12 - c12],
           [g02 - c02, g12 - c12, g22 - c22]]
-    return f, [t0, t1, t2], Hn, Hg
+    return f, [t0, t1, t2], Hn, Hg, math.sqrt(s2 / len(stations))
 
 
 def _solve3(A, b):
@@ -225,7 +231,7 @@ def _ls_start(stations):
     A = [[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]]
     if not _safe_test(A):
         return None
-    X = (np.linalg.inv(np.array(A)) @ np.array([b0, b1, b2])).tolist()
+    X = _solve3(A, (b0, b1, b2))
     # pseudo_linear._closed_form_result: a start on a station is degenerate.
     dist = [math.dist(X, st[:3]) for st in stations]
     scale = 1.0 + max(abs(c) for st in stations for c in st[:3]) + max(dist)
@@ -238,50 +244,38 @@ def _covariance(stations, X):
     """P_ΔX of Wang, Zhang & Wu eq. (30) at X (constrained_tls._CTLSProblem.covariance).
 
     Everything at the angles predicted from X: P = A⁻¹BA⁻¹, A = Σ HᵀS⁻¹H,
-    B = Σ HᵀS⁻¹QS⁻¹H, Q = H_X P_E H_Xᵀ (eq. (29)).
+    B = Σ HᵀS⁻¹QS⁻¹H, Q = H_X P_E H_Xᵀ (eq. (29)). With G⁻¹ = P_E, Q = S and B = A; at the
+    predicted angles H_X = diag(−ρ, −r) (ρ horizontal, r slant range), so S = diag(ρ² σ_θ²,
+    r² σ_ψ²) and A = Σ h_θ h_θᵀ/(ρ σ_θ)² + h_ψ h_ψᵀ/(r σ_ψ)² with the rows h_θ = (sin θ, −cos θ,
+    0) = (dy, −dx, 0)/ρ and h_ψ = (cos θ sin ψ, sin θ sin ψ, −cos ψ) = (dx dz/ρ, dy dz/ρ, −ρ)/r:
+    the Fisher information of the bearings (Zong & Cui 2015 eq. (7)), P = A⁻¹AA⁻¹ = CRLB.
     """
     x, y, z = X
-    A = [[0.0] * 3 for _ in range(3)]
-    B = [[0.0] * 3 for _ in range(3)]
+    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
     for st in stations:
-        px, py, pz, has_el = st[:4]
-        dx, dy, dz = x - px, y - py, z - pz
-        th = math.atan2(dy, dx)
-        ps = math.atan2(dz, math.hypot(dx, dy)) if has_el else 0.0
-        (_, _, _, _, F0a, F0c, F0d, F1a, F1c, F1d, F2d, F3a, F3c, F3d, h00, h01, h10, h11, h12,
-         _, _, g0, g1, g2, g3, pa, pe) = _station(st[:3], th, ps, 0.0, 0.0, has_el,
-                                                  pe=st[25:27])
-        a = x * F0a + y * F1a - F3a
-        c = x * F0c + y * F1c - F3c
-        d = x * F0d + y * F1d + z * F2d - F3d
-        k00, k01 = a * g0, a * g1
-        k10, k11 = c * g0 + d * g2, c * g1 + d * g3
-        s00, s01, s10 = k00 * a, k00 * c + k01 * d, k10 * a
-        s11 = k10 * c + k11 * d if has_el else 1.0
-        det = s00 * s11 - s01 * s10
-        inv = 1.0 / det if det != 0 else math.nan
-        si0, si1, si2, si3 = s11 * inv, -s01 * inv, -s10 * inv, s00 * inv
-        q00, q01, q11 = a * pa * a, a * pa * c, c * pa * c + d * pe * d
-        m00, m01 = si0 * q00 + si1 * q01, si0 * q01 + si1 * q11
-        m10, m11 = si2 * q00 + si3 * q01, si2 * q01 + si3 * q11
-        n00, n01 = m00 * si0 + m01 * si2, m00 * si1 + m01 * si3
-        n10, n11 = m10 * si0 + m11 * si2, m10 * si1 + m11 * si3
-        # A += Hᵀ S⁻¹ H and B += Hᵀ (S⁻¹ Q S⁻¹) H, rows h0 = (h00, h01, 0), h1 = (h10, h11, h12)
-        for i, (hi0, hi1) in enumerate(((h00, h10), (h01, h11), (0.0, h12))):
-            ai0, ai1 = hi0 * si0 + hi1 * si2, hi0 * si1 + hi1 * si3
-            bi0, bi1 = hi0 * n00 + hi1 * n10, hi0 * n01 + hi1 * n11
-            A[i][0] += ai0 * h00 + ai1 * h10
-            A[i][1] += ai0 * h01 + ai1 * h11
-            A[i][2] += ai0 * 0.0 + ai1 * h12
-            B[i][0] += bi0 * h00 + bi1 * h10
-            B[i][1] += bi0 * h01 + bi1 * h11
-            B[i][2] += bi0 * 0.0 + bi1 * h12
-    B = np.array(B)
-    if not (all(math.isfinite(v) for row in A for v in row) and _safe_test(A)
-            and np.isfinite(B).all()):
+        dx, dy, dz = x - st[0], y - st[1], z - st[2]
+        rho2 = dx * dx + dy * dy
+        wa = 1.0 / (rho2 * rho2 * st[25])                  # h_θ h_θᵀ/(ρ² σ_θ²), h_θ ρ
+        a00 += dy * dy * wa
+        a01 -= dy * dx * wa
+        a11 += dx * dx * wa
+        if st[3]:
+            r2 = rho2 + dz * dz
+            q = dz / rho2
+            ex, ey = dx * q, dy * q                          # h_ψ = (ex, ey, −1) ρ/r
+            we = rho2 / (r2 * r2 * st[26])
+            a00 += ex * ex * we
+            a01 += ex * ey * we
+            a02 -= ex * we
+            a11 += ey * ey * we
+            a12 -= ey * we
+            a22 += we
+    A = [[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]]
+    if not (all(math.isfinite(v) for row in A for v in row) and _safe_test(A)):
         return np.full((1, 3, 3), np.inf)
-    Ainv = np.linalg.inv(np.array(A))
-    return (Ainv @ B @ Ainv)[None]
+    A = np.array(A)
+    Ainv = np.linalg.inv(A)
+    return (Ainv @ A @ Ainv)[None]
 
 
 def solve_one(name, bearings, opts):
@@ -310,9 +304,7 @@ def _iterate(name, stations, X, opts):
     conv = div = flat = False
     done = False
     for n in range(opts['max_iterations']):
-        f, T, Hn, Hgn = derivatives(stations, X)
-        scale = math.sqrt(sum((X[0] - st[0]) ** 2 + (X[1] - st[1]) ** 2 + (X[2] - st[2]) ** 2
-                              for st in stations) / len(stations))
+        f, T, Hn, Hgn, scale = derivatives(stations, X)
         pd = False
         if all(isfinite(v) for row in Hn for v in row):
             if _well_conditioned(Hn):
