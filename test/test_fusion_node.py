@@ -424,3 +424,62 @@ def test_burst_is_counted_as_received_or_lost(harness):
     h.set_clock(101 * S)
     h.send_round(101 * S)
     assert h.fusion.core.last_epoch.ok
+
+
+CHURN = '''
+import sys, rclpy
+from geometry_msgs.msg import PoseWithCovarianceStamped
+rclpy.init()
+node = rclpy.create_node('churn', namespace=sys.argv[1])
+pubs = [node.create_publisher(PoseWithCovarianceStamped, f'ghost_{k}/bearing', 10)
+        for k in range(int(sys.argv[2]))]
+print('ready', flush=True)
+sys.stdin.readline()
+'''
+
+
+def _rss_kb():
+    with open('/proc/self/status') as f:
+        return next(int(line.split()[1]) for line in f if line.startswith('VmRSS:'))
+
+
+def test_publisher_churn_causes_no_outage_and_memory_is_bounded(harness):
+    """Rounds of 200 empty publishers appearing under discovery: every epoch is still
+    fixed; once they leave their state (subscription, counters, buffers) is dropped, and
+    the RSS after a round stays within 5 % of the RSS after the previous round."""
+    import subprocess
+    import sys
+    from ros_helpers import node_env
+    h = harness(stations=('s1', 's2', 's3'), discover=True, discovery_period=0.1)
+    t = 100 * S
+    for k in range(10):
+        h.set_clock(t)
+        h.send_round(t)
+        t += S // 10
+    rss = []
+    for cycle in range(3):
+        churn = subprocess.Popen([sys.executable, '-c', CHURN, f'/{h.ns}', '200'],
+                                 stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                 env=node_env())
+        try:
+            assert churn.stdout.readline().strip() == 'ready'
+            n = len(h.fixes)
+            for k in range(30):          # every epoch fixed while the ghosts are discovered
+                h.set_clock(t)
+                h.send_round(t)
+                t += S // 10
+            assert len(h.fixes) == n + 30
+            assert h.spin(lambda: sum(s.startswith('ghost') for s in h.fusion._subs) == 200,
+                          timeout=20.0)
+        finally:
+            churn.stdin.close()
+            churn.wait(timeout=20)
+        assert h.spin(lambda: not any(s.startswith('ghost') for s in h.fusion.core.stations),
+                      timeout=20.0)
+        assert not any(s.startswith('ghost') for s in h.fusion._subs)
+        assert not any(s.startswith('ghost') for s in h.fusion._seq)
+        rss.append(_rss_kb())
+    # Measured: 157 MB before, +30 MB after the first round (middleware discovery pools),
+    # then +5-6 MB per round: the fusion state of the ghosts is gone (above); the rest is
+    # kept by the DDS participant and the allocator. Bound: within 5 % round to round.
+    assert rss[2] <= 1.05 * rss[1], rss
