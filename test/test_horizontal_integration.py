@@ -226,3 +226,40 @@ def test_plan_cli_azimuth_only(capsys):
     assert main(['plan', 'cut-angle', '--sigmas-deg', '1', '1']) == 0
     out = json.loads(capsys.readouterr().out)
     assert out['cut_angle_deg'] == pytest.approx(np.degrees(np.arccos(-1.0 / 3.0)))
+
+
+def test_one_newton_iteration_serves_2d_and_3d():
+    """core.solvers.newton_backtracking on a convex quadratic f = ½(X − c)ᵀQ(X − c): the
+    minimiser in one full step, in 2 and 3 dimensions; a non-finite start is diverged."""
+    from bearing_loc_ros.core.solvers import newton_backtracking, solve2
+
+    class Quadratic:
+        def __init__(self, Q, c):
+            self.Q, self.c = Q, c
+
+        def take(self, idx):
+            return Quadratic(self.Q[idx], self.c[idx])
+
+        def cost(self, X):
+            d = X - self.c
+            return 0.5 * np.einsum('mi,mij,mj->m', d, self.Q, d) + 1.0
+
+        def derivatives(self, X):
+            T = np.einsum('mij,mj->mi', self.Q, X - self.c)
+            return self.cost(X), T, self.Q, self.Q
+
+    rng = np.random.default_rng(0)
+    for d in (2, 3):
+        R = rng.standard_normal((5, d, d))
+        Q = R @ np.swapaxes(R, 1, 2) + np.eye(d)
+        c = rng.standard_normal((5, d)) * 100.0
+        X0 = np.zeros((5, d))
+        X0[4] = np.nan
+        X, it, conv, div = newton_backtracking(Quadratic(Q, c), X0, 1.0, 1e-12, 20,
+                                               np.full(5, 1e-12), lambda s, X: np.ones(len(X)))
+        np.testing.assert_allclose(X[:4], c[:4], rtol=1e-9, atol=1e-9)
+        assert conv[:4].all() and div[4] and np.isnan(X[4]).all()
+    A = np.array([[[2.0, 1.0], [1.0, 3.0]], [[1.0, 2.0], [2.0, 1.0]]])
+    x = solve2(A, np.array([[3.0, 4.0], [1.0, 1.0]]))
+    np.testing.assert_allclose(x[0], [1.0, 1.0])
+    assert np.isnan(x[1]).all()          # det < 0: not positive definite

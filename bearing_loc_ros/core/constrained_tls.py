@@ -46,7 +46,7 @@ from .ctls_single import solve_one
 from .estimator_spec import BEARING_SIGMA, declare, ITERATIVE_OPTIONS, MULTISTATION, STEP_DECAY
 from .fix import iterative_result
 from .pseudo_linear import pseudo_linear_system, start
-from .solvers import COST_RTOL, CHI2_STEP_TOL, inv2, solve3
+from .solvers import COST_RTOL, CHI2_STEP_TOL, inv2, newton_backtracking
 
 WEIGHTINGS = ('paper', 'am')
 
@@ -200,6 +200,11 @@ def ctls_covariance(X, bearings, weighting='paper'):
                         bearings.sigma_el)
 
 
+def _rms_range(sub, X):
+    """rms station range (M,), m, at X (M, 3): the scale of the step test."""
+    return np.sqrt(np.mean(np.sum((X[:, None, :] - sub.positions) ** 2, axis=-1), axis=1))
+
+
 def constrained_tls(bearings, weighting='paper', **options):
     """CTLS by the Newton iteration of Wang, Zhang & Wu eq. (20), batch over M problems.
 
@@ -236,59 +241,11 @@ def constrained_tls(bearings, weighting='paper', **options):
             return res
     opts, x0 = start(spec, bearings, options, validated=True)
     problem = _CTLSProblem(bearings, weighting)
-    M = bearings.M
-    X = x0.copy()
-    iterations = np.zeros(M, dtype=int)
-    converged = np.zeros(M, dtype=bool)
-    diverged = np.zeros(M, dtype=bool)
-    finite0 = np.all(np.isfinite(X), axis=1)
-    X[~finite0] = 0.0
-    diverged |= ~finite0
-    active = np.flatnonzero(finite0)
     mu, tol = opts['step_decay'], opts['tolerance']
     dof = np.maximum(bearings.N + np.count_nonzero(bearings.has_elevation, axis=1) - 3, 1)
     rel_tol = np.maximum(CHI2_STEP_TOL / dof, COST_RTOL)
-    flat = np.zeros(M, dtype=bool)       # last predicted decrease below rel_tol × f
-    for n in range(opts['max_iterations']):
-        if active.size == 0:
-            break
-        sub = problem.take(active)
-        Xa = X[active]
-        f, T, Hn, Hgn = sub.derivatives(Xa)
-        scale = np.sqrt(np.mean(np.sum((Xa[:, None, :] - sub.positions) ** 2, axis=-1),
-                                axis=1))
-        w = np.linalg.eigvalsh(np.where(np.isfinite(Hn), Hn, 0.0))
-        pd = np.all(np.isfinite(Hn), axis=(1, 2)) & (w[:, 0] > 1e-12 * np.abs(w[:, -1]))
-        step = -solve3(np.where(pd[:, None, None], Hn, Hgn), T)   # −H_n⁻¹ T_n
-        iterations[active] += 1
-        small = np.linalg.norm(step, axis=1) <= tol * scale
-        usable = np.all(np.isfinite(step), axis=1) & np.isfinite(f)
-        with np.errstate(invalid='ignore'):
-            flat[active] = usable & (0.5 * np.abs(np.einsum('mi,mi->m', T, step))
-                                     <= rel_tol[active] * np.abs(f))
-        # Backtracking on μ_n = μ^n (eq. (20)): never accept a cost increase.
-        t = np.full(active.size, mu ** n)
-        found = ~usable
-        accepted = np.zeros(active.size, dtype=bool)
-        for _ in range(41):
-            todo = np.flatnonzero(~found)
-            if todo.size == 0:
-                break
-            Xt = Xa[todo] + t[todo, None] * step[todo]
-            ft = sub.take(todo).cost(Xt)
-            ok = np.isfinite(ft) & (ft <= f[todo])
-            Xa[todo[ok]] = Xt[ok]
-            accepted[todo[ok]] = True
-            found[todo[ok]] = True
-            t[todo[~ok]] *= 0.5
-        X[active] = Xa
-        stalled = ~(small & usable) & ~accepted
-        newly = (small & usable) | (stalled & flat[active])
-        converged[active[newly]] = True
-        diverged[active[stalled & ~newly]] = True
-        active = active[~(newly | stalled)]
-    converged[active[flat[active]]] = True       # iteration limit reached at the optimum
-    X[~finite0] = np.nan
+    X, iterations, converged, diverged = newton_backtracking(
+        problem, x0.copy(), mu, tol, opts['max_iterations'], rel_tol, _rms_range)
     P = problem.covariance(np.where(np.isfinite(X), X, 0.0), bearings.sigma_az,
                            bearings.sigma_el)
     return iterative_result(name, X, P, iterations, converged, diverged)

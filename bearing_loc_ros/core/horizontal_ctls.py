@@ -50,23 +50,9 @@ from .horizontal_crlb import inverse2
 from .estimators import (STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_MAX_ITERATIONS,
                          STATUS_OK)
 from .horizontal_estimators import fix_result, parse_horizontal_options, plane_system, start
+from .solvers import CHI2_STEP_TOL, COST_RTOL, inv2, newton_backtracking
 
 WEIGHTINGS = ('paper', 'am')
-_COST_RTOL = 1e-12
-
-
-def _inv2(A):
-    """Closed-form inverse of (..., 2, 2) matrices; NaN where singular."""
-    a, b, c, d = A[..., 0, 0], A[..., 0, 1], A[..., 1, 0], A[..., 1, 1]
-    det = a * d - b * c
-    with np.errstate(divide='ignore', invalid='ignore'):
-        inv_det = np.where(det != 0, 1.0 / det, np.nan)
-    out = np.empty_like(A)
-    out[..., 0, 0] = d * inv_det
-    out[..., 0, 1] = -b * inv_det
-    out[..., 1, 0] = -c * inv_det
-    out[..., 1, 1] = a * inv_det
-    return out
 
 
 def blocks(theta, psi, use_el, px, py, dz):
@@ -111,7 +97,7 @@ class PlaneCTLS:
             return self.PE
         G = np.einsum('mnjki,mnjkl->mnil', F, F)            # G = Σ_j F_jᵀ F_j
         G[self.one_d, 1, 1] = 1.0
-        return _inv2(G)
+        return inv2(G)
 
     def _hx(self, X, F):
         return np.einsum('mj,mnjkl->mnkl', X, F[:, :, :2]) - F[:, :, 2]
@@ -132,7 +118,7 @@ class PlaneCTLS:
 
     def cost(self, X):
         """f(X) (M,) of the reduced eq. (11); NaN where some S_i is singular."""
-        Sinv = _inv2(self._s(self._hx(X, self.F), self.Ginv))
+        Sinv = inv2(self._s(self._hx(X, self.F), self.Ginv))
         r = np.einsum('mnki,mi->mnk', self.H, X) - self.Y
         return np.einsum('mnk,mnkl,mnl->m', r, Sinv, r)
 
@@ -140,7 +126,7 @@ class PlaneCTLS:
         """f (M,), gradient T_n (M, 2), Hessian H_n and its Gauss-Newton part (M, 2, 2)."""
         F, Ginv = self.F, self.Ginv
         Hx = self._hx(X, F)
-        Sinv = _inv2(self._s(Hx, Ginv))
+        Sinv = inv2(self._s(Hx, Ginv))
         r = np.einsum('mnki,mi->mnk', self.H, X) - self.Y
         U = np.einsum('mnkl,mnl->mnk', Sinv, r)
         f = np.einsum('mnk,mnk->m', r, U)
@@ -167,7 +153,7 @@ class PlaneCTLS:
         F = blocks(th, ps, p.use_el, p.px, p.py, self.dz)
         Ginv = self._ginv(F)
         Hx = self._hx(X, F)
-        Sinv = _inv2(self._s(Hx, Ginv))
+        Sinv = inv2(self._s(Hx, Ginv))
         Q = Hx @ self.PE @ np.swapaxes(Hx, -1, -2)
         A = np.einsum('mnki,mnkl,mnlj->mij', Hs, Sinv, Hs)
         B = np.einsum('mnki,mnkl,mnlp,mnpq,mnqj->mij', Hs, Sinv, Q, Sinv, Hs)
@@ -187,24 +173,21 @@ class PlaneCTLS:
         return P, ok
 
 
-def _solve2(A, b):
-    """Solve (M, 2, 2) systems by cofactors; NaN where the determinant is not positive."""
-    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
-    with np.errstate(divide='ignore', invalid='ignore'):
-        inv = np.where(det > 0, 1.0 / det, np.nan)
-        return np.stack([(A[:, 1, 1] * b[:, 0] - A[:, 0, 1] * b[:, 1]) * inv,
-                         (A[:, 0, 0] * b[:, 1] - A[:, 1, 0] * b[:, 0]) * inv], axis=1)
+def _rms_horizontal_range(sub, X):
+    """rms horizontal station range (M,), m, at X (M, 2): the scale of the step test."""
+    return np.sqrt(np.mean((X[:, 0:1] - sub.p.px) ** 2 + (X[:, 1:2] - sub.p.py) ** 2, axis=1))
 
 
 def constrained_tls(p, weighting='paper', **options):
     """Plane-reduced CTLS by the Newton iteration of Wang, Zhang & Wu eq. (20), M problems.
 
     ``p`` a :class:`.horizontal_estimators.HorizontalProblem`. X_{n+1} = X_n − μ^n H_n⁻¹T_n
-    from the plane ``ls`` (or option ``initial``), with the safeguards of the 3D code: the
-    Gauss-Newton part of H_n where H_n is not positive definite, step halving (up to 40
-    times) so f never increases, ``diverged`` where no descent step exists; converged when
-    the full Newton step is shorter than ``tolerance`` × rms horizontal station range or its
-    predicted decrease |T_nᵀΔ|/2 is below 1e-12 f (the cost's rounding level).
+    from the plane ``ls`` (or option ``initial``): the one safeguarded Newton iteration of
+    the 3D code, core.solvers.newton_backtracking (Gauss-Newton part of H_n where H_n is
+    not positive definite, step halving so f never increases, ``diverged`` where no descent
+    step exists; converged when the full Newton step is shorter than ``tolerance`` × rms
+    horizontal station range, or at a stop when its predicted decrease is below
+    max(1e-10/dof, 1e-12) × f, dof = angles − 2).
     ``weighting``: ``'paper'`` (``ctls``) or ``'am'`` (``ctls_am``). Covariance: reduced eq.
     (30) with σ_z (module docstring), m². Options: ``step_decay``, ``max_iterations``,
     ``tolerance``, ``initial``.
@@ -213,54 +196,12 @@ def constrained_tls(p, weighting='paper', **options):
     opts, initial = parse_horizontal_options(name, options, p.M)
     problem = PlaneCTLS(p, weighting)
     X = start(p, initial)[:, :2].copy()
-    M = p.M
-    iterations = np.zeros(M, dtype=int)
-    converged = np.zeros(M, dtype=bool)
-    diverged = np.zeros(M, dtype=bool)
+    dof = np.maximum(p.N + np.count_nonzero(p.use_el, axis=1) - 2, 1)
+    rel_tol = np.maximum(CHI2_STEP_TOL / dof, COST_RTOL)
     finite0 = np.all(np.isfinite(X), axis=1)
-    X[~finite0] = 0.0
-    diverged |= ~finite0
-    active = np.flatnonzero(finite0)
-    mu, tol = opts['step_decay'], opts['tolerance']
-    for n in range(opts['max_iterations']):
-        if active.size == 0:
-            break
-        sub = problem.take(active)
-        Xa = X[active]
-        f, T, Hn, Hgn = sub.derivatives(Xa)
-        scale = np.sqrt(np.mean((Xa[:, 0:1] - sub.p.px) ** 2 + (Xa[:, 1:2] - sub.p.py) ** 2,
-                                axis=1))
-        w = np.linalg.eigvalsh(np.where(np.isfinite(Hn), Hn, 0.0))
-        pd = np.all(np.isfinite(Hn), axis=(1, 2)) & (w[:, 0] > 1e-12 * np.abs(w[:, -1]))
-        step = -_solve2(np.where(pd[:, None, None], Hn, Hgn), T)
-        iterations[active] += 1
-        # Converged: a full step below tolerance × rms range, or a predicted decrease
-        # |T_nᵀ step| / 2 below the cost's rounding level (1e-12 f): such a step cannot be
-        # resolved in floating point, however long it is.
-        small = ((np.linalg.norm(step, axis=1) <= tol * scale)
-                 | (0.5 * np.abs(np.einsum('mi,mi->m', T, step)) <= _COST_RTOL * np.abs(f)))
-        usable = np.all(np.isfinite(step), axis=1) & np.isfinite(f)
-        t = np.full(active.size, mu ** n)
-        found = ~usable | small
-        accepted = np.zeros(active.size, dtype=bool)
-        for _ in range(41):
-            todo = np.flatnonzero(~found)
-            if todo.size == 0:
-                break
-            Xt = Xa[todo] + t[todo, None] * step[todo]
-            ft = sub.take(todo).cost(Xt)
-            ok = np.isfinite(ft) & (ft <= f[todo])
-            Xa[todo[ok]] = Xt[ok]
-            accepted[todo[ok]] = True
-            found[todo[ok]] = True
-            t[todo[~ok]] *= 0.5
-        X[active] = Xa
-        newly = small & usable
-        converged[active[newly]] = True
-        stalled = ~newly & ~accepted
-        diverged[active[stalled]] = True
-        active = active[~(newly | stalled)]
-    X[~finite0] = np.nan
+    X, iterations, converged, diverged = newton_backtracking(
+        problem, X, opts['step_decay'], opts['tolerance'], opts['max_iterations'], rel_tol,
+        _rms_horizontal_range)
     P, ok = problem.covariance(np.where(np.isfinite(X), X, 0.0))
     ok &= finite0
     status = np.where(converged, STATUS_OK,

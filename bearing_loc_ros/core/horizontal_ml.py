@@ -10,8 +10,8 @@ e = measured − predicted angle (azimuth wrapped to (−π, π]); with σ_z = 0
 (two parameters). With azimuths only the z terms decouple, so ẑ = z₀ exactly and the
 covariance is blockdiag(J_h⁻¹, σ_z²). ``wmle`` grows σ with range (eqs. (9)-(11)).
 
-The damping and stopping rules repeat those of core/estimators.py ``_levenberg_marquardt``
-(three parameters with a prior block instead of three free ones).
+The iteration is core/estimators.py ``_levenberg_marquardt`` itself, on the packed horizontal
+cost of :class:`PlaneMLProblem` (the prior block in the z row and column).
 """
 
 import numpy as np
@@ -19,10 +19,7 @@ import numpy as np
 from .horizontal_crlb import prior_covariance
 from .estimators import (STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_MAX_ITERATIONS,
                          STATUS_OK)
-from .horizontal_estimators import fix_result, parse_horizontal_options, solve2, start
-
-_CHI2_STEP_TOL = 1e-10
-_COST_RTOL = 1e-12
+from .horizontal_estimators import fix_result, parse_horizontal_options, start
 
 
 def ml_terms(p, X, factor=None, d_ref=None):
@@ -64,104 +61,78 @@ def ml_terms(p, X, factor=None, d_ref=None):
     return A, b, cost, scale, own
 
 
-def prior_step(A, b, fixed):
-    """Solve A Δ = b (M, 3, 3) by the Schur complement on z; Δz = 0 where ``fixed``.
+class PlaneMLProblem:
+    """The horizontal ML cost in the packed form of core/estimators.py ``_MLProblem``.
 
-    Where the altitude is fixed (σ_z = 0) the z row is dropped (a 2 × 2 system); otherwise
-    Δ_h = (A_h − q qᵀ/s)⁻¹ (b_h − q b_z/s), Δz = (b_z − qᵀΔ_h)/s, which stays well
-    conditioned for a tiny σ_z (huge s). NaN where the horizontal block is singular.
+    So that one Levenberg-Marquardt implementation (core/estimators.py
+    ``_levenberg_marquardt``: damping, acceptance, convergence and divergence rules) serves
+    the 3D and the horizontal solve. :meth:`pack` returns the rows of A, b, the cost, the rms
+    range and the cost under the previous weights (``wmle``) of :func:`ml_terms` plus the
+    prior: A_zz += 1/σ_z², b_z −= (z − z₀)/σ_z², cost += (z − z₀)²/σ_z²; where σ_z = 0 the z
+    row and column of A are those of the identity and b_z = 0, so the step never moves z
+    off z₀. The prior (or the fixed z) counts as one measurement: dof = angles − 2.
     """
-    s = np.where(fixed, 1.0, A[:, 2, 2])
-    q = np.where(fixed[:, None], 0.0, A[:, :2, 2])
-    bz = np.where(fixed, 0.0, b[:, 2])
-    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        S = A[:, :2, :2] - q[:, :, None] * q[:, None, :] / s[:, None, None]
-        d_h, _, _ = solve2(S, b[:, :2] - q * (bz / s)[:, None])
-        dz = (bz - np.einsum('mi,mi->m', q, d_h)) / s
-    return np.concatenate([d_h, dz[:, None]], axis=1)
+
+    def __init__(self, p, d_ref=None):
+        self.p = p
+        self.d_ref = d_ref
+        self.fixed = p.sz == 0.0
+        self.wz = np.where(self.fixed, 0.0, 1.0 / np.where(self.fixed, 1.0, p.sz) ** 2)
+        self.n_measurements = p.N + np.count_nonzero(p.use_el, axis=1) + 1
+
+    def take(self, idx):
+        """The same problem restricted to the problems ``idx``."""
+        return PlaneMLProblem(self.p.take(idx), self.d_ref)
+
+    def pack(self, x, y, z, old_factor=None):
+        """(12, M) packed state at X = (x, y, z) and X's weight factor (``wmle``; else None).
+
+        Rows as core/estimators.py ``_MLProblem.pack``; ``old_factor`` (N, M), station-major
+        as there, the weight factor d_ref²/d² of the previous iterate (``wmle``).
+        """
+        from .estimators import _A00, _A01, _A02, _A11, _A12, _A22, _B0, _B1, _B2, _COST, \
+            _OLD, _SCALE
+        p = self.p
+        X = np.stack([x, y, z], axis=1)
+        A, b, cost, scale, own = ml_terms(p, X, None, self.d_ref)
+        old = cost
+        if self.d_ref is not None and old_factor is not None:
+            old = ml_terms(p, X, old_factor.T, self.d_ref)[2]
+        dz = z - p.z0
+        wz, fixed = self.wz, self.fixed
+        q = np.empty((12, x.shape[0]))
+        q[_A00], q[_A01], q[_A11] = A[:, 0, 0], A[:, 0, 1], A[:, 1, 1]
+        q[_A02] = np.where(fixed, 0.0, A[:, 0, 2])
+        q[_A12] = np.where(fixed, 0.0, A[:, 1, 2])
+        q[_A22] = np.where(fixed, 1.0, A[:, 2, 2] + wz)
+        q[_B0], q[_B1] = b[:, 0], b[:, 1]
+        q[_B2] = np.where(fixed, 0.0, b[:, 2] - wz * dz)
+        q[_COST] = cost + wz * dz * dz
+        q[_OLD] = old + wz * dz * dz
+        q[_SCALE] = scale
+        return q, (None if own is None else own.T)
 
 
 def levenberg_marquardt(p, x0, max_iterations, tolerance, d_ref=None):
     """Gauss-Newton (Zong & Cui 2015 eq. (8)) with Levenberg-Marquardt damping, M problems.
 
     Parameters (x, y, z); the cost is the ML cost of :func:`ml_terms` plus the prior term
-    (z − z₀)²/σ_z² (σ_z > 0) or z held at z₀ (σ_z = 0). The damping and stopping rules are
-    those of core/estimators.py ``_levenberg_marquardt``: step (A + λ diag A) Δ = b, accepted
-    when the cost does not increase (for ``wmle`` under the previous iterate's weights), λ
-    from 0 (pure Gauss-Newton), ×10 (at least 1e-3) on rejection, ÷10 (0 below 1e-6) on
-    acceptance; converged when the undamped step is shorter than ``tolerance`` × rms range or
-    its predicted decrease bᵀΔ is below max(1e-10/dof, 1e-12) × cost; the sub-tolerance step is
-    not taken; diverged when λ > 1e12 or the rms range grows 1e8-fold. Returns (X, information
-    at X without the prior, iterations, converged, diverged).
+    (z − z₀)²/σ_z² (σ_z > 0) or z held at z₀ (σ_z = 0). The iteration is the one of
+    core/estimators.py ``_levenberg_marquardt`` on :class:`PlaneMLProblem` (its damping and
+    stopping rules: step (A + λ diag A) Δ = b accepted when the cost does not increase, for
+    ``wmle`` under the previous iterate's weights; converged when the undamped step is
+    shorter than ``tolerance`` × rms range or its predicted decrease is below
+    max(1e-10/dof, 1e-12) × cost; diverged when λ > 1e12 or the rms range grows 1e8-fold).
+    Returns (X, information at X without the prior, iterations, converged, diverged).
     """
-    M = p.M
+    from .estimators import _levenberg_marquardt
+    x0 = np.array(x0, dtype=float)
     fixed = p.sz == 0.0
-    wz = np.where(fixed, 0.0, 1.0 / np.where(fixed, 1.0, p.sz) ** 2)
-    finite0 = np.all(np.isfinite(x0), axis=1)
-    X = np.where(finite0[:, None], x0, 0.0)
-    X[:, 2] = np.where(fixed | ~np.isfinite(x0[:, 2]), p.z0, X[:, 2])
-
-    def terms(X, factor=None):
-        A, b, cost, scale, own = ml_terms(p, X, factor, d_ref)
-        dz = X[:, 2] - p.z0
-        A = A.copy()
-        A[:, 2, 2] += wz
-        b = b.copy()
-        b[:, 2] -= wz * dz
-        return A, b, cost + wz * dz * dz, scale, own
-
-    A, b, cost, scale, factor = terms(X)
-    scale0 = scale.copy()
-    n_meas = p.N + np.count_nonzero(p.use_el, axis=1)
-    rel_tol = np.maximum(_CHI2_STEP_TOL / np.maximum(n_meas - 2, 1), _COST_RTOL)
-    lam = np.zeros(M)
-    it = np.zeros(M, dtype=int)
-    conv = np.zeros(M, dtype=bool)
-    div = ~finite0
-    done = div.copy()
-    diag = np.eye(3, dtype=bool)
-    for _ in range(max_iterations):
-        if done.all():
-            break
-        run = ~done
-        g = prior_step(A, b, fixed)
-        damped = lam > 0
-        step = g
-        if np.any(damped):
-            Ad = A.copy()
-            Ad[:, diag] *= (1.0 + lam)[:, None]
-            step = np.where(damped[:, None], prior_step(Ad, b, fixed), g)
-        gn = np.linalg.norm(g, axis=1)
-        decrease = np.abs(np.einsum('mi,mi->m', b, g))
-        small = run & ((gn <= tolerance * scale) | (decrease <= rel_tol * cost))
-        step_ok = np.all(np.isfinite(step), axis=1)
-        trying = run & ~small & step_ok
-        it += run
-        conv |= small
-        if np.any(trying):
-            Xt = np.where(trying[:, None], X + np.where(step_ok[:, None], step, 0.0), X)
-            if d_ref is None:
-                At, bt, ct, st, ft = terms(Xt)
-                ok = trying & (ct <= cost)
-            else:
-                _, _, c_old, _, _ = terms(Xt, factor)
-                ok = trying & (c_old <= cost)
-                At, bt, ct, st, ft = terms(Xt)
-            X = np.where(ok[:, None], Xt, X)
-            A = np.where(ok[:, None, None], At, A)
-            b = np.where(ok[:, None], bt, b)
-            cost = np.where(ok, ct, cost)
-            scale = np.where(ok, st, scale)
-            if d_ref is not None:
-                factor = np.where(ok[:, None], ft, factor)
-            lam = np.where(ok, np.where(lam < 1e-6, 0.0, 0.1 * lam),
-                           np.where(trying, np.maximum(10.0 * lam, 1e-3), lam))
-        runaway = run & ~small & ((lam > 1e12) | ~step_ok | (scale > 1e8 * scale0))
-        div |= runaway
-        done |= small | runaway
-    info, _, _, _, _ = ml_terms(p, X, None, d_ref)
-    X[~finite0] = np.nan
-    return X, info, it, conv & finite0, div
+    x0[:, 2] = np.where(fixed | ~np.isfinite(x0[:, 2]), p.z0, x0[:, 2])
+    X, _, it, conv, div = _levenberg_marquardt(PlaneMLProblem(p, d_ref), x0, max_iterations,
+                                               tolerance)
+    info, _, _, _, _ = ml_terms(p, np.where(np.isfinite(X), X, 0.0), None, d_ref)
+    return X, info, it, conv, div
 
 
 def iterative_result(p, method, X, info, iterations, converged, diverged):

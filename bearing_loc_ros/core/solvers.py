@@ -1,9 +1,11 @@
-"""Small dense solvers shared by the estimators: batched 3 × 3 and 2 × 2 systems in closed form.
+"""Small dense solvers shared by the estimators: batched 3 × 3 and 2 × 2 systems in closed form,
+and the one safeguarded Newton iteration of constrained TLS.
 
 Pure numpy, no Python loop over problems. Used by the maximum likelihood iteration
 (:mod:`~bearing_loc_ros.core.estimators`), the pseudo-linear closed forms
-(:mod:`~bearing_loc_ros.core.pseudo_linear`) and constrained TLS
-(:mod:`~bearing_loc_ros.core.constrained_tls`).
+(:mod:`~bearing_loc_ros.core.pseudo_linear`) and constrained TLS in 3D
+(:mod:`~bearing_loc_ros.core.constrained_tls`) and in the plane
+(:mod:`~bearing_loc_ros.core.horizontal_ctls`).
 """
 
 import numpy as np
@@ -51,3 +53,79 @@ def inv2(A):
     out[..., 1, 0] = -c * inv_det
     out[..., 1, 1] = a * inv_det
     return out
+
+
+def solve2(A, b):
+    """Solve M 2 × 2 systems A x = b (A (M, 2, 2), b (M, 2)) by cofactors; NaN where
+    det(A) ≤ 0 (A is then not positive definite)."""
+    det = A[:, 0, 0] * A[:, 1, 1] - A[:, 0, 1] * A[:, 1, 0]
+    with np.errstate(divide='ignore', invalid='ignore'):
+        inv = np.where(det > 0, 1.0 / det, np.nan)
+        return np.stack([(A[:, 1, 1] * b[:, 0] - A[:, 0, 1] * b[:, 1]) * inv,
+                         (A[:, 0, 0] * b[:, 1] - A[:, 1, 0] * b[:, 0]) * inv], axis=1)
+
+
+def newton_backtracking(problem, X, mu, tolerance, max_iterations, rel_tol, scale_of):
+    """Safeguarded Newton iteration of Wang, Zhang & Wu eq. (20) over M problems (in place).
+
+    X_{n+1} = X_n − μ_n H_n⁻¹ T_n with μ_n = μ^n (``mu``, the paper's step decay).
+    ``problem`` gives ``derivatives(X)`` -> (f, T, H_n, H_gn) (cost, gradient, Hessian and
+    its positive semi-definite Gauss-Newton part), ``cost(X)`` and ``take(idx)``; X is
+    (M, d), d = 3 (core.constrained_tls) or 2 (the plane, core.horizontal_ctls). Safeguards:
+    H_gn where H_n is not positive definite (a Gauss-Newton direction); the step halved (up
+    to 40 times) until f does not increase, so the cost never increases. Converged when the
+    full step is shorter than ``tolerance`` × ``scale_of(sub, X)`` (the rms station range,
+    m), or, for a problem that stops without meeting it (no trial step lowers f, or the
+    iteration limit), when the predicted decrease ½|T_nᵀ H_n⁻¹ T_n| of its last Newton step
+    is below ``rel_tol`` (M,) × f (the rounding stop of the maximum likelihood iteration:
+    1e-10 f/dof or 1e-12 f). Otherwise no descent step is diverged. Non-finite starts are
+    diverged. Returns (X, iterations, converged, diverged).
+    """
+    M, d = X.shape
+    solve = solve3 if d == 3 else solve2
+    iterations = np.zeros(M, dtype=int)
+    converged = np.zeros(M, dtype=bool)
+    finite0 = np.all(np.isfinite(X), axis=1)
+    X[~finite0] = 0.0
+    diverged = ~finite0
+    active = np.flatnonzero(finite0)
+    flat = np.zeros(M, dtype=bool)       # last predicted decrease below rel_tol × f
+    for n in range(max_iterations):
+        if active.size == 0:
+            break
+        sub = problem.take(active)
+        Xa = X[active]
+        f, T, Hn, Hgn = sub.derivatives(Xa)
+        w = np.linalg.eigvalsh(np.where(np.isfinite(Hn), Hn, 0.0))
+        pd = np.all(np.isfinite(Hn), axis=(1, 2)) & (w[:, 0] > 1e-12 * np.abs(w[:, -1]))
+        step = -solve(np.where(pd[:, None, None], Hn, Hgn), T)      # −H_n⁻¹ T_n
+        iterations[active] += 1
+        small = np.linalg.norm(step, axis=1) <= tolerance * scale_of(sub, Xa)
+        usable = np.all(np.isfinite(step), axis=1) & np.isfinite(f)
+        with np.errstate(invalid='ignore'):
+            flat[active] = usable & (0.5 * np.abs(np.einsum('mi,mi->m', T, step))
+                                     <= rel_tol[active] * np.abs(f))
+        # Backtracking on μ_n = μ^n (eq. (20)): never accept a cost increase.
+        t = np.full(active.size, mu ** n)
+        found = ~usable
+        accepted = np.zeros(active.size, dtype=bool)
+        for _ in range(41):
+            todo = np.flatnonzero(~found)
+            if todo.size == 0:
+                break
+            Xt = Xa[todo] + t[todo, None] * step[todo]
+            ft = sub.take(todo).cost(Xt)
+            ok = np.isfinite(ft) & (ft <= f[todo])
+            Xa[todo[ok]] = Xt[ok]
+            accepted[todo[ok]] = True
+            found[todo[ok]] = True
+            t[todo[~ok]] *= 0.5
+        X[active] = Xa
+        stalled = ~(small & usable) & ~accepted
+        newly = (small & usable) | (stalled & flat[active])
+        converged[active[newly]] = True
+        diverged[active[stalled & ~newly]] = True
+        active = active[~(newly | stalled)]
+    converged[active[flat[active]]] = True       # iteration limit reached at the optimum
+    X[~finite0] = np.nan
+    return X, iterations, converged, diverged

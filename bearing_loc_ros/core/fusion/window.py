@@ -45,7 +45,8 @@ from .. import registry as _registry
 from ..bearings import BearingSet
 from ..robust import MAX_NONLINEARITY, nonlinearity
 from .config import MODE_WINDOW, NS_PER_S, TRIGGER_EVENT, TRIGGER_TIMER
-from .gating import covariance_ok, gate_threshold, horizontal_capable, normalized_residuals
+from .gating import (_trusted_set as window_set, covariance_ok, gate_threshold,
+                     horizontal_capable, normalized_residuals)
 from .results import (BAD_COVARIANCE, DEGENERATE_GEOMETRY, Epoch, ESTIMATOR_ERROR,
                       LEVEL_ERROR, LEVEL_OK, LEVEL_WARN, NO_ELEVATION, NOT_CONVERGED, OK,
                       TOO_FEW_STATIONS, UNOBSERVABLE)
@@ -54,16 +55,6 @@ from .results import (BAD_COVARIANCE, DEGENERATE_GEOMETRY, Epoch, ESTIMATOR_ERRO
 GATE_ROUNDS = 3
 #: Epoch reason of a robust fix that failed its consistency checks.
 LOW_CONFIDENCE = 'low_confidence'
-
-
-def window_set(bearings):
-    """One-problem BearingSet (M = 1) of validated Bearings (the window's arrays)."""
-    el = np.array([[b.elevation for b in bearings]], dtype=float)
-    sel = np.array([[b.sigma_elevation for b in bearings]], dtype=float)
-    return BearingSet(np.array([[b.position for b in bearings]], dtype=float),
-                      np.array([[b.azimuth for b in bearings]], dtype=float), el,
-                      np.array([[b.sigma_azimuth for b in bearings]], dtype=float),
-                      np.where(np.isfinite(el), sel, np.nan), [b.station for b in bearings])
 
 
 class WindowStrategy:
