@@ -21,6 +21,7 @@ import math
 import numpy as np
 
 from .fix import FixResult, iterative_result, STATUS_DIVERGED, STATUS_MAX_ITERATIONS, STATUS_OK
+from .single_floats import normal_equations, pseudo_linear_rows, solve3
 from .solvers import CHI2_STEP_TOL, COST_RTOL
 
 
@@ -65,15 +66,6 @@ def _blocks(th, ps, has_el, x, y, z):
             (-(c * x + s * y), s * sp * x - c * sp * y, -(c * cp * x + s * cp * y + sp * z)))
 
 
-def _h_rows(th, ps, has_el):
-    """Rows of the pseudo-linear system (pseudo_linear.pseudo_linear_system) of one station."""
-    st, ct = math.sin(th), math.cos(th)
-    if not has_el:
-        return (st, -ct, 0.0), (0.0, 0.0, 0.0)
-    sp, cp = math.sin(ps), math.cos(ps)
-    return (st, -ct, 0.0), (ct * sp, st * sp, -cp)
-
-
 def _station(p, th, ps, s_az, s_el, has_el, pe=None):
     """Fixed per-station floats of the CTLS cost (one row of _CTLSProblem).
 
@@ -84,7 +76,7 @@ def _station(p, th, ps, s_az, s_el, has_el, pe=None):
     """
     ps = ps if has_el else 0.0
     F = _blocks(th, ps, has_el, *p)
-    h0, h1 = _h_rows(th, ps, has_el)
+    h0, h1 = pseudo_linear_rows(th, ps, has_el)
     if pe is None:
         pe = (s_az * s_az, s_el * s_el if has_el else 0.0)
     gi = (pe[0], 0.0, 0.0, pe[1])                       # G⁻¹ = P_E (Abatzoglou-Mendel)
@@ -191,20 +183,6 @@ def derivatives(stations, X):
     return f, [t0, t1, t2], Hn, Hg, math.sqrt(s2 / len(stations))
 
 
-def _solve3(A, b):
-    """solvers.solve3 for one system (cofactors); NaN where det ≤ 0."""
-    a00, a01, a02, a11, a12, a22 = A[0][0], A[0][1], A[0][2], A[1][1], A[1][2], A[2][2]
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    inv_det = 1.0 / det if det > 0 else math.nan
-    b0, b1, b2 = b
-    return ((c00 * b0 + c01 * b1 + c02 * b2) * inv_det,
-            (c01 * b0 + (a00 * a22 - a02 * a02) * b1 + (a01 * a02 - a00 * a12) * b2) * inv_det,
-            (c02 * b0 + (a01 * a02 - a00 * a12) * b1 + (a00 * a11 - a01 * a01) * b2) * inv_det)
-
-
 def _stations(bearings):
     pos = bearings.positions[0].tolist()
     el = bearings.elevation[0].tolist()
@@ -216,22 +194,11 @@ def _stations(bearings):
 
 def _ls_start(stations):
     """X_LS (Wang, Zhang & Wu eq. (4)) as pseudo_linear.ls: None where ls is degenerate."""
-    a00 = a01 = a02 = a11 = a12 = a22 = b0 = b1 = b2 = 0.0
-    for st in stations:
-        h00, h01, h10, h11, h12, y0, y1 = st[14:21]
-        a00 += h00 * h00 + h10 * h10
-        a01 += h00 * h01 + h10 * h11
-        a02 += h10 * h12
-        a11 += h01 * h01 + h11 * h11
-        a12 += h11 * h12
-        a22 += h12 * h12
-        b0 += h00 * y0 + h10 * y1
-        b1 += h01 * y0 + h11 * y1
-        b2 += h12 * y1
+    (a00, a01, a02, a11, a12, a22), b = normal_equations(st[14:21] for st in stations)
     A = [[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]]
     if not _safe_test(A):
         return None
-    X = _solve3(A, (b0, b1, b2))
+    X = solve3(a00, a01, a02, a11, a12, a22, *b)
     # pseudo_linear._closed_form_result: a start on a station is degenerate.
     dist = [math.dist(X, st[:3]) for st in stations]
     scale = 1.0 + max(abs(c) for st in stations for c in st[:3]) + max(dist)
@@ -312,7 +279,8 @@ def _iterate(name, stations, X, opts):
             else:
                 w = np.linalg.eigvalsh(np.array(Hn))
                 pd = w[0] > 1e-12 * abs(w[2])
-        step = _solve3(Hn if pd else Hgn, T)
+        H = Hn if pd else Hgn
+        step = solve3(H[0][0], H[0][1], H[0][2], H[1][1], H[1][2], H[2][2], *T)
         step = (-step[0], -step[1], -step[2])
         it += 1
         usable = isfinite(step[0]) and isfinite(step[1]) and isfinite(step[2]) and isfinite(f)

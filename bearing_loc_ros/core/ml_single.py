@@ -24,22 +24,11 @@ import numpy as np
 
 from .crlb import safe_inverse
 from .fix import FixResult, iterative_result, STATUS_DIVERGED, STATUS_MAX_ITERATIONS, STATUS_OK
+from .single_floats import normal_equations, pseudo_linear_rows, solve3
 from .solvers import CHI2_STEP_TOL, COST_RTOL
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
-
-
-def _solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
-    """solvers.solve3_packed on floats (same operations); NaN where det ≤ 0."""
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    inv_det = 1.0 / det if det > 0 else math.nan
-    return ((c00 * b0 + c01 * b1 + c02 * b2) * inv_det,
-            (c01 * b0 + (a00 * a22 - a02 * a02) * b1 + (a01 * a02 - a00 * a12) * b2) * inv_det,
-            (c02 * b0 + (a01 * a02 - a00 * a12) * b1 + (a00 * a11 - a01 * a01) * b2) * inv_det)
 
 
 class _Problem:
@@ -60,41 +49,34 @@ class _Problem:
 
     def start(self):
         """Pseudo-linear X_LS (Wang, Zhang & Wu eq. (4)) as _MLProblem.pseudo_linear_start."""
-        a00 = a01 = a02 = a11 = a12 = a22 = b0 = b1 = b2 = 0.0
-        sin, cos = math.sin, math.cos
+        rows = []
         for px, py, pz, az, el, _, se in self.stations:
-            s, c = sin(az), cos(az)
-            m = 1.0 if se > 0 else 0.0
-            sp, cp = sin(el), cos(el)
-            y1 = s * px - c * py
-            h20, h21, h22 = m * c * sp, m * s * sp, -m * cp
-            y2 = h20 * px + h21 * py + h22 * pz
-            a00 += s * s + h20 * h20
-            a01 += -s * c + h20 * h21
-            a02 += h20 * h22
-            a11 += c * c + h21 * h21
-            a12 += h21 * h22
-            a22 += h22 * h22
-            b0 += s * y1 + h20 * y2
-            b1 += -c * y1 + h21 * y2
-            b2 += h22 * y2
+            h0, h1 = pseudo_linear_rows(az, el, se > 0)
+            rows.append((h0[0], h0[1], *h1, h0[0] * px + h0[1] * py + h0[2] * pz,
+                         h1[0] * px + h1[1] * py + h1[2] * pz))
+        (a00, a01, a02, a11, a12, a22), (b0, b1, b2) = normal_equations(rows)
         det = (a00 * (a11 * a22 - a12 * a12) + a01 * (a02 * a12 - a01 * a22)
                + a02 * (a01 * a12 - a02 * a11))
         if not det > 1e-12 * ((a00 + a11 + a22) / 3.0) ** 3:
             return None
-        return _solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+        return solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
 
     def pack(self, x, y, z, old_factor=None):
         """(A (6), b (3), cost, rms range, old cost) and the range weights, as _MLProblem.pack.
 
-        Raises ZeroDivisionError (or another ArithmeticError) where the batch path would meet
-        inf/NaN, for example a target on a station's vertical axis.
+        With ``d_ref`` (``wmle``) σ grows with range (Zong & Cui 2015 eqs. (9)-(11)): each
+        station's whitened residuals and gradients are scaled by sqrt(d_ref²/d²), and the old
+        cost uses the previous iterate's factors ``old_factor``; without it the factors are
+        None and the old cost is the cost. Raises ZeroDivisionError (or another
+        ArithmeticError) where the batch path would meet inf/NaN, for example a target on a
+        station's vertical axis.
         """
-        if self.d_ref is not None:
-            return self._pack_weighted(x, y, z, old_factor)
-        a00 = a01 = a02 = a11 = a12 = a22 = b0 = b1 = b2 = cost = s2 = 0.0
+        a00 = a01 = a02 = a11 = a12 = a22 = b0 = b1 = b2 = cost = old = s2 = 0.0
         atan2, sqrt, ceil = math.atan2, math.sqrt, math.ceil
-        for px, py, pz, az, el, sa, se in self.stations:
+        weighted = self.d_ref is not None
+        d2 = self.d_ref * self.d_ref if weighted else 0.0
+        factors = [] if weighted else None
+        for k, (px, py, pz, az, el, sa, se) in enumerate(self.stations):
             dx = x - px
             dy = y - py
             dz = z - pz
@@ -106,6 +88,12 @@ class _Problem:
                 e_az -= _TWO_PI * ceil((e_az - _PI) / _TWO_PI)
             ra = sa * e_az
             re = se * (el - atan2(dz, rho))
+            if weighted:
+                factor = d2 / r2
+                factors.append(factor)
+                old += (ra * ra + re * re) * (factor if old_factor is None else old_factor[k])
+                f = sqrt(factor)
+                sa, se, ra, re = sa * f, se * f, ra * f, re * f
             qa = sa / rho2
             ax = -dy * qa
             ay = dx * qa
@@ -124,50 +112,8 @@ class _Problem:
             b2 += ez * re
             cost += ra * ra + re * re
             s2 += r2
-        return (a00, a01, a02, a11, a12, a22, b0, b1, b2, cost, sqrt(s2 / self.n), cost), None
-
-    def _pack_weighted(self, x, y, z, old_factor):
-        """:meth:`pack` with σ grown with range (Zong & Cui 2015 eqs. (9)-(11))."""
-        a00 = a01 = a02 = a11 = a12 = a22 = b0 = b1 = b2 = cost = old = s2 = 0.0
-        atan2, sqrt, ceil = math.atan2, math.sqrt, math.ceil
-        d2 = self.d_ref * self.d_ref
-        factors = []
-        for k, (px, py, pz, az, el, sa, se) in enumerate(self.stations):
-            dx = x - px
-            dy = y - py
-            dz = z - pz
-            rho2 = dx * dx + dy * dy
-            r2 = rho2 + dz * dz
-            rho = sqrt(rho2)
-            e_az = az - atan2(dy, dx)
-            if not -_PI < e_az <= _PI:
-                e_az -= _TWO_PI * ceil((e_az - _PI) / _TWO_PI)
-            ra = sa * e_az
-            re = se * (el - atan2(dz, rho))
-            factor = d2 / r2
-            factors.append(factor)
-            old += (ra * ra + re * re) * (factor if old_factor is None else old_factor[k])
-            f = sqrt(factor)
-            sa, se, ra, re = sa * f, se * f, ra * f, re * f
-            qa = sa / rho2
-            ax = -dy * qa
-            ay = dx * qa
-            t = se * dz / (rho * r2)
-            ex = -dx * t
-            ey = -dy * t
-            ez = se * rho / r2
-            a00 += ax * ax + ex * ex
-            a01 += ax * ay + ex * ey
-            a02 += ex * ez
-            a11 += ay * ay + ey * ey
-            a12 += ey * ez
-            a22 += ez * ez
-            b0 += ax * ra + ex * re
-            b1 += ay * ra + ey * re
-            b2 += ez * re
-            cost += ra * ra + re * re
-            s2 += r2
-        return (a00, a01, a02, a11, a12, a22, b0, b1, b2, cost, sqrt(s2 / self.n), old), factors
+        return (a00, a01, a02, a11, a12, a22, b0, b1, b2, cost, sqrt(s2 / self.n),
+                old if weighted else cost), factors
 
 
 def _iterate(problem, x0, max_iterations, tolerance):
@@ -182,10 +128,10 @@ def _iterate(problem, x0, max_iterations, tolerance):
     isfinite, sqrt = math.isfinite, math.sqrt
     for _ in range(max_iterations):
         a00, a01, a02, a11, a12, a22, b0, b1, b2, cost = Q[:10]
-        g = _solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+        g = solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2)
         if lam > 0:
             k = 1.0 + lam
-            step = _solve3(a00 * k, a01, a02, a11 * k, a12, a22 * k, b0, b1, b2)
+            step = solve3(a00 * k, a01, a02, a11 * k, a12, a22 * k, b0, b1, b2)
         else:
             step = g
         gn = sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2])
