@@ -114,12 +114,15 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
     """
     method = _method(method)
     options = dict(options)
-    robust = options.pop('robust', False)
+    given = 'robust' in options
+    robust = options.pop('robust', ROBUST.default)
     if method in ROBUST_ESTIMATORS:
         robust = ROBUST.validate(robust)
-    elif robust is not False:
+    elif given:
         raise ValueError(f'options.robust: unknown option for estimator {method!r} (accepted '
                          f'by {", ".join(ROBUST_ESTIMATORS)})')
+    else:
+        robust = False
     p = _h.prepare(bearings, target_altitude, target_altitude_sigma, use_elevations)
     res = ESTIMATORS[method](p, **options)
     if not robust:
@@ -138,7 +141,7 @@ def _robust(method, bearings, res, p, options):
     fields['status'] = fields['status'].astype(object)
     excluded = np.zeros((bearings.M, bearings.N, 2), dtype=bool)
     opts = {k: v for k, v in options.items() if k != 'initial'}
-    for m in range(bearings.M):
+    for m in np.flatnonzero(~screen_passed(bearings, res, p, d_ref)).tolist():
         bs = bearings.problem(m)
         z0, sz, use_el = float(p.z0[m]), float(p.sz[m]), p.use_el[m]
 
@@ -154,6 +157,28 @@ def _robust(method, bearings, res, p, options):
         excluded[m, :, 1] = ex & bearings.has_elevation[m]
     fields['status'] = fields['status'].astype(str)
     return FixResult(method=method, excluded=excluded, **fields)
+
+
+def screen_passed(bearings, res, p, d_ref=None):
+    """(M,) bool: fixes that pass the robust screen (:mod:`.horizontal_robust` step 1),
+    vectorised over problems: status ok, every d² ≤ c² and Σ d² at most the χ²_dof quantile
+    (dof = used angles − 2); those are kept as they are, the others go to the consensus."""
+    from .horizontal_robust import _c2, chi2_upper
+    from .conventions import azimuth_elevation
+    X = np.asarray(res.position, dtype=float)
+    ok = (np.asarray(res.status) == 'ok') & np.all(np.isfinite(X), axis=1)
+    Xs = np.where(ok[:, None], X, 0.0)
+    d = Xs[:, None, :] - bearings.positions
+    az, el = azimuth_elevation(d)
+    f = 1.0 if d_ref is None else np.linalg.norm(d, axis=-1) / d_ref
+    with np.errstate(invalid='ignore', divide='ignore'):
+        d2 = (np.angle(np.exp(1j * (bearings.azimuth - az))) / (bearings.sigma_az * f)) ** 2
+        d2e = np.where(p.use_el, (np.where(p.use_el, bearings.elevation, 0.0) - el) ** 2
+                       / (np.where(p.use_el, bearings.sigma_el, 1.0) * f) ** 2, 0.0)
+    d2 = d2 + d2e
+    n_angles = bearings.N + np.count_nonzero(p.use_el, axis=1)
+    return ok & np.all(d2 <= _c2(), axis=1) & (d2.sum(axis=1)
+                                               <= chi2_upper(np.maximum(n_angles - 2, 1)))
 
 
 def _subset(bearings, idx):
