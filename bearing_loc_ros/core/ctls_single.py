@@ -157,7 +157,8 @@ def derivatives(stations, X):
         t0 += 2.0 * (u0 * (h00 - m0) + u1 * (h10 - n0))
         t1 += 2.0 * (u0 * (h01 - m1) + u1 * (h11 - n1))
         t2 += 2.0 * (u1 * (h12 - n2))
-        # Dᵀ S⁻¹ (rows i) times D (columns j)
+        # Dᵀ S⁻¹ (rows i) times D (columns j); then B3ᵀ G⁻¹ B3 in the same form (both 3 × 3
+        # sums of two rank-one terms per station, inlined in this hot loop on purpose).
         a0, b0 = e0 * si0 + o0 * si2, e0 * si1 + o0 * si3
         a1, b1 = e1 * si0 + o1 * si2, e1 * si1 + o1 * si3
         g00 += 2.0 * (a0 * e0 + b0 * o0)

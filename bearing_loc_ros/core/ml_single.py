@@ -71,6 +71,10 @@ class _Problem:
         ArithmeticError) where the batch path would meet inf/NaN, for example a target on a
         station's vertical axis.
         """
+        # A deliberate float twin of estimators._MLProblem.pack (the same operations in the
+        # same order): the one-fix fast path the benchmark keeps (module docstring). The sums
+        # are single_floats.normal_equations of the rows (ax, ay, 0), (ex, ey, ez), inlined:
+        # a call per station would cost more than the sums.
         a00 = a01 = a02 = a11 = a12 = a22 = b0 = b1 = b2 = cost = old = s2 = 0.0
         atan2, sqrt, ceil = math.atan2, math.sqrt, math.ceil
         weighted = self.d_ref is not None
