@@ -21,7 +21,7 @@ import math
 import numpy as np
 
 from .fix import FixResult, iterative_result, STATUS_DIVERGED, STATUS_MAX_ITERATIONS, STATUS_OK
-from .single_floats import normal_equations, pseudo_linear_rows, solve3
+from .single_floats import normal_equations, solve3
 from .solvers import CHI2_STEP_TOL, COST_RTOL
 
 
@@ -56,34 +56,31 @@ def _safe_test(A):
     return bool(w[0] > 1e-12 * abs(w[2]) and w[2] > 0)
 
 
-def _blocks(th, ps, has_el, x, y, z):
-    """F_1..F_4 (Wang, Zhang & Wu eq. (9)) of one station as four (f00, f10, f11) triples
-    (f01 is always 0); the elevation row and column are zero for a 1D station."""
-    c, s, cp, sp = math.cos(th), math.sin(th), math.cos(ps), math.sin(ps)
-    if not has_el:
-        return ((-c, 0.0, 0.0), (-s, 0.0, 0.0), (0.0, 0.0, 0.0), (-(c * x + s * y), 0.0, 0.0))
-    return ((-c, s * sp, -c * cp), (-s, -c * sp, -s * cp), (0.0, 0.0, -sp),
-            (-(c * x + s * y), s * sp * x - c * sp * y, -(c * cp * x + s * cp * y + sp * z)))
-
-
-def _station(p, th, ps, s_az, s_el, has_el, pe=None):
+def _station(p, th, ps, s_az, s_el, has_el):
     """Fixed per-station floats of the CTLS cost (one row of _CTLSProblem).
 
     (px, py, pz, has_el, F0a, F0c, F0d, F1a, F1c, F1d, F2d, F3a, F3c, F3d, h00, h01, h10,
-    h11, h12, y0, y1, g0, g1, g2, g3, pa, pe): F_j = [[Fja, 0], [Fjc, Fjd]] (F_3's first row
-    and F_2's first column are 0), the pseudo-linear rows h0 = (h00, h01, 0), h1 and their
-    right-hand sides y = h·p, G⁻¹ = [[g0, g1], [g2, g3]] and P_E = diag(pa, pe).
+    h11, h12, y0, y1, g0, g1, g2, g3, pa, pe): F_j = [[Fja, 0], [Fjc, Fjd]] of Wang, Zhang &
+    Wu eq. (9) (F_3's first row and F_2's first column are 0; the elevation row and column
+    are 0 for a 1D station), the pseudo-linear rows h0 = (h00, h01, 0), h1
+    (single_floats.pseudo_linear_rows) and their right-hand sides y = h·p,
+    G⁻¹ = [[g0, g1], [g2, g3]] = P_E = diag(pa, pe) (Abatzoglou-Mendel).
     """
-    ps = ps if has_el else 0.0
-    F = _blocks(th, ps, has_el, *p)
-    h0, h1 = pseudo_linear_rows(th, ps, has_el)
-    if pe is None:
-        pe = (s_az * s_az, s_el * s_el if has_el else 0.0)
-    gi = (pe[0], 0.0, 0.0, pe[1])                       # G⁻¹ = P_E (Abatzoglou-Mendel)
-    y0 = h0[0] * p[0] + h0[1] * p[1] + h0[2] * p[2]
-    y1 = h1[0] * p[0] + h1[1] * p[1] + h1[2] * p[2]
-    return (p[0], p[1], p[2], has_el, *F[0], *F[1], F[2][2], *F[3], h0[0], h0[1], *h1, y0, y1,
-            *gi, *pe)
+    x, y, z = p
+    c, s = math.cos(th), math.sin(th)
+    if has_el:
+        cp, sp = math.cos(ps), math.sin(ps)
+        F = (-c, s * sp, -c * cp, -s, -c * sp, -s * cp, -sp,
+             -(c * x + s * y), s * sp * x - c * sp * y, -(c * cp * x + s * cp * y + sp * z))
+        h1 = (c * sp, s * sp, -cp)
+        pe = (s_az * s_az, s_el * s_el)
+    else:
+        F = (-c, 0.0, 0.0, -s, 0.0, 0.0, 0.0, -(c * x + s * y), 0.0, 0.0)
+        h1 = (0.0, 0.0, 0.0)
+        pe = (s_az * s_az, 0.0)
+    y0 = s * x + -c * y + 0.0 * z
+    y1 = h1[0] * x + h1[1] * y + h1[2] * z
+    return (x, y, z, has_el, *F, s, -c, *h1, y0, y1, pe[0], 0.0, 0.0, pe[1], *pe)
 
 
 # cost() and derivatives() share their first lines (H_X, S⁻¹ and r of one station): kept inline
@@ -154,34 +151,39 @@ def derivatives(stations, X):
         o0 = h10 - n0 - (F0c * w0 + F0d * w1)
         o1 = h11 - n1 - (F1c * w0 + F1d * w1)
         o2 = h12 - n2 - F2d * w1
-        t0 += 2.0 * (u0 * (h00 - m0) + u1 * (h10 - n0))
-        t1 += 2.0 * (u0 * (h01 - m1) + u1 * (h11 - n1))
-        t2 += 2.0 * (u1 * (h12 - n2))
+        t0 += u0 * (h00 - m0) + u1 * (h10 - n0)
+        t1 += u0 * (h01 - m1) + u1 * (h11 - n1)
+        t2 += u1 * (h12 - n2)
         # Dᵀ S⁻¹ (rows i) times D (columns j); then B3ᵀ G⁻¹ B3 in the same form (both 3 × 3
         # sums of two rank-one terms per station, inlined in this hot loop on purpose).
         a0, b0 = e0 * si0 + o0 * si2, e0 * si1 + o0 * si3
         a1, b1 = e1 * si0 + o1 * si2, e1 * si1 + o1 * si3
-        g00 += 2.0 * (a0 * e0 + b0 * o0)
-        g01 += 2.0 * (a0 * e1 + b0 * o1)
-        g02 += 2.0 * (b0 * o2)
-        g11 += 2.0 * (a1 * e1 + b1 * o1)
-        g12 += 2.0 * (b1 * o2)
-        g22 += 2.0 * (o2 * si3 * o2)
+        g00 += a0 * e0 + b0 * o0
+        g01 += a0 * e1 + b0 * o1
+        g02 += b0 * o2
+        g11 += a1 * e1 + b1 * o1
+        g12 += b1 * o2
+        g22 += o2 * si3 * o2
         # B3ᵀ G⁻¹ (rows i) times B3 (columns j)
         v0, z0 = p0 * g0, q0 * g3
         v1, z1 = p1 * g0, q1 * g3
-        c00 += 2.0 * (v0 * p0 + z0 * q0)
-        c01 += 2.0 * (v0 * p1 + z0 * q1)
-        c02 += 2.0 * (z0 * q2)
-        c11 += 2.0 * (v1 * p1 + z1 * q1)
-        c12 += 2.0 * (z1 * q2)
-        c22 += 2.0 * (q2 * g3 * q2)
+        c00 += v0 * p0 + z0 * q0
+        c01 += v0 * p1 + z0 * q1
+        c02 += z0 * q2
+        c11 += v1 * p1 + z1 * q1
+        c12 += z1 * q2
+        c22 += q2 * g3 * q2
         dx, dy, dz = x - px, y - py, z - pz
         s2 += dx * dx + dy * dy + dz * dz
+    # The factors 2 of T and H are applied to the sums (scaling by 2 is exact).
+    g00, g01, g02, g11, g12, g22 = 2.0 * g00, 2.0 * g01, 2.0 * g02, 2.0 * g11, 2.0 * g12, \
+        2.0 * g22
+    c00, c01, c02, c11, c12, c22 = 2.0 * c00, 2.0 * c01, 2.0 * c02, 2.0 * c11, 2.0 * c12, \
+        2.0 * c22
     Hg = [[g00, g01, g02], [g01, g11, g12], [g02, g12, g22]]
     Hn = [[g00 - c00, g01 - c01, g02 - c02], [g01 - c01, g11 - c11, g12 - c12],
           [g02 - c02, g12 - c12, g22 - c22]]
-    return f, [t0, t1, t2], Hn, Hg, math.sqrt(s2 / len(stations))
+    return f, [2.0 * t0, 2.0 * t1, 2.0 * t2], Hn, Hg, math.sqrt(s2 / len(stations))
 
 
 def _stations(bearings):
