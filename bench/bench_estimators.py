@@ -9,7 +9,8 @@ call. Everything is measured in this one run, so the ratios compare like with li
 * One fix: ``locate(name, bearings)`` with a one-problem BearingSet (validation included, as
   the fusion node and ``bearing_loc locate`` call it), for N = 3, 4, 6, 10 bearings: median
   and 90th percentile per call over ``--problems`` problems (each call timed alone, best of 3
-  repeats), and the ratio scipy / estimator (above 1: faster than scipy) and estimator / mle.
+  repeats; the estimators take turns problem by problem, so load changes hit all alike), and
+  the ratio scipy / estimator (above 1: faster than scipy) and estimator / mle.
 * Batch: one call with M = 10,000 problems of N = 3 (and N = 10): fixes per second.
 * ``--large``: batch throughput also at N = 100 and 1000 (M = 100,000 / N).
 
@@ -80,17 +81,22 @@ def scipy_problem(one):
     return fun, jac
 
 
-def per_call(fn, items, repeat=3):
-    """Seconds per call of fn(item) for every item (best of ``repeat``), and the outputs."""
-    times = np.empty(len(items))
-    out = [None] * len(items)
+def interleaved(fns, items, repeat=3):
+    """{name: seconds per call (best of ``repeat``) for every item}, and the outputs.
+
+    The calls alternate between the functions problem by problem and repeat by repeat, so
+    a change of machine load hits every estimator alike and the ratios stay comparable.
+    """
+    times = {name: np.full(len(items), np.inf) for name in fns}
+    out = {name: [None] * len(items) for name in fns}
     for k, item in enumerate(items):
-        best = np.inf
         for _ in range(repeat):
-            t0 = time.perf_counter()
-            out[k] = fn(item)
-            best = min(best, time.perf_counter() - t0)
-        times[k] = best
+            for name, fn in fns.items():
+                t0 = time.perf_counter()
+                res = fn(item)
+                dt = time.perf_counter() - t0
+                times[name][k] = min(times[name][k], dt)
+                out[name][k] = res
     return times, out
 
 
@@ -100,18 +106,16 @@ def single_fix_table(sizes, n_problems, rng):
     for N in sizes:
         _, bs = problems(N, n_problems, rng)
         ones = split(bs)
-        med = {}
-        for name in METHODS:
-            t, _ = per_call(lambda b, name=name: est.locate(name, b), ones)
-            med[name] = (np.median(t), np.percentile(t, 90))
         x0 = [est.ls(b).position[0] for b in ones]
         setups = [scipy_problem(b) for b in ones]
-        t, sols = per_call(lambda k: least_squares(setups[k][0], x0[k], jac=setups[k][1],
-                                                   method='lm', xtol=1e-10), range(len(ones)))
-        med['scipy lm'] = (np.median(t), np.percentile(t, 90))
+        fns = {name: (lambda k, name=name: est.locate(name, ones[k])) for name in METHODS}
+        fns['scipy lm'] = lambda k: least_squares(setups[k][0], x0[k], jac=setups[k][1],
+                                                  method='lm', xtol=1e-10)
+        t, out = interleaved(fns, range(len(ones)))
+        med = {name: (np.median(v), np.percentile(v, 90)) for name, v in t.items()}
         x_mle = est.locate('mle', bs).position
-        agree.append((N, np.median(np.linalg.norm(np.array([s.x for s in sols]) - x_mle,
-                                                  axis=1))))
+        agree.append((N, np.median(np.linalg.norm(np.array([s.x for s in out['scipy lm']])
+                                                  - x_mle, axis=1))))
         for name, (m, p90) in med.items():
             rows.append((N, name, m * 1e3, p90 * 1e3, med['scipy lm'][0] / m,
                          m / med['mle'][0]))
