@@ -183,3 +183,70 @@ def test_evaluate_completes_at_ten_degrees_and_reports_statuses():
         total = r.ok_fraction + r.low_confidence_fraction + r.other_fraction
         assert total == pytest.approx(1.0)
         assert math.isfinite(r.p95_error) or r.converged == 0
+
+
+def test_one_fix_screen_and_lambda_max_agree_with_the_batch_screen():
+    tr = trials('config/scenarios/six_station_const.yaml', 200)
+    rng = np.random.default_rng(7)
+    b = noisy(tr, math.radians(2.0), 5, (0.05, math.radians(5), math.radians(30)))
+    plain = locate('mle', b, robust=False)
+    data = robust.Data(b)
+    batch = robust.screen(data, plain.position, plain.covariance)
+    one = [robust.screen_one(b.problem(m), plain.position[m].tolist(), None,
+                             plain.covariance[m]) for m in range(b.M)]
+    assert batch.any() and not batch.all()
+    assert list(batch) == one
+    for _ in range(200):
+        A = rng.standard_normal((3, 3)) * 10.0 ** rng.uniform(-3, 6)
+        A = A @ A.T if rng.random() < 0.8 else np.diag(rng.uniform(0, 5, 3))
+        lam = np.linalg.eigvalsh(A)[-1]
+        assert robust._lambda_max(A.tolist()) == pytest.approx(lam, rel=1e-9, abs=1e-12 * lam)
+
+
+def test_robust_one_fix_path_gives_the_batch_result():
+    tr = trials('config/scenarios/six_station_const.yaml', 60)
+    b = noisy(tr, math.radians(3.0), 6, (0.1, math.radians(20), math.radians(90)))
+    batch = locate('mle', b)                       # robust is the default of mle
+    for m in range(b.M):
+        one = locate('mle', b.problem(m))
+        assert one.status[0] == batch.status[m]
+        np.testing.assert_allclose(one.position[0], batch.position[m], rtol=1e-9)
+        assert np.array_equal(one.excluded[0], batch.excluded[m])
+
+
+def test_low_snr_ok_fixes_are_never_grossly_wrong_and_nothing_runs_away():
+    # Zong & Cui 2015 geometry at sigma_ref 4-5 deg: a subset of stations can fit a wrong
+    # point near the stations (small range-grown sigma) and exclude good bearings. No ok
+    # fix may be off by more than NEES 100 (chi2_3 probability ~1e-20), and no fix keeps the
+    # paper iteration's max_iterations/diverged status (the run-aways are refitted).
+    tr = trials('config/scenarios/seed003.yaml', 300)
+    for sigma, seed in ((4.0, 11), (5.0, 12)):
+        b = noisy(tr, math.radians(sigma), seed)
+        rob = locate('wmle', b, robust=True)
+        assert not np.isin(rob.status, ('max_iterations', 'diverged')).any()
+        ok = rob.status == 'ok'
+        if ok.any():
+            assert nees(rob, tr.targets, ok).max() < 100.0
+        fixed = np.isin(rob.status, ('ok', 'low_confidence'))
+        err = np.linalg.norm(rob.position[fixed] - tr.targets[fixed], axis=1)
+        assert err.max() < 15e3
+
+
+def test_test_inversion_widens_only_the_major_axis():
+    tr = trials('config/scenarios/seed003.yaml', 50)
+    b = noisy(tr, math.radians(1.0), 13)
+    data = robust.Data(b, 1000.0)
+    X = tr.targets
+    wa = np.ones_like(b.azimuth)
+    we = b.has_elevation.astype(float)
+    _, _, ga, ge, _, _, _ = data.evaluate(X)
+    P = np.linalg.inv(robust.fisher(ga, ge, wa, we))
+    W = robust.test_inversion_covariance(data, X, wa, we, P)
+    D = W - P
+    w = np.linalg.eigvalsh(D)
+    scale = np.linalg.eigvalsh(P)[:, -1]
+    assert np.all(w[:, :2] > -1e-9 * scale[:, None]) and np.all(w[:, :2] < 1e-9 * scale[:, None])
+    assert np.all(w[:, 2] > 0)                     # the far side is always longer
+    lam, V = np.linalg.eigh(P)
+    u = np.linalg.eigh(D)[1][:, :, 2]
+    assert np.all(np.abs(np.einsum('mi,mi->m', u, V[:, :, 2])) > 1 - 1e-6)

@@ -308,11 +308,14 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
     Fisher scoring step: (F + λ diag F) Δ = −½∇L with F = Σ w_j g_j g_jᵀ (+ Σ w_j 2 u uᵀ/d²,
     the information of σ(d) under range growth), ½∇L = Σ_j w_j [−r_j g_j + (1 − r_j²) u_k/d_k]
     with range growth (the σ(d) and log σ(d) derivatives) and −Σ w_j r_j g_j without. A step
-    is taken when L does not increase; λ ×10 on rejection, ÷10 on acceptance.
+    is taken when L does not increase; λ ×10 on rejection, ÷10 on acceptance. A problem
+    stops when its step is below 1e-10 of its rms range or λ > 1e10 (each problem on its
+    own: the result does not depend on the other problems of the batch).
     """
     grow = data.d_ref is not None
     X = X0.copy()
     lam = np.zeros(X.shape[0])
+    done = np.zeros(X.shape[0], dtype=bool)
 
     def parts(X):
         ra, re, ga, ge, u, d, log_s2 = data.evaluate(X)
@@ -338,7 +341,7 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
         step = np.where(np.isfinite(step), step, 0.0)
         Xt = X + step
         ct, rat, ret, gat, get, ut, dt = parts(Xt)
-        acc = np.isfinite(ct) & (ct <= cost)
+        acc = np.isfinite(ct) & (ct <= cost) & ~done
         X = np.where(acc[:, None], Xt, X)
         cost = np.where(acc, ct, cost)
         ra, re = np.where(acc[:, None], rat, ra), np.where(acc[:, None], ret, re)
@@ -346,9 +349,11 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
         ge = np.where(acc[:, None, None], get, ge)
         u = np.where(acc[:, None, None], ut, u)
         d = np.where(acc[:, None], dt, d)
-        lam = np.where(acc, 0.1 * lam * (lam > 1e-6), np.maximum(10.0 * lam, 1e-3))
+        lam = np.where(done, lam,
+                       np.where(acc, 0.1 * lam * (lam > 1e-6), np.maximum(10.0 * lam, 1e-3)))
         scale = np.sqrt(np.mean(d * d, axis=-1))
-        if np.all((np.linalg.norm(step, axis=-1) <= 1e-10 * scale) | (lam > 1e10)):
+        done |= (np.linalg.norm(step, axis=-1) <= 1e-10 * scale) | (lam > 1e10)
+        if np.all(done):
             break
     return X
 
@@ -383,17 +388,23 @@ def consensus_fit(data, X_ml, c2=None):
     X = cand[np.arange(M), best]
     X = np.where(np.isfinite(X), X, 0.0)
     wa, we = _inliers(data, X, c2)
+    active = np.arange(M)
     for _ in range(REFIT_ROUNDS):
-        good = _solvable(data, wa, we)
-        wa = np.where(good[:, None], wa, 1.0)
-        we = np.where(good[:, None], we, data.has_el.astype(float))
-        X = _refit(data, X, wa, we)
-        na, ne = _inliers(data, X, c2)
-        na = np.where(_solvable(data, na, ne)[:, None], na, wa)
-        ne = np.where(_solvable(data, na, ne)[:, None], ne, we)
-        same = np.all((na == wa) & (ne == we), axis=-1)
-        wa, we = na, ne
-        if np.all(same):
+        # Only problems whose inlier set changed are refitted again (each problem's result
+        # is independent of the batch it is in).
+        sub = data.take(active)
+        a, e = wa[active], we[active]
+        good = _solvable(sub, a, e)
+        a = np.where(good[:, None], a, 1.0)
+        e = np.where(good[:, None], e, sub.has_el.astype(float))
+        Xa = _refit(sub, X[active], a, e)
+        na, ne = _inliers(sub, Xa, c2)
+        solvable = _solvable(sub, na, ne)[:, None]
+        na, ne = np.where(solvable, na, a), np.where(solvable, ne, e)
+        same = np.all((na == a) & (ne == e), axis=-1)
+        X[active], wa[active], we[active] = Xa, na, ne
+        active = active[~same]
+        if not active.size:
             break
     return _prefer_all_bearings(data, X, wa, we, X_ml, cand[:, 1])
 
@@ -621,13 +632,19 @@ def confident_result(result, bearings, d_ref=None):
         X, wa, we = consensus_fit(data, start)
         P, ok, _, _, nux = assess(data, X, wa, we)
         finite = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
-        pos[idx] = np.where(finite[:, None], X, np.nan)
-        cov[idx] = np.where(finite[:, None, None], P, np.inf)
-        status[idx] = np.where(finite, np.where(ok, STATUS_OK, STATUS_LOW_CONFIDENCE),
+        # No finite refit (e.g. a target far beyond the baseline): the estimator's own
+        # finite fix is kept, as low_confidence, without exclusions.
+        own = ~finite & usable[idx]
+        keep = finite | own
+        pos[idx] = np.where(finite[:, None], X, np.where(own[:, None], pos[idx], np.nan))
+        cov[idx] = np.where(finite[:, None, None], P,
+                            np.where(own[:, None, None], cov[idx], np.inf))
+        ok &= finite
+        status[idx] = np.where(keep, np.where(ok, STATUS_OK, STATUS_LOW_CONFIDENCE),
                                STATUS_DEGENERATE)
-        conv[idx] = finite & ok
-        excluded[idx, :, 0] = wa == 0
-        excluded[idx, :, 1] = data.has_el & (we == 0)
-        nu[idx] = nux
+        conv[idx] = ok
+        excluded[idx, :, 0] = finite[:, None] & (wa == 0)
+        excluded[idx, :, 1] = finite[:, None] & data.has_el & (we == 0)
+        nu[idx] = np.where(finite, nux, np.nan)
     return FixResult(pos, cov, result.iterations, conv, status.astype(str), result.method,
                      excluded=excluded, nonlinearity=nu)
