@@ -188,8 +188,10 @@ def test_csv_table_gives_the_json_results(tmp_path, capsys):
     by_id = {r['problem']: r for r in got}
     for k, r in enumerate(expect):
         t = by_id[100 + k]
-        # Bearing order inside a problem is kept, so the solve is the same to rounding.
-        np.testing.assert_allclose(t['position'], r['position'], rtol=1e-12)
+        # Bearing order inside a problem is kept, so the solve is the same to rounding (a
+        # fix in doubt is refitted by the robust default of mle from the estimator's fix,
+        # and the refit stops within 1e-10 of the rms range: equal to that).
+        np.testing.assert_allclose(t['position'], r['position'], rtol=1e-9)
         np.testing.assert_allclose(t['covariance'], r['covariance'], rtol=1e-9)
         assert t['status'] == r['status'] and t['iterations'] == r['iterations']
 

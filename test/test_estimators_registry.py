@@ -59,6 +59,13 @@ def test_declared_options_and_defaults():
                                                       'tolerance': 1e-9}.items()
     assert 'initial' not in registry.option_defaults('ls')
     assert 'reference_range' not in registry.option_defaults('mle')
+    # robust: on by default for the default estimator mle, opt-in for wmle (core.robust);
+    # estimators without the consistency assessment do not declare it.
+    assert registry.option_defaults('mle')['robust'] is True
+    assert registry.option_defaults('wmle')['robust'] is False
+    assert estimators.DEFAULT_ESTIMATOR == 'mle'
+    for name in ('ls', 'tls', 'ctls', 'ctls_am'):
+        assert 'robust' not in registry.option_defaults(name)
     d = registry.option_defaults('tma_ctls')
     assert d['speed_reference'] == 'relative' and d['min_bearings'] == 3 and d['alpha'] == 1e-3
     assert registry.spec('tma_mle').inputs == ('times', 'speed')

@@ -151,7 +151,7 @@ def seed003_csv(tmp_path_factory):
     out = tmp_path_factory.mktemp('eval')
     argv = ['evaluate', '--scenario', SEED003, '--estimator', 'ls,mle,wmle',
             '--sigma-deg', '0.5,1,3', '--trials', '300', '--seed', '0', '--out', str(out),
-            '--quiet']
+            '--quiet', '--paper']
     assert cli_main(argv) == 0
     with open(out / 'evaluation.csv', encoding='utf-8') as f:
         rows = list(csv.DictReader(f))
@@ -188,7 +188,8 @@ def test_seed003_csv_table_is_complete(seed003_csv):
     with open(out / 'evaluation.json', encoding='utf-8') as f:
         doc = json.load(f)
     assert doc['trials'] == 300 and doc['sweeps'] == ['joint', 'azimuth', 'elevation']
-    assert doc['options'] == {'wmle': {'reference_range': 1000.0}}
+    assert doc['options'] == {'mle': {'robust': False},
+                              'wmle': {'reference_range': 1000.0, 'robust': False}}
     assert len(doc['rows']) == len(rows)
     assert doc['findings']['ranking']['elevation@3'][-1] == 'ls'
     for name in ('eval_rmse_joint.png', 'eval_rmse_azimuth.png', 'eval_rmse_elevation.png',

@@ -57,7 +57,10 @@ def add_arguments(parser):
                         help="override the stations' σ growth reference range r_ref, m "
                              '(σ(r) = σ · r / r_ref, Zong & Cui 2015 eqs. (9)-(10)); 0: '
                              'constant σ')
-    parser.add_argument('--robust', action='store_true',
+    parser.add_argument('--paper', dest='robust', action='store_false', default=None,
+                        help='run mle/wmle without option robust: the papers\' estimators '
+                             'alone (mle is robust by default)')
+    parser.add_argument('--robust', dest='robust', action='store_true', default=None,
                         help='run mle/wmle with option robust (consensus, outlier exclusion, '
                              'full likelihood, ok/low_confidence status; as the fusion node)')
     parser.add_argument('--outliers', default=None, metavar='F,MIN_DEG,MAX_DEG',
@@ -153,12 +156,13 @@ def _solve_options(tr, dimension, target_altitude, target_altitude_sigma):
 
 def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='both',
                    fixed_sigma_deg=0.5, progress=None, range_ref=None, outliers=None,
-                   robust=False, dimension=None, target_altitude=None,
+                   robust=None, dimension=None, target_altitude=None,
                    target_altitude_sigma=0.0):
     """Run the study; returns (rows: list of Stats, meta: dict).
 
     ``outliers``: None or (fraction, min, max magnitude in rad) (:func:`parse_outliers`).
-    ``robust``: pass option ``robust=True`` to the estimators that accept it.
+    ``robust``: None runs each estimator with its own default (``mle`` robust, ``wmle``
+    not); True or False passes option ``robust`` to the estimators that accept it.
     ``dimension``, ``target_altitude``, ``target_altitude_sigma`` (m): the solve
     (core.horizontal). A horizontal solve (forced, or a scenario whose stations are all
     azimuth-only, ``dims: 1``) states the altitude: ``target_altitude``, else each trial's
@@ -195,9 +199,9 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
             scoped = registry.check(e, {'reference_range': ref})
             if scoped:
                 options[e] = scoped
-    if robust:
+    if robust is not None:
         for e in estimators:
-            scoped = registry.check(e, dict(options.get(e, {}), robust=True))
+            scoped = registry.check(e, dict(options.get(e, {}), robust=bool(robust)))
             if 'robust' in scoped:
                 options[e] = scoped
     solve_options = _solve_options(tr, dimension, target_altitude, target_altitude_sigma)
@@ -210,7 +214,7 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
             'sigma_deg': sigmas, 'sweeps': list(sweeps), 'fixed_sigma_deg': fixed_sigma_deg,
             'options': options, 'elapsed_s': elapsed,
             'stations': tr.station_ids, 'reference_range_m': ref,
-            'range_ref_override_m': range_ref, 'robust': bool(robust),
+            'range_ref_override_m': range_ref, 'robust': robust,
             'dimension': solve_options.get('dimension', dimension or 'auto'),
             'target_altitude_m': (None if solve_options.get('target_altitude') is None else
                                   'truth' if target_altitude is None else target_altitude),

@@ -131,6 +131,9 @@ STEP_DECAY = Option('step_decay', 1.0, 'positive', 'mu of the Newton step decay 
 ROBUST = Option('robust', False, 'flag',
                 'screen the fix; on doubt, consensus over station subsets and a full-likelihood '
                 'refit without outlier bearings; status ok or low_confidence (core.robust)')
+#: ``robust`` on by default (the default estimator, ``mle``: at high SNR the screen keeps
+#: the paper's fix, so the default changes only fixes that are in doubt).
+ROBUST_ON = Option('robust', True, 'flag', ROBUST.doc)
 
 #: Dimension choices of the solve (core.horizontal): 3D when the bearings observe the height,
 #: forced 3D, or the horizontal solve with the target altitude stated.

@@ -46,7 +46,7 @@ from .constrained_tls import ctls, ctls_am
 from .crlb import crlb, safe_inverse
 from .estimator_spec import (BEARING_SIGMA, DEFAULT_REFERENCE_RANGE, declare, ITERATIVE_OPTIONS,
                              MULTISTATION, RANGE_GROWN_SIGMA, range_scaled_sigmas,
-                             REFERENCE_RANGE, ROBUST)
+                             REFERENCE_RANGE, ROBUST, ROBUST_ON)
 from .ml_single import solve_one
 from .fix import (FixResult, iterative_result, STATUS_DEGENERATE, STATUS_DIVERGED,
                   STATUS_MAX_ITERATIONS, STATUS_OK, STATUSES)
@@ -310,7 +310,7 @@ def _levenberg_marquardt(problem, x0, max_iterations, tolerance):
     return X, _unpack_matrix(Q), iterations, converged & finite0, diverged
 
 
-@declare('mle', MULTISTATION, ITERATIVE_OPTIONS + (ROBUST,), BEARING_SIGMA)
+@declare('mle', MULTISTATION, ITERATIVE_OPTIONS + (ROBUST_ON,), BEARING_SIGMA)
 def mle(bearings, **options):
     """Gauss-Newton maximum likelihood, Zong & Cui 2015 eqs. (3)-(8), per-bearing σ.
 
@@ -323,11 +323,13 @@ def mle(bearings, **options):
     estimate — the CRLB of crlb.py evaluated at X̂ (m²). Options: ``max_iterations``,
     ``tolerance``, ``initial``. Cost O(N) per iteration and problem. One problem (M = 1)
     runs the same iteration on Python floats (core/ml_single.py, same results to rounding).
-    Option ``robust`` (default false; the fusion node turns it on): the fix is screened and,
-    when in doubt, replaced by a
-    consensus over station subsets and a refit without outlier bearings, and assessed
-    (status ``ok`` or ``low_confidence``, fields ``excluded`` and ``nonlinearity``;
-    :mod:`~bearing_loc_ros.core.robust`); false gives the paper's estimator alone.
+    Option ``robust`` (default true: ``mle`` is the default estimator and must never
+    report a confidently wrong fix): the fix is screened and, when in doubt (residual χ²
+    outside its band, an angle beyond 3.9σ, a large confidence region, or no convergence),
+    replaced by a consensus over station subsets and a refit without outlier bearings, and
+    assessed (status ``ok`` or ``low_confidence``, fields ``excluded`` and
+    ``nonlinearity``; :mod:`~bearing_loc_ros.core.robust`). At high SNR the screen keeps
+    the paper's fix unchanged. ``robust=False`` gives the paper's estimator alone.
     """
     bearings.validate()
     res = None
@@ -358,7 +360,8 @@ def wmle(bearings, **options):
     exact likelihood is not included, exactly as in the paper). A step is accepted when it
     does not increase the cost under W_i. Covariance: inverse Fisher information with
     σ(d̂) at the estimate (m²). Options: ``reference_range``, ``max_iterations``,
-    ``tolerance``, ``initial``, ``robust`` (default false; as for :func:`mle`, and every fix
+    ``tolerance``, ``initial``, ``robust`` (default false, opt-in because it replaces every
+    paper fix; as for :func:`mle`, and every fix
     is refitted on the full likelihood, with the Σ log σ(d)² term the paper's cost
     omits: without it the cost falls toward 0 as the range grows; core.robust).
     """
