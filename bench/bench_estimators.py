@@ -9,8 +9,8 @@ call. Everything is measured in this one run, so the ratios compare like with li
 * One fix: ``locate(name, bearings)`` with a one-problem BearingSet (validation included, as
   the fusion node and ``bearing_loc locate`` call it), for N = 3, 4, 6, 10 bearings: median
   and 90th percentile per call over ``--problems`` problems (each call timed alone, best of 3
-  repeats; the estimators take turns problem by problem, so load changes hit all alike), and
-  the ratio scipy / estimator (above 1: faster than scipy) and estimator / mle.
+  calls in a row; the estimators take turns problem by problem, so load changes hit all
+  alike), and the ratio scipy / estimator (above 1: faster than scipy) and estimator / mle.
 * Batch: one call with M = 10,000 problems of N = 3 (and N = 10): fixes per second.
 * ``--large``: batch throughput also at N = 100 and 1000 (M = 100,000 / N).
 
@@ -82,21 +82,21 @@ def scipy_problem(one):
 
 
 def interleaved(fns, items, repeat=3):
-    """{name: seconds per call (best of ``repeat``) for every item}, and the outputs.
+    """{name: seconds per call (best of ``repeat`` calls in a row) for every item}, outputs.
 
-    The calls alternate between the functions problem by problem and repeat by repeat, so
-    a change of machine load hits every estimator alike and the ratios stay comparable.
+    The functions take turns problem by problem, so a change of machine load hits every
+    estimator alike and the ratios stay comparable; the best of ``repeat`` calls in a row
+    leaves out the first call's cold caches.
     """
     times = {name: np.full(len(items), np.inf) for name in fns}
     out = {name: [None] * len(items) for name in fns}
     for k, item in enumerate(items):
-        for _ in range(repeat):
-            for name, fn in fns.items():
+        for name, fn in fns.items():
+            for _ in range(repeat):
                 t0 = time.perf_counter()
                 res = fn(item)
-                dt = time.perf_counter() - t0
-                times[name][k] = min(times[name][k], dt)
-                out[name][k] = res
+                times[name][k] = min(times[name][k], time.perf_counter() - t0)
+            out[name][k] = res
     return times, out
 
 

@@ -276,7 +276,9 @@ def _iterate(name, stations, X, opts):
     for n in range(opts['max_iterations']):
         f, T, Hn, Hgn, scale = derivatives(stations, X)
         pd = False
-        if all(isfinite(v) for row in Hn for v in row):
+        h0, h1, h2 = Hn                                  # symmetric: 6 distinct entries
+        if isfinite(h0[0]) and isfinite(h0[1]) and isfinite(h0[2]) and isfinite(h1[1]) \
+                and isfinite(h1[2]) and isfinite(h2[2]):
             if _well_conditioned(Hn):
                 pd = True
             else:
