@@ -124,7 +124,9 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
     has no /clock). Stations: the ``stations`` parameter, else every bearing topic of the
     namespace in sorted order. With ``out``, writes ``<out>/`` (a bag with the fixes on
     ``<ns>/fix``, bag time = node-clock time the fix was computed) and ``<out>.csv``; with
-    ``out`` None, nothing is written. Topics of message types that are not installed are
+    ``out`` None, nothing is written. With parameter ``publish_low_confidence`` the CSV also
+    has the epochs whose fix failed its consistency checks (column status
+    ``low_confidence``; core.robust). Topics of message types that are not installed are
     ignored with a warning through ``log``. Returns a summary dict (epochs, fixes, no_fix
     reasons, dropped, bad, and ``errors`` against ``<ns>/truth`` when the bag has it).
     """
@@ -197,7 +199,19 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
         truth = _interp_truth(truth_t, truth_p, stamps, max(period, NS_PER_S))
     fix_name = prefix + fix_topic.strip('/')
     if out is not None:
-        _write_fix_csv(csv_path, fixes, truth)
+        rows, row_truth = fixes, truth
+        if params.get('publish_low_confidence'):
+            # as the node's fix/low_confidence: the CSV also lists the fixes that failed
+            # their consistency checks, status low_confidence (never in the bag's fix topic)
+            rows = sorted(fixes + [e for e in epochs if e.reason == 'low_confidence'
+                                   and e.position is not None], key=lambda e: e.stamp_ns)
+            if has_truth and rows:
+                gap = int(np.median(np.diff(np.unique(truth_t)))) if len(set(truth_t)) > 1 \
+                    else 0
+                row_truth = _interp_truth(truth_t, truth_p,
+                                          np.array([e.stamp_ns for e in rows], np.int64),
+                                          max(gap, NS_PER_S))
+        _write_fix_csv(csv_path, rows, row_truth)
         with bagio.BagWriter(out, storage=storage, custom_data={
                 'generator': 'bearing_loc bag process', 'source': str(path),
                 'estimator': config.estimator, 'trigger': config.trigger}) as bag:

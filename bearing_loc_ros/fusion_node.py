@@ -15,7 +15,9 @@ Topics (relative, so namespaces and remapping work):
   publisher (``lost.sequence_gap``: the network, or the keep-last queue overflowing while
   the node was busy);
 * out: ``fix`` (PoseWithCovarianceStamped), ``fix/navsat`` (sensor_msgs/NavSatFix, with a
-  ``geodetic_origin``), ``markers`` (visualization_msgs/MarkerArray), ``/diagnostics``
+  ``geodetic_origin``), ``fix/low_confidence`` (PoseWithCovarianceStamped, with
+  ``publish_low_confidence``: fixes that failed their consistency checks, core.robust;
+  never on ``fix``), ``markers`` (visualization_msgs/MarkerArray), ``/diagnostics``
   (diagnostic_msgs/DiagnosticArray); TMA mode: ``track`` (nav_msgs/Odometry, target position
   and velocity); multi-station mode: ``accuracy_map`` (nav_msgs/OccupancyGrid, transient
   local, core.display.AccuracyMap, recomputed only when the live station set changes).
@@ -41,6 +43,7 @@ from visualization_msgs.msg import MarkerArray
 from . import fusion_channels
 from .core.display import AccuracyMap, AccuracyMapConfig
 from .core.fusion import FusionConfig, make_core, MODE_MULTISTATION, MODE_TMA
+from .core.fusion.gating import LOW_CONFIDENCE
 from .ros_common import declare_schema, keep_last_qos, main_for, ParameterError, \
     topics_under_namespace
 from .ros_conversions import (bearing_from_msg, ConversionError, diagnostic_array,
@@ -137,6 +140,10 @@ class FusionNode(Node):
         self.navsat_pub = (pub(NavSatFix, 'fix/navsat', 10)
                            if self.geodetic_origin is not None else None)
         self.marker_pub = pub(MarkerArray, 'markers', 10) if p['publish_markers'] else None
+        # Fixes that failed their consistency checks (core.robust): never on fix; here only
+        # when asked for.
+        self.low_confidence_pub = (pub(PoseWithCovarianceStamped, 'fix/low_confidence', 10)
+                                   if p['publish_low_confidence'] else None)
         self.diag_pub = pub(DiagnosticArray, '/diagnostics', 10)
         self.track_pub = pub(Odometry, 'track', 10) if self.mode == MODE_TMA else None
         self.map_pub = None
@@ -340,6 +347,10 @@ class FusionNode(Node):
             self.fixes_published += 1
         log = self.get_logger()
         for ep in epochs:
+            if self.low_confidence_pub is not None and ep.reason == LOW_CONFIDENCE \
+                    and ep.position is not None:
+                self.low_confidence_pub.publish(fix_to_msg(ep.position, ep.covariance,
+                                                           ep.stamp_ns, self.frame_id))
             if not ep.ok:
                 log.debug(f'epoch {ep.stamp_ns / 1e9:.3f}: no fix ({ep.reason}'
                           f'{": " + ep.detail if ep.detail else ""})')

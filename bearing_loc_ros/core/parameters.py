@@ -200,6 +200,13 @@ def _fusion_schema():
         P('min_stations', INTEGER, 2, 'Fewest stations in a fix', '', 2, 10000, **run),
         P('outlier_gate', DOUBLE, 0.999, 'Chi-square gate probability (1 dof per angle); '
           '1.0 disables the gate', '', 0.5, 1.0, **run),
+        P('sigma_floor_deg', DOUBLE, 0.0, 'Smallest bearing sigma the fusion uses: a '
+          "station's smaller claim is raised to it; 0 = none", 'deg', 0.0, 180.0, **run),
+        P('station_sigma_floors', STRING_ARRAY, [], 'Per-station sigma floors '
+          '"<station>:<deg>", overriding sigma_floor_deg for those stations',
+          example=['station_1:2.0'], commented=True, **run),
+        P('publish_low_confidence', BOOL, False, 'Also publish fixes that failed their '
+          'consistency checks (low_confidence) on fix/low_confidence; never on fix'),
         P('dimension', STRING, 'auto', 'Solve: auto (3d when the bearings observe the '
           'height, else horizontal), 3d or horizontal (needs target_altitude)',
           choices=('auto', '3d', 'horizontal'), **run),
@@ -398,7 +405,8 @@ FUSION_CONFIG_FIELDS = ('frame_id', 'trigger', 'rate', 'max_latency', 'sync_tole
                         'interpolation', 'max_interpolation_gap', 'station_timeout',
                         'buffer_size', 'buffer_age', 'min_stations', 'estimator',
                         'outlier_gate', 'time_jump_tolerance', 'target_speed', 'window',
-                        'speed_reference', 'future_tolerance', 'window_max_bearings')
+                        'speed_reference', 'future_tolerance', 'window_max_bearings',
+                        'sigma_floor_deg', 'station_sigma_floors')
 #: Fusion node parameters that are estimator options (FusionConfig.estimator_options).
 ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay',
                      'dimension', 'target_altitude', 'target_altitude_sigma', 'use_elevations')

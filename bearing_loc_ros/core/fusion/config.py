@@ -108,6 +108,31 @@ class FusionConfig:
     window: float = _DEFAULTS['window']
     speed_reference: str = _DEFAULTS['speed_reference']
     window_max_bearings: int = _DEFAULTS['window_max_bearings']
+    sigma_floor_deg: float = _DEFAULTS['sigma_floor_deg']
+    station_sigma_floors: tuple = ()
+
+    def __post_init__(self):
+        # a parameter array arrives as a list: one canonical (hashable) form
+        object.__setattr__(self, 'station_sigma_floors', tuple(self.station_sigma_floors))
+
+    def sigma_floors(self):
+        """(global floor, {station: floor}) in rad, from ``sigma_floor_deg`` and
+        ``station_sigma_floors`` ("<station>:<deg>"); ValueError naming the field."""
+        g = float(self.sigma_floor_deg)
+        if not (math.isfinite(g) and 0.0 <= g <= 180.0):
+            raise ValueError(f'sigma_floor_deg: must be in [0, 180] deg, got {g}')
+        out = {}
+        for item in self.station_sigma_floors:
+            name, sep, deg = str(item).rpartition(':')
+            try:
+                v = float(deg)
+            except ValueError:
+                v = math.nan
+            if not sep or not name or not (math.isfinite(v) and 0.0 <= v <= 180.0):
+                raise ValueError(f'station_sigma_floors: expected "<station>:<deg>" with deg '
+                                 f'in [0, 180], got {item!r}')
+            out[name] = math.radians(v)
+        return math.radians(g), out
 
     def validate(self):
         """Raise ``ValueError`` naming the first invalid field; return self."""
@@ -159,6 +184,7 @@ class FusionConfig:
         g = float(self.outlier_gate)
         if not 0.5 <= g <= 1.0:
             raise ValueError(f'outlier_gate: probability must be in [0.5, 1], got {g}')
+        self.sigma_floors()
         return self
 
     @classmethod

@@ -38,10 +38,13 @@ class MultiStationStrategy:
         self.trust = trust if trust is not None else StationTrust()
         self.low_confidence = 0
         self.last_solve = 'none'     # '3d' or 'horizontal': the solve of the last estimate
+        self.reconfigure(registry.config)
 
     # ----------------------------------------------------------------- pipeline hooks
     def reconfigure(self, config):
-        """Nothing to rebuild: alignment settings are read from the registry per epoch."""
+        """σ floors of the trust (``sigma_floor_deg``, ``station_sigma_floors``); alignment
+        settings are read from the registry per epoch."""
+        self.trust.sigma_floor, self.trust.floors = config.sigma_floors()
 
     def refusal(self, station):
         """Every station contributes: never refuses a bearing."""

@@ -1,0 +1,130 @@
+"""Fusion wiring of the robust fixes: fix/low_confidence, σ floors, bag process status.
+
+The node test runs a FusionNode in-process (test_fusion_node.Harness) on the six-station
+line of Zong & Cui 2015 with σ growing with range (σ_ref 3° at 1 km, capped at 6×), the
+regime where the plain range-weighted ML runs away: every published ``fix`` must be
+consistent with its covariance (Mahalanobis error below the χ²₃ 0.9999 quantile), the fixes
+in doubt appear only on ``fix/low_confidence`` and are counted in /diagnostics.
+"""
+
+import math
+
+from geometry_msgs.msg import PoseWithCovarianceStamped
+import numpy as np
+import pytest
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from scipy import stats
+
+from bearing_loc_ros.core.bearings import Bearing
+from bearing_loc_ros.core.conventions import azimuth_elevation
+from bearing_loc_ros.core.fusion import FusionConfig
+from bearing_loc_ros.core.fusion.pipeline import make_core, replay
+from bearing_loc_ros.ros_conversions import bearing_to_msg, fix_from_msg
+
+S = 1_000_000_000
+Q9999 = stats.chi2.ppf(0.9999, 3)
+LINE = {f'st{i + 1}': np.array([x, 0.0, 0.0])
+        for i, x in enumerate((-3000.0, -1800.0, -600.0, 600.0, 1800.0, 3000.0))}
+QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def line_bearings(target, t_ns, sigma_ref, rng, grow=True):
+    """Bearings of the six stations: true σ = σ_ref · clip(d / 1 km, 1, 6) (``grow``) or
+    σ_ref, σ_ref reported."""
+    out = []
+    for name, p in LINE.items():
+        az, el = azimuth_elevation(target - p)
+        s = sigma_ref * (min(max(np.linalg.norm(target - p) / 1000.0, 1.0), 6.0) if grow
+                         else 1.0)
+        out.append(Bearing(station=name, stamp_ns=int(t_ns), position=p.copy(),
+                           azimuth=float(az + s * rng.standard_normal()),
+                           elevation=float(np.clip(el + s * rng.standard_normal(), -1.5, 1.5)),
+                           sigma_azimuth=sigma_ref, sigma_elevation=sigma_ref))
+    return out
+
+
+@pytest.mark.ros
+def test_node_publishes_no_confident_wrong_fix_and_counts_low_confidence(harness):
+    h = harness(stations=list(LINE), estimator='wmle', reference_range=1000.0,
+                publish_low_confidence=True, max_latency=0.5)
+    low = []
+    h.node.create_subscription(PoseWithCovarianceStamped, 'fix/low_confidence', low.append,
+                               QOS)
+    rng = np.random.default_rng(3)
+    sigma = math.radians(3.0)
+    core = h.fusion.core
+    truth = {}
+    t = 100 * S
+    for k in range(120):         # ~4 % of the fixes pass at σ_ref 3°
+        h.set_clock(t)
+        target = rng.uniform([-3000.0, 1000.0, -500.0], [3000.0, 7000.0, 500.0])
+        truth[t] = target
+        done = core.fixes + sum(core.no_fix.values())
+        for b in line_bearings(target, t, sigma, rng):
+            h.send(bearing_to_msg(b), b.station)
+        assert h.spin(lambda: core.fixes + sum(core.no_fix.values()) > done), k
+        t += S
+    n_low = core.no_fix['low_confidence']
+    assert h.spin(lambda: len(h.fixes) == core.fixes and len(low) == n_low)
+    assert n_low >= 10 and core.fixes >= 1   # at σ_ref 3° most fixes are in doubt
+    for msg in h.fixes:
+        stamp, x, P = fix_from_msg(msg)
+        e = x - truth[stamp]
+        assert e @ np.linalg.solve(P, e) < Q9999
+    for msg in low:                          # low_confidence fixes carry their covariance
+        stamp, x, P = fix_from_msg(msg)
+        assert stamp in truth and np.all(np.isfinite(x)) and np.all(np.isfinite(P))
+
+    def counted(d):
+        v = {kv.key: kv.value for kv in d['fusion'].values} if 'fusion' in d else {}
+        return v.get('low_confidence_fixes') == str(n_low)
+
+    d = h.diag(counted)['fusion']
+    values = {kv.key: kv.value for kv in d.values}
+    assert int(values['low_confidence_fixes']) == n_low
+
+
+def test_sigma_floor_parameters_reach_the_trust_and_are_checked():
+    cfg = FusionConfig.from_parameters({'sigma_floor_deg': 1.0,
+                                        'station_sigma_floors': ['s5:4.0']})
+    core = make_core(cfg, stations=['s1', 's2'])
+    trust = core.strategy.trust
+    assert trust.sigma_floor == pytest.approx(math.radians(1.0))
+    assert trust.floors == {'s5': pytest.approx(math.radians(4.0))}
+    core.reconfigure(sigma_floor_deg=2.0, station_sigma_floors=[])
+    assert trust.sigma_floor == pytest.approx(math.radians(2.0)) and trust.floors == {}
+    for bad in (['s1'], ['s1:x'], ['s1:-1'], [':2']):
+        with pytest.raises(ValueError, match='station_sigma_floors'):
+            FusionConfig.from_parameters({'station_sigma_floors': bad})
+    with pytest.raises(ValueError, match='sigma_floor_deg'):
+        FusionConfig(sigma_floor_deg=float('nan')).validate()
+
+
+def test_sigma_floor_raises_a_too_good_claim_in_the_fix():
+    # One station claims 1e-5 rad (its real error is 3 mrad like the others'). Every fix uses
+    # its bearing with at least the floor (0.5 deg), also once the trust has verified it.
+    rng = np.random.default_rng(5)
+    target = np.array([500.0, 4000.0, 300.0])
+    items = []
+    for k in range(20):
+        t = (k + 1) * S
+        for b in line_bearings(target, t, 3e-3, rng, grow=False):
+            if b.station == 'st3':
+                b = Bearing(station=b.station, stamp_ns=b.stamp_ns, position=b.position,
+                            azimuth=b.azimuth, elevation=b.elevation, sigma_azimuth=1e-5,
+                            sigma_elevation=1e-5)
+            items.append((t, b))
+    items.append((23 * S, None))
+    floor = math.radians(0.5)
+    core = make_core(FusionConfig(trigger='timer', rate=1.0, max_latency=0.5, estimator='mle',
+                                  station_sigma_floors=('st3:0.5',)), stations=list(LINE))
+    eps = [e for e in replay(core, items) if e.ok]
+    assert len(eps) >= 15
+    for e in eps:
+        used = {b.station: b for b in e.bearings}
+        if 'st3' in used:
+            assert used['st3'].sigma_azimuth >= floor
+            assert used['st3'].sigma_elevation >= floor
+        assert all(b.sigma_azimuth < floor for n, b in used.items() if n != 'st3')
+        d = e.position - target
+        assert d @ np.linalg.solve(e.covariance, d) < Q9999
