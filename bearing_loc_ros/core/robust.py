@@ -600,6 +600,17 @@ def confident_result(result, bearings, d_ref=None):
     from .fix import (FixResult, STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_LOW_CONFIDENCE,
                       STATUS_MAX_ITERATIONS, STATUS_OK)
     M, N = bearings.M, bearings.N
+    if M == 1 and d_ref is None and str(result.status[0]) == STATUS_OK:
+        # One calm fix (the fusion's and locate's usual case): screened on Python floats and
+        # returned as it is, without the array bookkeeping below (same result).
+        x = result.position[0].tolist()
+        P = result.covariance[0].tolist()
+        if all(map(math.isfinite, x)) and all(map(math.isfinite, P[0] + P[1] + P[2])) \
+                and not screen_one(bearings, x, None, P):
+            return FixResult(result.position, result.covariance, result.iterations,
+                             result.converged, result.status, result.method,
+                             excluded=np.zeros((1, N, 2), dtype=bool),
+                             nonlinearity=np.full(1, np.nan))
     pos = np.array(result.position, dtype=float)
     cov = np.array(result.covariance, dtype=float)
     status = np.array(result.status, dtype=object)
@@ -624,7 +635,7 @@ def confident_result(result, bearings, d_ref=None):
     # in range) always goes to the consensus, with its own position as one candidate when
     # finite; degenerate geometry stays as it is.
     trigger = np.where(status == STATUS_OK, trigger & usable,
-                       np.isin(status, (STATUS_MAX_ITERATIONS, STATUS_DIVERGED)))
+                       (status == STATUS_MAX_ITERATIONS) | (status == STATUS_DIVERGED))
     idx = np.flatnonzero(trigger)
     if idx.size:
         data = Data(bearings, d_ref).take(idx)
