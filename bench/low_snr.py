@@ -1,58 +1,139 @@
-"""Error against sigma for each estimator at low SNR: RMSE, median, 95th percentile, CRLB.
+"""Error against sigma at low SNR: RMSE, median, 95th percentile, CRLB, statuses, ok-fix NEES.
 
-Runs core.evaluation on a scenario (default: the six stations with constant sigma) for
-ls, mle, wmle (paper) and mle/wmle with option robust (core.robust), prints one line per
-(estimator, sigma) with RMSE over every finite fix, median, p95, status fractions, the ok
-fixes' mean NEES and their confident-wrong share, and draws docs/img/low_snr.png.
+Two parts, both on core.evaluation (the numbers of ``bearing_loc evaluate``):
+
+* the plot (default): the six stations with constant sigma
+  (config/scenarios/six_station_const.yaml), ls, mle and wmle as the papers give them
+  (option robust off) and mle/wmle with option robust (core.robust; mle's default), one
+  line per (estimator, sigma) with RMSE over every finite fix, median, p95, status
+  fractions, the ok fixes' mean NEES and their confident-wrong share; draws
+  docs/img/low_snr.png;
+* ``--acceptance``: the acceptance table of the robust fixes: the Zong & Cui 2015 scenario
+  (sigma grows with range; wmle with option robust against ls) in the joint, azimuth and
+  elevation sweeps, the constant-sigma scenario (mle, the default estimator), 10 %
+  outliers of +-(20-90) deg and the Wang, Zhang & Wu (seed 000) scenario at 1.5 and 4.5 mrad.
+  For each row: ok share, mean NEES of the ok fixes with its chi2_3 99 % band
+  3 +- 2.576 sqrt(6 / n_ok), and the share of ok fixes whose NEES exceeds the chi2_3 0.9999
+  quantile (confidently wrong).
 
     python bench/low_snr.py [--scenario S] [--trials N] [--sigma-deg 0.5,1,2,3,4,5]
+    python bench/low_snr.py --acceptance [--trials 2000]
 """
 
 import argparse
+import math
 import os
 
 import numpy as np
 
 from bearing_loc_ros.core import evaluation as ev
+from bearing_loc_ros.core.estimators import locate
 from bearing_loc_ros.core.simulation import load_scenario
 from bearing_loc_ros.scenarios import resolve_scenario
 
-RUNS = (('ls', 'ls', {}), ('mle', 'mle', {}), ('mle robust', 'mle', {'robust': True}),
-        ('wmle', 'wmle', {}), ('wmle robust', 'wmle', {'robust': True}))
+RUNS = (('ls', 'ls', {}), ('mle (paper)', 'mle', {'robust': False}),
+        ('mle (default, robust)', 'mle', {'robust': True}),
+        ('wmle (paper)', 'wmle', {'robust': False}), ('wmle robust', 'wmle', {'robust': True}))
+CONST = 'config/scenarios/six_station_const.yaml'
+RANGE_GROWN = 'config/scenarios/seed003.yaml'
+SEED000 = 'config/scenarios/seed000.yaml'
 
 
-def main():
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--scenario', default='config/scenarios/six_station_const.yaml')
-    ap.add_argument('--trials', type=int, default=2000)
-    ap.add_argument('--sigma-deg', default='0.5,1,2,3,4,5')
-    ap.add_argument('--out', default='docs/img/low_snr.png')
-    a = ap.parse_args()
-    sc = load_scenario(resolve_scenario(a.scenario))
-    tr = ev.trials_from_scenario(sc, a.trials, 0)
+def trials_of(path, n):
+    sc = load_scenario(resolve_scenario(path))
+    return sc, ev.trials_from_scenario(sc, n, 0)
+
+
+def run(name, opts, tr, sigmas, sweep='joint', outliers=None):
+    """Stats of estimator ``name`` per sigma (deg) of ``sweep``: {sigma: Stats}."""
     ref = tr.reference_range()
+    if name == 'wmle':
+        opts = dict(opts, reference_range=ref or 1000.0)
+    out = {}
+    for k, lv in enumerate(ev.noise_levels(sigmas, sweep)):
+        out[lv.x_deg] = ev.run_level([name], tr, lv, ev.level_rng(0, sweep, k), sweep,
+                                     {name: opts}, locate, outliers=outliers)[0]
+    return out
+
+
+def band(r):
+    n = round(r.ok_fraction * r.trials)
+    return 2.576 * math.sqrt(6.0 / n) if n else float('nan')
+
+
+def verdict(r):
+    ok_nees = abs(r.nees_ok - 3.0) <= band(r)
+    ok_tail = r.confident_wrong_fraction < 1e-3 or not r.ok_fraction
+    return ('' if ok_nees else ' NEES') + ('' if ok_tail else ' TAIL')
+
+
+def acceptance(n):
+    sig = [0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0]
+    _, tr = trials_of(RANGE_GROWN, n)
+    print(f'## {RANGE_GROWN}: wmle robust vs ls, {n} trials per sigma_ref')
+    print('sweep      sigma  ls RMSE  wmle RMSE  /CRLB   ok %   NEES ok (band)      wrong %  fail')
+    for sweep in ('joint', 'azimuth', 'elevation'):
+        ls = run('ls', {}, tr, sig, sweep)
+        wm = run('wmle', {'robust': True}, tr, sig, sweep)
+        for s in sig:
+            r, q = wm[s], ls[s]
+            print(f'{sweep:10s} {s:4.1f}  {q.rmse_all:7.0f}  {r.rmse_all:9.0f}  '
+                  f'{r.rmse_all / r.crlb:5.2f}  {100 * r.ok_fraction:5.1f}   '
+                  f'{r.nees_ok:5.2f} (±{band(r):4.2f})   {100 * r.confident_wrong_fraction:6.3f}'
+                  f'  {"RMSE>ls" if r.rmse_all > q.rmse_all else ""}{verdict(r)}')
+    _, tr = trials_of(CONST, n)
+    print(f'\n## {CONST}: mle (default, robust), {n} trials per sigma')
+    print('sweep      sigma  ls RMSE   mle RMSE  /CRLB   ok %   NEES ok (band)      wrong %  fail')
+    sig = [1.0, 2.0, 3.0, 4.0, 5.0]
+    for sweep in ('joint', 'azimuth', 'elevation'):
+        ls = run('ls', {}, tr, sig, sweep)
+        ml = run('mle', {}, tr, sig, sweep)
+        for s in sig:
+            r, q = ml[s], ls[s]
+            print(f'{sweep:10s} {s:4.1f}  {q.rmse_all:7.0f}  {r.rmse_all:9.0f}  '
+                  f'{r.rmse_all / r.crlb:5.2f}  {100 * r.ok_fraction:5.1f}   '
+                  f'{r.nees_ok:5.2f} (±{band(r):4.2f})   {100 * r.confident_wrong_fraction:6.3f}'
+                  f'  {"RMSE>ls" if r.rmse_all > q.rmse_all else ""}{verdict(r)}')
+    print(f'\n## {CONST}: 10 % outliers of ±(20-90) deg, mle (default, robust)')
+    sig = [1.0, 2.5]
+    clean = run('mle', {}, tr, sig)
+    dirty = run('mle', {}, tr, sig, outliers=(0.1, math.radians(20), math.radians(90)))
+    ls = run('ls', {}, tr, sig, outliers=(0.1, math.radians(20), math.radians(90)))
+    for s in sig:
+        r = dirty[s]
+        c = clean[s].rmse_all
+        print(f'sigma {s:3.1f}: ok RMSE {r.rmse_ok:6.1f} m vs outlier-free {c:6.1f} m '
+              f'({r.rmse_ok / c:4.2f}x), ok {100 * r.ok_fraction:5.1f} %, '
+              f'wrong {100 * r.confident_wrong_fraction:5.3f} %, ls RMSE {ls[s].rmse_all:6.0f}')
+    _, tr = trials_of(SEED000, n)
+    print(f'\n## {SEED000}: mle (default, robust) vs mle (paper)')
+    sig = [math.degrees(1.5e-3), math.degrees(4.5e-3)]
+    for label, opts in (('paper', {'robust': False}), ('default', {})):
+        for s, r in run('mle', opts, tr, sig).items():
+            print(f'{label:8s} {math.radians(s) * 1e3:3.1f} mrad: RMSE/CRLB '
+                  f'{r.rmse_all / r.crlb:5.3f}, ok {100 * r.ok_fraction:5.1f} %, NEES ok '
+                  f'{r.nees_ok:5.3f} (±{band(r):4.2f}), wrong '
+                  f'{100 * r.confident_wrong_fraction:5.3f} %{verdict(r)}')
+
+
+def plot(a):
+    sc, tr = trials_of(a.scenario, a.trials)
     sig = [float(x) for x in a.sigma_deg.split(',')]
-    from bearing_loc_ros.core.estimators import locate
     table = {}
     for label, name, opts in RUNS:
-        if name == 'wmle':
-            opts = dict(opts, reference_range=ref or 1000.0)
-        for k, lv in enumerate(ev.noise_levels(sig, 'joint')):
-            r = ev.run_level([name], tr, lv, ev.level_rng(0, 'joint', k), 'joint',
-                             {name: opts}, locate)[0]
-            table[(label, lv.x_deg)] = r
-            print(f'{label:12s} {lv.x_deg:4.1f} deg  RMSE {r.rmse_all:8.1f}  CRLB {r.crlb:8.1f}  '
-                  f'median {r.median_error:7.1f}  p95 {r.p95_error:8.1f}  ok {r.ok_fraction:.3f}'
-                  f'  low {r.low_confidence_fraction:.3f}  NEESok {r.nees_ok:6.2f}  '
-                  f'wrong {100 * r.confident_wrong_fraction:.3f} %  '
-                  f'{1e6 * r.time_per_fix_s:.1f} us/fix')
+        for s, r in run(name, opts, tr, sig).items():
+            table[(label, s)] = r
+            print(f'{label:22s} {s:4.1f} deg  RMSE {r.rmse_all:8.1f}  CRLB {r.crlb:8.1f}  '
+                  f'median {r.median_error:7.1f}  p95 {r.p95_error:8.1f}  '
+                  f'ok {r.ok_fraction:.3f}  low {r.low_confidence_fraction:.3f}  '
+                  f'NEESok {r.nees_ok:6.2f}  wrong {100 * r.confident_wrong_fraction:.3f} %')
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
     fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), dpi=100, sharey=True)
     for ax, key, title in zip(axes, ('rmse_all', 'median_error', 'p95_error'),
-                              ('RMSE (every fix)', 'median error (converged)',
-                               '95th percentile (converged)')):
+                              ('RMSE (every fix)', 'median error (ok fixes)',
+                               '95th percentile (ok fixes)')):
         for label, _, _ in RUNS:
             ax.plot(sig, [getattr(table[(label, s)], key) for s in sig], marker='o',
                     label=label)
@@ -68,6 +149,21 @@ def main():
     os.makedirs(os.path.dirname(a.out) or '.', exist_ok=True)
     fig.savefig(a.out)
     print(f'wrote {a.out}')
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--scenario', default=CONST)
+    ap.add_argument('--trials', type=int, default=2000)
+    ap.add_argument('--sigma-deg', default='0.5,1,2,3,4,5')
+    ap.add_argument('--out', default='docs/img/low_snr.png')
+    ap.add_argument('--acceptance', action='store_true',
+                    help='print the acceptance table instead of drawing the plot')
+    a = ap.parse_args()
+    if a.acceptance:
+        acceptance(a.trials)
+    else:
+        plot(a)
     return 0
 
 
