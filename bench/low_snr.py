@@ -3,11 +3,12 @@
 Two parts, both on core.evaluation (the numbers of ``bearing_loc evaluate``):
 
 * the plot (default): the six stations with constant sigma
-  (config/scenarios/six_station_const.yaml), ls, mle and wmle as the papers give them
-  (option robust off) and mle/wmle with option robust (core.robust; mle's default), one
-  line per (estimator, sigma) with RMSE over every finite fix, median, p95, status
-  fractions, the ok fixes' mean NEES and their confident-wrong share; draws
-  docs/img/low_snr.png;
+  (config/scenarios/six_station_const.yaml: ls, mle as the paper gives it and mle with
+  option robust, its default) and with sigma growing with range (Zong & Cui 2015,
+  config/scenarios/seed003.yaml: ls, mle and wmle as the papers give them and wmle with
+  option robust, core.robust); one line per (estimator, sigma) with RMSE over every finite
+  fix, median, p95, status fractions, the ok fixes' mean NEES and their confident-wrong
+  share; draws docs/img/low_snr.png;
 * ``--acceptance``: the acceptance table of the robust fixes: the Zong & Cui 2015 scenario
   (sigma grows with range; wmle with option robust against ls) in the joint, azimuth and
   elevation sweeps, the constant-sigma scenario (mle, the default estimator), 10 %
@@ -16,7 +17,7 @@ Two parts, both on core.evaluation (the numbers of ``bearing_loc evaluate``):
   3 +- 2.576 sqrt(6 / n_ok), and the share of ok fixes whose NEES exceeds the chi2_3 0.9999
   quantile (confidently wrong).
 
-    python bench/low_snr.py [--scenario S] [--trials N] [--sigma-deg 0.5,1,2,3,4,5]
+    python bench/low_snr.py [--trials N] [--out docs/img/low_snr.png]
     python bench/low_snr.py --acceptance [--trials 2000]
 """
 
@@ -31,11 +32,17 @@ from bearing_loc_ros.core.estimators import locate
 from bearing_loc_ros.core.simulation import load_scenario
 from bearing_loc_ros.scenarios import resolve_scenario
 
-RUNS = (('ls', 'ls', {}), ('mle (paper)', 'mle', {'robust': False}),
-        ('mle (default, robust)', 'mle', {'robust': True}),
-        ('wmle (paper)', 'wmle', {'robust': False}), ('wmle robust', 'wmle', {'robust': True}))
 CONST = 'config/scenarios/six_station_const.yaml'
 RANGE_GROWN = 'config/scenarios/seed003.yaml'
+#: Plot rows: (scenario, sigma values, [(label, estimator, options)]): each scenario with
+#: the estimators whose noise model fits it.
+PLOT = ((CONST, (0.5, 1, 2, 3, 4, 5),
+         (('ls', 'ls', {}), ('mle (paper)', 'mle', {'robust': False}),
+          ('mle (default, robust)', 'mle', {'robust': True}))),
+        (RANGE_GROWN, (0.5, 1, 1.5, 2, 2.5, 3, 4, 5),
+         (('ls', 'ls', {}), ('mle (paper)', 'mle', {'robust': False}),
+          ('wmle (paper)', 'wmle', {'robust': False}),
+          ('wmle robust', 'wmle', {'robust': True}))))
 SEED000 = 'config/scenarios/seed000.yaml'
 
 
@@ -117,34 +124,35 @@ def acceptance(n):
 
 
 def plot(a):
-    sc, tr = trials_of(a.scenario, a.trials)
-    sig = [float(x) for x in a.sigma_deg.split(',')]
-    table = {}
-    for label, name, opts in RUNS:
-        for s, r in run(name, opts, tr, sig).items():
-            table[(label, s)] = r
-            print(f'{label:22s} {s:4.1f} deg  RMSE {r.rmse_all:8.1f}  CRLB {r.crlb:8.1f}  '
-                  f'median {r.median_error:7.1f}  p95 {r.p95_error:8.1f}  '
-                  f'ok {r.ok_fraction:.3f}  low {r.low_confidence_fraction:.3f}  '
-                  f'NEESok {r.nees_ok:6.2f}  wrong {100 * r.confident_wrong_fraction:.3f} %')
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), dpi=100, sharey=True)
-    for ax, key, title in zip(axes, ('rmse_all', 'median_error', 'p95_error'),
-                              ('RMSE (every fix)', 'median error (ok fixes)',
-                               '95th percentile (ok fixes)')):
-        for label, _, _ in RUNS:
-            ax.plot(sig, [getattr(table[(label, s)], key) for s in sig], marker='o',
-                    label=label)
-        ax.plot(sig, [table[('ls', s)].crlb for s in sig], 'k--', label='CRLB')
-        ax.set_yscale('log')
-        ax.set_xlabel('σ (deg)')
-        ax.set_title(title, fontsize=9)
-        ax.grid(True, which='both', alpha=0.3)
-    axes[0].set_ylabel('error (m)')
-    axes[0].legend(fontsize=7)
-    fig.suptitle(f'{sc.name}: {a.trials} trials per σ', fontsize=9)
+    fig, axes = plt.subplots(len(PLOT), 3, figsize=(13, 4.0 * len(PLOT)), dpi=100)
+    for row, (path, sig, runs) in zip(axes, PLOT):
+        sc, tr = trials_of(path, a.trials)
+        table = {}
+        for label, name, opts in runs:
+            for s, r in run(name, opts, tr, list(sig)).items():
+                table[(label, s)] = r
+                print(f'{sc.name:14s} {label:22s} {s:4.1f} deg  RMSE {r.rmse_all:8.1f}  '
+                      f'CRLB {r.crlb:8.1f}  median {r.median_error:7.1f}  '
+                      f'p95 {r.p95_error:8.1f}  ok {r.ok_fraction:.3f}  '
+                      f'low {r.low_confidence_fraction:.3f}  NEESok {r.nees_ok:6.2f}  '
+                      f'wrong {100 * r.confident_wrong_fraction:.3f} %')
+        for ax, key, title in zip(row, ('rmse_all', 'median_error', 'p95_error'),
+                                  ('RMSE (every fix)', 'median error (ok fixes)',
+                                   '95th percentile (ok fixes)')):
+            for label, _, _ in runs:
+                ax.plot(sig, [getattr(table[(label, s)], key) for s in sig], marker='o',
+                        label=label)
+            ax.plot(sig, [table[('ls', s)].crlb for s in sig], 'k--', label='CRLB')
+            ax.set_yscale('log')
+            ax.set_xlabel('σ (deg)' if path == CONST else 'σ_ref at 1 km (deg)')
+            ax.set_title(f'{sc.name}: {title}', fontsize=9)
+            ax.grid(True, which='both', alpha=0.3)
+        row[0].set_ylabel('error (m)')
+        row[0].legend(fontsize=7)
+    fig.suptitle(f'{a.trials} trials per σ; ok = passed the consistency checks', fontsize=9)
     fig.tight_layout()
     os.makedirs(os.path.dirname(a.out) or '.', exist_ok=True)
     fig.savefig(a.out)
@@ -153,9 +161,7 @@ def plot(a):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument('--scenario', default=CONST)
     ap.add_argument('--trials', type=int, default=2000)
-    ap.add_argument('--sigma-deg', default='0.5,1,2,3,4,5')
     ap.add_argument('--out', default='docs/img/low_snr.png')
     ap.add_argument('--acceptance', action='store_true',
                     help='print the acceptance table instead of drawing the plot')
