@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 import yaml
 
+from bearing_loc_ros.cli import InputError
 from bearing_loc_ros.core.simulation import parse_scenario
 from bearing_loc_ros.core.station import ConfigError, station_config
 
@@ -76,10 +77,8 @@ def test_params_file_bytes(data):
     check_fusion_params(data)
 
 
-# Values the fusion parameters' YAML path still lets escape as OverflowError (see below).
-OVERFLOWING = (10 ** 400, -10 ** 400)
-fusion_values = hostile.filter(lambda v: not any(v is x or v == x for x in OVERFLOWING)
-                               and not (isinstance(v, int) and abs(v) > 2 ** 1000))
+# Every hostile value, integers beyond the float range included (10 ** 400).
+fusion_values = hostile
 
 
 @FUZZ
@@ -94,14 +93,21 @@ def test_params_file_hostile_values(changes):
     check_fusion_params(yaml.safe_dump({'/**': {'ros__parameters': body}}))
 
 
-@pytest.mark.xfail(raises=OverflowError, strict=True,
-                   reason='fusion_config catches TypeError and ValueError but not the '
-                          'OverflowError of float(10**400)')
-@pytest.mark.parametrize('changes', [{'sync_tolerance': 10 ** 400}, {'rate': 10 ** 400}])
-def test_params_file_numbers_beyond_float_range(changes):
-    """Known defect: these must become an InputError (strict: passes once fixed)."""
-    body = dict(FUSION_YAML['/**']['ros__parameters'], **changes)
-    check_fusion_params(yaml.safe_dump({'/**': {'ros__parameters': body}}))
+@pytest.mark.parametrize('key, value, limit', [
+    ('sync_tolerance', 10 ** 400, 'float'), ('rate', 10 ** 400, 'float'),
+    ('rate', -10 ** 400, 'float'), ('buffer_size', 10 ** 400, 'int64')])
+def test_params_file_numbers_beyond_float_range(key, value, limit):
+    """An integer that no double (or int64) holds is refused naming the parameter, never
+    escapes as OverflowError (float(10 ** 400) raises it)."""
+    body = dict(FUSION_YAML['/**']['ros__parameters'], **{key: value})
+    path = _params_file(yaml.safe_dump({'/**': {'ros__parameters': body}}))
+    try:
+        with pytest.raises(InputError) as err:
+            fusion_config(fusion_params(path))
+    finally:
+        os.unlink(path)
+    assert str(err.value).startswith(f'{key}: ')
+    assert str(err.value).endswith(f'is beyond the {limit} range')
 
 
 @FUZZ
