@@ -1,0 +1,341 @@
+"""Scenario YAML loader: validates a mapping into a :class:`.scenario_model.Scenario`.
+
+Every error names the file and the key path (``<file>: <key path>: <problem>``). The format
+and every key are described in the README section "Simulator". Re-exported from
+:mod:`.simulation`.
+"""
+
+import math
+import os
+import re
+
+import numpy as np
+
+from .geodesy import geodetic_to_enu
+from .scenario_model import (DEFAULT_EPOCH, DEFAULT_FRAME, DEFAULT_TRUTH_RATE, Scenario,
+                             SIGMA_REPORTS, SigmaGrowth, Station, Target, TARGET_KINDS,
+                             Trajectory)
+
+_NAME_RE = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*$')
+
+
+SCENARIO_KEYS = ('name', 'description', 'frame_id', 'duration', 'epoch', 'truth_rate',
+                 'geodetic_origin', 'station_defaults', 'stations', 'targets')
+MOTION_KEYS = ('position', 'geodetic', 'velocity', 'waypoints', 'speed', 'times',
+               'start_time')
+STATION_KEYS = ('id', 'dims', 'sigma_az', 'sigma_az_deg', 'sigma_el', 'sigma_el_deg', 'rate',
+                'phase', 'clock_offset', 'clock_jitter', 'clock_drift_ppm', 'latency',
+                'latency_jitter', 'dropout', 'outlier', 'outlier_size', 'outlier_size_deg',
+                'outlier_size_max', 'outlier_size_max_deg', 'position_sigma',
+                'sigma_growth') + MOTION_KEYS
+TARGET_KEYS = ('namespace', 'kind', 'box_min', 'box_max', 'count') + MOTION_KEYS
+GROWTH_KEYS = ('range_ref', 'min_factor', 'max_factor', 'report')
+GEODETIC_KEYS = ('lat_deg', 'lon_deg', 'alt')
+
+
+class _Src:
+    """Formats loader errors as ``<file>: <key path>: <problem>``."""
+
+    def __init__(self, source):
+        self.source = source
+
+    def error(self, key, problem):
+        return ValueError(f'{self.source}: {key}: {problem}')
+
+
+def _mapping(src, value, key, allowed):
+    if not isinstance(value, dict):
+        raise src.error(key or 'scenario', f'expected a mapping, got {type(value).__name__}')
+    for k in value:
+        if k not in allowed:
+            raise src.error(f'{key}.{k}' if key else str(k),
+                            f'unknown key (allowed: {", ".join(allowed)})')
+    return value
+
+
+def _float(src, d, key, where, default=None, lo=None, hi=None, lo_open=False,
+           required=False):
+    if key not in d or d[key] is None:
+        if required:
+            raise src.error(f'{where}{key}', 'required key is missing')
+        return default
+    v = d[key]
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise src.error(f'{where}{key}', f'expected a number, got {v!r}')
+    try:
+        v = float(v)
+    except OverflowError:        # an integer beyond the float range
+        v = math.inf
+    if not math.isfinite(v):
+        raise src.error(f'{where}{key}', f'must be finite (got {v})')
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise src.error(f'{where}{key}', f'must be {">" if lo_open else ">="} {lo} (got {v})')
+    if hi is not None and v > hi:
+        raise src.error(f'{where}{key}', f'must be <= {hi} (got {v})')
+    return v
+
+
+def _angle(src, d, key, where, default, lo=0.0, lo_open=True):
+    """A radian value given as ``key`` (rad) or ``key_deg`` (degrees), not both."""
+    if key in d and f'{key}_deg' in d:
+        raise src.error(f'{where}{key}_deg', f'give either {key} (rad) or {key}_deg, not both')
+    if f'{key}_deg' in d:
+        v = _float(src, d, f'{key}_deg', where, lo=lo, lo_open=lo_open)
+        return default if v is None else math.radians(v)
+    return _float(src, d, key, where, default, lo=lo, lo_open=lo_open)
+
+
+def _vec(src, value, key, n=3):
+    if (not isinstance(value, (list, tuple)) or len(value) != n
+            or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in value)):
+        raise src.error(key, f'expected a list of {n} numbers, got {value!r}')
+    try:
+        v = np.array(value, dtype=float)
+    except OverflowError:        # an integer beyond the float range
+        v = np.array([math.inf])
+    if not np.all(np.isfinite(v)):
+        raise src.error(key, f'non-finite value in {str(value)[:80]}')
+    return v
+
+
+def _geodetic(src, value, key):
+    g = _mapping(src, value, key, GEODETIC_KEYS)
+    lat = _float(src, g, 'lat_deg', f'{key}.', lo=-90.0, hi=90.0, required=True)
+    lon = _float(src, g, 'lon_deg', f'{key}.', lo=-180.0, hi=360.0, required=True)
+    alt = _float(src, g, 'alt', f'{key}.', default=0.0)
+    return lat, lon, alt
+
+
+def _motion(src, d, where, origin, allow_random=False):
+    """Parse the motion keys of a station or target into a Trajectory (or None for random)."""
+    has = {k for k in MOTION_KEYS if k in d}
+    if 'position' in has and 'geodetic' in has:
+        raise src.error(f'{where}geodetic', 'give either position (ENU m) or geodetic')
+    if 'waypoints' in has:
+        bad = has & {'position', 'geodetic', 'velocity'}
+        if bad:
+            raise src.error(f'{where}{sorted(bad)[0]}', 'not allowed together with waypoints')
+        pts_raw = d['waypoints']
+        if not isinstance(pts_raw, (list, tuple)) or len(pts_raw) < 2:
+            raise src.error(f'{where}waypoints', 'expected a list of at least 2 [x, y, z]')
+        pts = np.array([_vec(src, p, f'{where}waypoints[{k}]') for k, p in enumerate(pts_raw)])
+        legs = np.linalg.norm(np.diff(pts, axis=0), axis=1)
+        if 'speed' in has and 'times' in has:
+            raise src.error(f'{where}times', 'give either speed or times, not both')
+        if 'times' in has:
+            if 'start_time' in has:
+                raise src.error(f'{where}start_time', 'not allowed together with times')
+            times = d['times']
+            if not isinstance(times, (list, tuple)) or len(times) != len(pts):
+                raise src.error(f'{where}times', f'expected {len(pts)} times (one per waypoint)')
+            ts = np.array([_float(src, {'t': x}, 't', f'{where}times[{k}]', required=True)
+                           for k, x in enumerate(times)])
+            if np.any(np.diff(ts) <= 0):
+                raise src.error(f'{where}times', 'must be strictly increasing')
+            return Trajectory.waypoints(pts, ts)
+        if 'speed' not in has:
+            raise src.error(f'{where}speed', 'required with waypoints (or give times)')
+        sp = d['speed']
+        if isinstance(sp, (list, tuple)):
+            if len(sp) != len(legs):
+                raise src.error(f'{where}speed', f'expected {len(legs)} speeds (one per leg)')
+            speeds = np.array([_float(src, {'v': x}, 'v', f'{where}speed[{k}]', lo=0.0,
+                                      lo_open=True, required=True) for k, x in enumerate(sp)])
+        else:
+            speeds = np.full(len(legs), _float(src, d, 'speed', where, lo=0.0, lo_open=True))
+        k0 = np.flatnonzero(legs <= 0)
+        if len(k0):
+            raise src.error(f'{where}waypoints[{k0[0] + 1}]', 'repeats the previous waypoint')
+        t0 = _float(src, d, 'start_time', where, 0.0)
+        return Trajectory.waypoints(pts, t0 + np.concatenate([[0.0], np.cumsum(legs / speeds)]))
+    for k in ('speed', 'times', 'start_time'):
+        if k in has:
+            raise src.error(f'{where}{k}', 'only allowed with waypoints')
+    if 'geodetic' in has:
+        if origin is None:
+            raise src.error(f'{where}geodetic', 'needs a scenario-level geodetic_origin')
+        lat, lon, alt = _geodetic(src, d['geodetic'], f'{where}geodetic')
+        try:
+            p = geodetic_to_enu(lat, lon, alt, origin).reshape(3)
+        except ValueError as exc:
+            raise src.error(f'{where}geodetic', str(exc)) from None
+    elif 'position' in has:
+        p = _vec(src, d['position'], f'{where}position')
+    elif allow_random:
+        return None
+    else:
+        raise src.error(f'{where}position', 'required (or geodetic, or waypoints)')
+    if 'velocity' in has:
+        return Trajectory.constant_velocity(p, _vec(src, d['velocity'], f'{where}velocity'))
+    return Trajectory.static(p)
+
+
+def _station(src, raw, k, defaults, origin):
+    where = f'stations[{k}].'
+    _mapping(src, raw, f'stations[{k}]', STATION_KEYS)
+    d = dict(defaults)
+    for base in ('sigma_az', 'sigma_el', 'outlier_size', 'outlier_size_max'):
+        if base in raw or f'{base}_deg' in raw:
+            d.pop(base, None)
+            d.pop(f'{base}_deg', None)
+    d.update(raw)
+    sid = d.get('id')
+    if not isinstance(sid, str) or not _NAME_RE.match(sid):
+        raise src.error(f'{where}id', f'expected a ROS name token ([A-Za-z_][A-Za-z0-9_]*), '
+                        f'got {sid!r}')
+    dims = d.get('dims', 2)
+    if dims not in (1, 2) or isinstance(dims, bool):
+        raise src.error(f'{where}dims', f'must be 1 (azimuth only) or 2 (got {dims!r})')
+    sigma_az = _angle(src, d, 'sigma_az', where, 0.01)
+    sigma_el = _angle(src, d, 'sigma_el', where, sigma_az) if dims == 2 else math.nan
+    growth = None
+    if d.get('sigma_growth') is not None:
+        gw = f'{where}sigma_growth'
+        g = _mapping(src, d['sigma_growth'], gw, GROWTH_KEYS)
+        report = g.get('report', 'nominal')
+        if report not in SIGMA_REPORTS:
+            raise src.error(f'{gw}.report', f'must be one of {SIGMA_REPORTS} (got {report!r})')
+        fmin = _float(src, g, 'min_factor', f'{gw}.', 1e-3, lo=0.0, lo_open=True)
+        fmax = _float(src, g, 'max_factor', f'{gw}.', math.inf, lo=fmin)
+        growth = SigmaGrowth(_float(src, g, 'range_ref', f'{gw}.', lo=0.0, lo_open=True,
+                                    required=True), fmin, fmax, report)
+    outlier_size = _angle(src, d, 'outlier_size', where, math.radians(10.0), lo_open=False)
+    size_max = None
+    if 'outlier_size_max' in d or 'outlier_size_max_deg' in d:
+        size_max = _angle(src, d, 'outlier_size_max', where, None, lo_open=False)
+        if not outlier_size <= size_max <= math.pi:
+            raise src.error(f'{where}outlier_size_max', 'must be in [outlier_size, 180 deg]')
+    rate = _float(src, d, 'rate', where, 1.0, lo=0.0, lo_open=True)
+    if rate > 1e6:
+        raise src.error(f'{where}rate', f'must be <= 1e6 Hz (got {rate})')
+    return Station(
+        id=sid, trajectory=_motion(src, d, where, origin), dims=dims, sigma_az=sigma_az,
+        sigma_el=sigma_el, rate=rate, phase=_float(src, d, 'phase', where, 0.0, lo=0.0),
+        clock_offset=_float(src, d, 'clock_offset', where, 0.0),
+        clock_jitter=_float(src, d, 'clock_jitter', where, 0.0, lo=0.0),
+        clock_drift=_float(src, d, 'clock_drift_ppm', where, 0.0) * 1e-6,
+        latency=_float(src, d, 'latency', where, 0.0, lo=0.0),
+        latency_jitter=_float(src, d, 'latency_jitter', where, 0.0, lo=0.0),
+        dropout=_float(src, d, 'dropout', where, 0.0, lo=0.0, hi=1.0),
+        outlier=_float(src, d, 'outlier', where, 0.0, lo=0.0, hi=1.0),
+        outlier_size=outlier_size, outlier_size_max=size_max,
+        position_sigma=_float(src, d, 'position_sigma', where, 0.0, lo=0.0),
+        sigma_growth=growth)
+
+
+def _namespace(src, value, key):
+    if value is None:
+        return ''
+    if not isinstance(value, str):
+        raise src.error(key, f'expected a string, got {value!r}')
+    ns = value.strip('/')
+    if ns and not all(_NAME_RE.match(p) for p in ns.split('/')):
+        raise src.error(key, f'not a valid ROS namespace: {value!r}')
+    return ns
+
+
+def _targets(src, raw, k, origin):
+    where = f'targets[{k}].'
+    _mapping(src, raw, f'targets[{k}]', TARGET_KEYS)
+    ns = _namespace(src, raw.get('namespace', ''), f'{where}namespace')
+    kind = raw.get('kind')
+    if kind is not None and kind not in TARGET_KINDS:
+        raise src.error(f'{where}kind', f'must be one of {TARGET_KINDS} (got {kind!r})')
+    count = raw.get('count', 1)
+    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+        raise src.error(f'{where}count', f'must be an integer >= 1 (got {count!r})')
+    if kind == 'random_static' or ('box_min' in raw or 'box_max' in raw):
+        if kind not in (None, 'random_static'):
+            raise src.error(f'{where}box_min', 'only allowed with kind random_static')
+        extra = [m for m in MOTION_KEYS if m in raw]
+        if extra:
+            raise src.error(f'{where}{extra[0]}', 'not allowed for a random_static target')
+        lo = _vec(src, raw.get('box_min'), f'{where}box_min')
+        hi = _vec(src, raw.get('box_max'), f'{where}box_max')
+        if np.any(hi < lo):
+            raise src.error(f'{where}box_max', 'must be >= box_min on every axis')
+        names = [ns] if count == 1 else [f'{ns}_{m}' if ns else f'source_{m}'
+                                         for m in range(count)]
+        return [Target(n, 'random_static', None, lo, hi) for n in names]
+    if count != 1:
+        raise src.error(f'{where}count', 'only allowed for random_static targets')
+    traj = _motion(src, raw, where, origin)
+    if kind is not None and kind != traj.kind:
+        raise src.error(f'{where}kind', f'{kind!r} does not match the motion keys given '
+                        f'(they describe a {traj.kind} target)')
+    return [Target(ns, traj.kind, traj)]
+
+
+def parse_scenario(data, source='<dict>'):
+    """Validate a scenario mapping (the parsed YAML) and return a :class:`Scenario`.
+
+    Raises ValueError ``'<source>: <key path>: <problem>'`` naming the offending key, e.g.
+    ``config/scenarios/x.yaml: stations[1].sigma_az: must be > 0.0 (got -1.0)``.
+    """
+    src = _Src(source)
+    _mapping(src, data, '', SCENARIO_KEYS)
+    name = data.get('name', '')
+    description = data.get('description', '')
+    for key, v in (('name', name), ('description', description)):
+        if not isinstance(v, str):
+            raise src.error(key, f'expected a string, got {v!r}')
+    frame_id = data.get('frame_id', DEFAULT_FRAME)
+    if not isinstance(frame_id, str) or not frame_id:
+        raise src.error('frame_id', f'expected a non-empty string, got {frame_id!r}')
+    duration = _float(src, data, 'duration', '', lo=0.0, lo_open=True, required=True)
+    epoch = _float(src, data, 'epoch', '', DEFAULT_EPOCH, lo=0.0)
+    truth_rate = _float(src, data, 'truth_rate', '', DEFAULT_TRUTH_RATE, lo=0.0)
+    origin = None
+    if data.get('geodetic_origin') is not None:
+        origin = _geodetic(src, data['geodetic_origin'], 'geodetic_origin')
+    defaults = data.get('station_defaults') or {}
+    _mapping(src, defaults, 'station_defaults',
+             tuple(k for k in STATION_KEYS if k != 'id' and k not in MOTION_KEYS))
+    raw_st = data.get('stations')
+    if not isinstance(raw_st, list) or not raw_st:
+        raise src.error('stations', 'expected a non-empty list of stations')
+    stations = tuple(_station(src, r, k, defaults, origin) for k, r in enumerate(raw_st))
+    seen = set()
+    for k, s in enumerate(stations):
+        if s.id in seen:
+            raise src.error(f'stations[{k}].id', f'duplicate station id {s.id!r}')
+        seen.add(s.id)
+        if epoch + s.clock_offset < 0:
+            raise src.error(f'stations[{k}].clock_offset',
+                            f'epoch + clock_offset must be >= 0 s (ROS time cannot be negative;'
+                            f' got {epoch + s.clock_offset})')
+    raw_tg = data.get('targets')
+    if not isinstance(raw_tg, list) or not raw_tg:
+        raise src.error('targets', 'expected a non-empty list of targets')
+    targets = tuple(t for k, r in enumerate(raw_tg) for t in _targets(src, r, k, origin))
+    seen = set()
+    for t in targets:
+        if t.namespace in seen:
+            raise src.error('targets', f'duplicate target namespace {t.namespace!r}')
+        seen.add(t.namespace)
+    return Scenario(stations=stations, targets=targets, duration=duration, name=name,
+                    description=description, frame_id=frame_id, epoch=epoch,
+                    truth_rate=truth_rate, geodetic_origin=origin, source=source)
+
+
+def load_scenario(path):
+    """Read and validate a scenario YAML file (format: README "Simulator").
+
+    Raises ValueError naming the file and the offending key (or the YAML syntax error).
+    """
+    import yaml
+    path = os.fspath(path)
+    try:
+        with open(path, encoding='utf-8') as f:
+            data = yaml.safe_load(f)
+    except OSError as exc:
+        raise ValueError(f'{path}: cannot read scenario ({exc.strerror or exc})') from None
+    except UnicodeDecodeError:
+        raise ValueError(f'{path}: not a UTF-8 text file (a YAML scenario is expected)') \
+            from None
+    except yaml.YAMLError as exc:
+        msg = ' '.join(str(exc).split())
+        raise ValueError(f'{path}: invalid YAML ({msg})') from None
+    if data is None:
+        raise ValueError(f'{path}: empty scenario file')
+    return parse_scenario(data, source=path)
