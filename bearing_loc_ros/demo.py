@@ -1,11 +1,11 @@
-"""``make demo``: simulator -> fusion node over DDS on seed 000's scenario, checked against truth.
+"""``make demo``: simulator -> fusion node over DDS on ``seed000``, checked against truth.
 
-Runs ``simulator_node`` (seed 000 section 4: three stations, a target at ~60 km moving at
-(−150, −1000, 0) m/s, σ = 3 mrad, a bearing every 2 s) and ``fusion_node`` (use_sim_time) as
-separate processes, faster than real time; an in-demo subscriber records ``fix`` and
-``truth`` (the bearings for the plot come from the same seeded core simulation). It prints
-one line per fix (time, error to truth, predicted 1σ), a summary comparing the RMS error
-with the Cramér-Rao bound evaluated along the true track
+Runs ``simulator_node`` on the scenario of Wang, Zhang & Wu (2006), section 4 (three stations, a
+target at ~60 km moving at (−150, −1000, 0) m/s, σ = 3 mrad, a bearing every 2 s) and
+``fusion_node`` (use_sim_time) as separate processes, faster than real time; an in-demo subscriber
+records ``fix`` and ``truth`` (the bearings for the plot come from the same seeded core
+simulation). It prints one line per fix (time, error to truth, predicted 1σ), a summary comparing
+the RMS error with the Cramér-Rao bound evaluated along the true track
 (core/crlb.py) and writes a PNG (stations, bearing rays, true track, fixes with 1σ error
 ellipses) to ``demo_out/``. Children are stopped with SIGINT, then SIGTERM, then SIGKILL, and
 always reaped, also on errors and Ctrl-C. Exit code 0 on success, 1 on failure, 130 on Ctrl-C.
@@ -62,8 +62,8 @@ def track_statistics(stamps_ns, estimates, covariances, truth, stations):
     """Per-fix error, predicted σ and CRLB along the true track (core/crlb.py).
 
     error_k = |x̂_k − x_k| (m), predicted σ_k = sqrt(tr P_k) (m, the RMS 3D error the fix's
-    covariance predicts), crlb_k = sqrt(tr CRLB(x_k)) (m, seed 003 eqs. (6)-(8) at the true
-    position with the scenario's stations and σ). Returns a dict of arrays and the summary
+    covariance predicts), crlb_k = sqrt(tr CRLB(x_k)) (m, Zong & Cui (2015) eqs. (6)-(8) at the
+    true position with the scenario's stations and σ). Returns a dict of arrays and the summary
     RMSE = sqrt(mean error²), CRLB RMS = sqrt(mean tr CRLB) and their ratio.
     """
     from .core.crlb import crlb

@@ -2,13 +2,13 @@
 
 Prints, best of ``--repeat`` runs on one thread:
 
-* accuracy map, 400 × 400 cells, seed 000 stations (3 × 2D), CRLB and CTLS model
+* accuracy map, 400 × 400 cells, the Wang, Zhang & Wu (2006) stations (3 × 2D), CRLB and CTLS model
   (planning.accuracy_map), and the CTLS map through core.constrained_tls.ctls_covariance (the
   estimator's own eq. (30) implementation, general but with 5-operand einsums) for reference;
 * accuracy map with N = 20 stations (mixed 1D/2D);
 * placement of a 4th station: 21 × 21 candidates, 30 × 30 area cells, refinement;
 * OccupancyGrid map 200 × 200 (what the fusion node would publish);
-* seed 004: one optimal cut angle, and the four tables (52 solves).
+* Wang, Su, Bai & Zhong (2009): one optimal cut angle, and the four tables (52 solves).
 
 Run: .venv/bin/python bench/bench_planning.py [--repeat 3]
 """

@@ -1,8 +1,9 @@
 """Reference inputs and outputs of every estimator, to check that faster code gives the same fixes.
 
-Generates seeded problems (the seed 000 and seed 003 station layouts, random layouts with
-N = 3-10 stations mixing azimuth-only and azimuth-elevation bearings, the six-station line at
-σ = 1° and 3°, and single-station TMA problems of the seed 001 kind), runs every estimator on
+Generates seeded problems (the station layouts of Wang, Zhang & Wu (2006) and of Zong & Cui
+(2015), random layouts with N = 3-10 stations mixing azimuth-only and azimuth-elevation
+bearings, the six-station line at σ = 1° and 3°, and single-station TMA problems of the kind
+of Lin et al.), runs every estimator on
 them and either writes the inputs with the results to ``test/data/estimators_reference.npz``
 (``--write``: only when the estimators' answers are meant to change) or compares the current
 results with the stored ones (default). test/test_estimators_reference.py checks the current
@@ -48,7 +49,7 @@ def _groups():
 
 
 def _tma_problem():
-    """(BearingSet, times, speed) of seeded single-station TMA problems (seed 001 kind)."""
+    """(BearingSet, times, speed) of seeded single-station TMA problems (as in Lin et al.)."""
     from bearing_loc_ros.core.tma import simulate_tma
     rng = np.random.default_rng(1001)
     t = np.arange(0.0, 200.0, 10.0)

@@ -9,11 +9,11 @@ Two parts, both on core.evaluation (the numbers of ``bearing_loc evaluate``):
   option robust, core.robust); one line per (estimator, sigma) with RMSE over every finite
   fix, median, p95, status fractions, the ok fixes' mean NEES and their confident-wrong
   share; draws docs/img/low_snr.png;
-* ``--acceptance``: the acceptance table of the robust fixes: the Zong & Cui 2015 scenario
+* ``--acceptance``: the acceptance table of the robust fixes: the Zong & Cui (2015) scenario
   (sigma grows with range; wmle with option robust against ls) in the joint, azimuth and
   elevation sweeps, the constant-sigma scenario (mle, the default estimator), 10 %
-  outliers of +-(20-90) deg and the Wang, Zhang & Wu (seed 000) scenario at 1.5 and 4.5 mrad.
-  For each row: ok share, mean NEES of the ok fixes with its chi2_3 99 % band
+  outliers of +-(20-90) deg and the Wang, Zhang & Wu (2006) scenario (seed000.yaml) at 1.5
+  and 4.5 mrad. For each row: ok share, mean NEES of the ok fixes with its chi2_3 99 % band
   3 +- 2.576 sqrt(6 / n_ok), and the share of ok fixes whose NEES exceeds the chi2_3 0.9999
   quantile (confidently wrong).
 

@@ -1,7 +1,7 @@
-"""Seed 000 section 4 GDOP maps (fig. 2) and a table like its table 1, via ``bearing_loc plan``.
+"""GDOP maps of Wang, Zhang & Wu (2006), section 4 (fig. 2) and a table like its table 1.
 
 Stations (30, −10, 0.1), (30, 20, 0.2), (−30, 5, 0.15) km (config/scenarios/seed000.yaml),
-σ = 1.5 and 4.5 mrad on every angle, target altitude 5 and 15 km, seed 000's CTLS error model
+σ = 1.5 and 4.5 mrad on every angle, target altitude 5 and 15 km, the paper's CTLS error model
 (eqs. (30)-(32)); plus the CRLB map for 1.5 mrad at 5 km for comparison and a placement
 example. Every figure is made by the ``bearing_loc plan`` command printed before it, with one
 colour scale and one set of contour levels (m) for all maps. Prints the expected error at
@@ -62,8 +62,8 @@ def main():
             out = run(['plan', 'map', *common, '--altitude', str(int(alt_km) * 1000),
                        '--sigma-deg', _deg(sigma), '--model', 'ctls', '--png', png,
                        '--csv', os.path.join(args.csv_out, name + '.csv'),
-                       '--title', f'CTLS error (seed 000 eq. 32), sigma {sigma} mrad, '
-                                  f'altitude {alt_km} km'])
+                       '--title', 'CTLS error (Wang, Zhang & Wu 2006, eq. 32), '
+                                  f'sigma {sigma} mrad, altitude {alt_km} km'])
             summary.append((name, out['stats']))
     png = os.path.join(args.out, 'seed000_crlb_1p5mrad_5km.png')
     out = run(['plan', 'map', *common, '--altitude', '5000', '--sigma-deg', _deg('1.5'),

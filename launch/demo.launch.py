@@ -3,10 +3,10 @@
 Run: ``ros2 launch bearing_loc_ros demo.launch.py``.
 
 Arguments: ``scenario`` (a file in share/bearing_loc_ros/config/scenarios or a path; default
-seed000.yaml), ``estimator`` (default mle), ``time_scale`` (default 1.0), ``stations``
-(default the three seed 000 stations). The fusion node runs with use_sim_time and the
-simulator publishes /clock. Without a native install (PyPI wheels only), ``make demo`` runs
-the same chain.
+seed000.yaml), ``estimator`` (default mle), ``time_scale`` (default 1.0), ``stations`` (default the
+three stations of Wang, Zhang & Wu (2006), as in seed000.yaml). The fusion node runs with
+use_sim_time and the simulator publishes /clock. Without a native install (PyPI wheels only),
+``make demo`` runs the same chain.
 """
 import os
 

@@ -1,16 +1,16 @@
-"""``bearing_loc evaluate``: Monte Carlo evaluation of estimators on a scenario (seed 003 sec. 3).
+"""``bearing_loc evaluate``: Monte Carlo evaluation of estimators (Zong & Cui (2015), sec. 3).
 
-Example (seed 003 figures 2-4)::
+Example (Zong & Cui (2015), figs. 2-4)::
 
     bearing_loc evaluate --scenario config/scenarios/seed003.yaml \\
         --estimators ls,tls,ctls,mle,wmle --sigma-deg 0.5,1,1.5,2,2.5,3 --trials 1000 \\
         --out results/
 
 Prints a table and writes ``<out>/evaluation.csv``, ``<out>/evaluation.json`` and PNG
-plots ``eval_rmse_joint.png`` (σ_θ = σ_ψ = σ, seed 003 fig. 2), ``eval_rmse_azimuth.png``
-and ``eval_rmse_elevation.png`` (one angle's σ varies, the other fixed at
-``--fixed-sigma-deg``; figs. 3-4) and ``eval_az_vs_el.png`` (the two single-angle sweeps on
-one plot). The maths is core.evaluation; README "Evaluation" has the results.
+plots ``eval_rmse_joint.png`` (σ_θ = σ_ψ = σ, Zong & Cui (2015) fig. 2),
+``eval_rmse_azimuth.png`` and ``eval_rmse_elevation.png`` (one angle's σ varies, the other
+fixed at ``--fixed-sigma-deg``; figs. 3-4) and ``eval_az_vs_el.png`` (the two single-angle
+sweeps on one plot). The maths is core.evaluation; README "Evaluation" has the results.
 """
 
 import csv
@@ -277,7 +277,7 @@ ESTIMATOR_STYLE = {'ls': ('tab:red', 's'), 'tls': ('tab:orange', 'v'),
 
 
 def plot_results(rows, meta, out):
-    """PNG plots in the style of seed 003 figs. 2-4 (log RMSE against σ, CRLB dashed)."""
+    """PNG plots in the style of Zong & Cui (2015) figs. 2-4 (log RMSE against σ, CRLB dashed)."""
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt

@@ -18,7 +18,8 @@ pruned). An output epoch at time t uses at most one bearing per station, obtaine
 
 Interpolation assumes the azimuth, elevation and station position change linearly between
 the two bearings (a target and stations moving at constant angular rate over the gap); the
-gap bound keeps that model error small. Seed 000 eq. (1) is the measurement model throughout.
+gap bound keeps that model error small. Wang, Zhang & Wu (2006) eq. (1) is the measurement
+model throughout.
 """
 
 from bisect import bisect_left, bisect_right
@@ -96,8 +97,9 @@ def interpolate_bearing(b0, b1, t_ns):
       deviation is sqrt((1 − a)² σ0² + a² σ1²) <= (1 − a) σ0 + a σ1, so the linear σ is an
       upper bound that leaves room for the model error of linear interpolation.
 
-    The result carries stamp ``t_ns``, b0's station and frame. Measurement model: seed 000
-    eq. (1). Raises ``ValueError`` if the stations or frames differ or t1 <= t0.
+    The result carries stamp ``t_ns``, b0's station and frame. Measurement model:
+    Wang, Zhang & Wu (2006) eq. (1). Raises ``ValueError`` if the stations or frames differ
+    or t1 <= t0.
     """
     if b0.station != b1.station:
         raise ValueError(f'station: cannot interpolate {b0.station!r} with {b1.station!r}')

@@ -2,7 +2,8 @@
 
 Conventions (DESIGN.md): ENU world frame, metres, radians; azimuth θ CCW from East,
 elevation ψ above the horizontal plane; an azimuth-only (1D) bearing has elevation NaN and
-σ_el NaN. Seed 000 eq. (1) and seed 004 (mixed 1D/2D sensors) define the measurement model
+σ_el NaN. Wang, Zhang & Wu (2006) eq. (1) and Wang, Su, Bai & Zhong (2009) (mixed 1D/2D
+sensors) define the measurement model
 
     θ_i = atan2(y − y_i, x − x_i) + n_i,   ψ_i = atan2(z − z_i, ρ_i) + m_i,
 
@@ -18,7 +19,8 @@ HALF_PI = np.pi / 2.0
 #: Accepted range of an angle σ, rad. Below 1e-12 rad (a picoradian, far below any sensor)
 #: the weights 1/σ² and their products overflow float64 in the estimators' sums (σ = 1e-300
 #: made TMA's eigen-solver fail); the upper bound only keeps σ² r² finite (a σ above π
-#: already carries no information, and range-grown σ of seed 003 eqs. (9)-(10) may exceed it).
+#: already carries no information, and range-grown σ of Zong & Cui (2015) eqs. (9)-(10) may
+#: exceed it).
 SIGMA_MIN = 1e-12
 SIGMA_MAX = 1e3
 

@@ -123,7 +123,7 @@ class _CTLSProblem:
     def derivatives(self, X):
         """f, gradient T_n (M, 3), Hessian H_n (M, 3, 3) and its first (PSD) part.
 
-        Seed 000 eq. (20) and appendix A:
+        Wang, Zhang & Wu (2006) eq. (20) and appendix A:
             U  = (H_X G⁻¹ H_Xᵀ)⁻¹ C [X; −1]
             B1 = [H_X G⁻¹ F_1ᵀU  H_X G⁻¹ F_2ᵀU  H_X G⁻¹ F_3ᵀU]
             B2 = [F_1 G⁻¹ H_XᵀU  F_2 G⁻¹ H_XᵀU  F_3 G⁻¹ H_XᵀU]

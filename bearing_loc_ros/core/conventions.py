@@ -3,11 +3,11 @@
 World frame: local ENU Cartesian (x East, y North, z Up), metres.
 
 * Azimuth θ: ENU yaw, counter-clockwise from +x (East),
-  θ = atan2(y_t − y_s, x_t − x_s)  (seed 000 eq. (1), first line).
+  θ = atan2(y_t − y_s, x_t − x_s)  (Wang, Zhang & Wu (2006) eq. (1), first line).
 * Elevation ψ: angle above the local horizontal plane,
-  ψ = atan2(z_t − z_s, sqrt((x_t − x_s)² + (y_t − y_s)²))  (seed 000 eq. (1), second line).
+  ψ = atan2(z_t − z_s, sqrt((x_t − x_s)² + (y_t − y_s)²))  (same eq. (1), second line).
 * Line-of-sight unit vector u = (cos ψ cos θ, cos ψ sin θ, sin ψ).
-* Compass bearing β (clockwise from North, seed 001 and most DF receivers): θ = π/2 − β.
+* Compass bearing β (clockwise from North, as in Lin et al. and most DF receivers): θ = π/2 − β.
 * A bearing as an orientation: the rotation taking +x onto u, i.e. yaw = θ, pitch = −ψ,
   roll = 0 (REP-103 yaw-pitch-roll, Z-Y'-X''), quaternion order (x, y, z, w).
 
@@ -93,7 +93,8 @@ def los_vector(azimuth, elevation=0.0):
 def azimuth_elevation(delta):
     """Azimuth θ and elevation ψ (rad) of the vector(s) ``delta`` (..., 3) = target − station.
 
-    θ = atan2(Δy, Δx), ψ = atan2(Δz, hypot(Δx, Δy)) (seed 000 eq. (1)). Returns (θ, ψ).
+    θ = atan2(Δy, Δx), ψ = atan2(Δz, hypot(Δx, Δy)) (Wang, Zhang & Wu (2006) eq. (1)).
+    Returns (θ, ψ).
     """
     d = np.asarray(delta, dtype=float)
     az = np.arctan2(d[..., 1], d[..., 0])

@@ -1,18 +1,18 @@
 """Fisher information, Cramér-Rao lower bound and GDOP for bearing-only localization.
 
-Measurement model (seed 000 eq. (1), seed 003 eq. (3)): for station i at s_i and target X,
-with d = X − s_i, ρ = hypot(d_x, d_y), r = |d|,
+Measurement model (Wang, Zhang & Wu (2006) eq. (1); Zong & Cui (2015) eq. (3)): for station i
+at s_i and target X, with d = X − s_i, ρ = hypot(d_x, d_y), r = |d|,
 
     θ_i = atan2(d_y, d_x),            ∇θ_i = (−d_y, d_x, 0) / ρ²,
     ψ_i = atan2(d_z, ρ),              ∇ψ_i = (−d_x d_z / (ρ r²), −d_y d_z / (ρ r²), ρ / r²).
 
-With independent Gaussian errors, the Fisher information of X is (seed 003 eqs. (6)-(8))
+With independent Gaussian errors, the Fisher information of X is (Zong & Cui (2015) eqs. (6)-(8))
 
     J(X) = Σ_i ∇θ_i ∇θ_iᵀ / σ_θi² + Σ_{i ∈ 2D} ∇ψ_i ∇ψ_iᵀ / σ_ψi²,
 
 CRLB = J⁻¹ (m²) and GDOP = sqrt(trace(CRLB)) (m), the root of the smallest achievable mean
 squared 3D position error of an unbiased estimator. Azimuth-only (1D) bearings contribute
-only the θ term (seed 004).
+only the θ term (Wang, Su, Bai & Zhong (2009)).
 """
 
 import numpy as np
@@ -48,7 +48,7 @@ def fisher_information(target, positions, sigma_az, sigma_el=None, has_elevation
     """Fisher information matrix J (M, 3, 3), 1/m², of bearings about the target.
 
     ``sigma_az``/``sigma_el`` (rad) broadcast to (M, N); ``sigma_el`` NaN or ``has_elevation``
-    False marks azimuth-only bearings. Seed 003 eqs. (6)-(8).
+    False marks azimuth-only bearings. Zong & Cui (2015) eqs. (6)-(8).
     """
     g_az, g_el = angle_jacobians(target, positions)
     M, N = g_az.shape[:2]

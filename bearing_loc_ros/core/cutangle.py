@@ -1,6 +1,6 @@
-"""Optimal cut angle of a 2D + 1D passive sensor pair (seed 004, Wang et al. 2009).
+"""Optimal cut angle of a 2D + 1D passive sensor pair (Wang, Su, Bai & Zhong (2009)).
 
-Geometry (seed 004 section 2, figs. 1-2), in the project's ENU convention (DESIGN.md):
+Geometry (the paper's section 2, figs. 1-2), in the project's ENU convention (DESIGN.md):
 sensor 1 is a 2D sensor (azimuth θ1 and elevation ε1) at the origin (0, 0, z1); sensor 2 is a
 1D sensor (azimuth θ2 only) at (D, 0, ·) on the +x baseline; the target is above the baseline
 (0 < θ1 < θ2 < π) and the cut angle is φ = θ2 − θ1. By the sine rule the horizontal ranges
@@ -46,7 +46,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 # Feasibility margins: a solution closer than this (rad) to θ1 = 0, θ2 = π, φ = 0 or φ = π,
-# or with D1/D or D2/D below RANGE_MARGIN, is a limit case (seed 004 section 4).
+# or with D1/D or D2/D below RANGE_MARGIN, is a limit case (Wang, Su, Bai & Zhong (2009),
+# section 4).
 ANGLE_MARGIN = np.radians(0.05)
 RANGE_MARGIN = 1e-3
 
@@ -68,7 +69,7 @@ def _check_ratios(k1, k2, elevation):
 
 
 def cut_angle_f(theta1, theta2, elevation=0.0, k1=1.0, k2=0.0):
-    """Seed 004 eq. (6): the normalised squared position error f(θ1, θ2, ε1).
+    """Wang, Su, Bai & Zhong (2009) eq. (6): the normalised squared position error f(θ1, θ2, ε1).
 
     E_r² = D² σ²_θ2 f (eq. (5)); f = [k1 sin²θ2 (1 + cos²φ tan²ε1) + sin²θ1 / cos²ε1
     + k2 sin²θ2 sin²φ / cos⁴ε1] / sin⁴φ with φ = θ2 − θ1. Angles in radians (arrays
@@ -116,7 +117,7 @@ def _phi_terms(phi, tan2, k1, b):
 
 
 def cut_angle_derivatives(theta1, theta2, elevation=0.0, k1=1.0, k2=0.0):
-    """Value, gradient and Hessian of seed 004 eq. (6) in (θ1, θ2) at fixed ε1.
+    """Value, gradient and Hessian of Wang, Su, Bai & Zhong (2009) eq. (6) in (θ1, θ2) at fixed ε1.
 
     Write f = u W(φ) + a v P(φ) with u = sin²θ2, v = sin²θ1, a = 1/cos²ε1, b = k2/cos⁴ε1,
     W = k1 P + k1 tan²ε1 Q + b R (see :func:`_phi_terms`), ∂φ/∂θ1 = −1, ∂φ/∂θ2 = 1:
@@ -153,8 +154,9 @@ def cut_angle_derivatives(theta1, theta2, elevation=0.0, k1=1.0, k2=0.0):
 
 
 def boundary_limits(k1, k2=0.0, elevation=0.0):
-    """Infimum of f (eq. (6)) at the two limit points of the domain (seed 004 section 4).
+    """Infimum of f (eq. (6)) at the two limit points of the domain.
 
+    Wang, Su, Bai & Zhong (2009), section 4.
     Returns {'sensor2': (f, θ1, θ2), 'sensor1': (f, θ1, θ2)} with
     f → k1 + k2/cos⁴ε1 for the target on sensor 2's vertical axis (θ1 → 0, θ2 = π/2) and
     f → 1/cos²ε1 for the target at sensor 1 (θ1 = π/2, θ2 → π). Derivation: with θ1 → 0,
@@ -167,9 +169,10 @@ def boundary_limits(k1, k2=0.0, elevation=0.0):
 
 
 def two_sensor_geometry(theta1, theta2, elevation=0.0, baseline=1.0, z1=0.0, z2=0.0):
-    """Station and target positions (m, ENU) of seed 004 figs. 1-2, eqs. (1)-(3).
+    """Station and target positions (m, ENU) of the two-sensor geometry.
 
-    Sensor 1 (2D) at (0, 0, z1), sensor 2 (1D) at (D, 0, z2); target at
+    Wang, Su, Bai & Zhong (2009) figs. 1-2, eqs. (1)-(3): sensor 1 (2D) at (0, 0, z1),
+    sensor 2 (1D) at (D, 0, z2); target at
     (D1 cos θ1, D1 sin θ1, z1 + D1 tan ε1) with D1 = D sin θ2 / sin(θ2 − θ1).
     Returns (positions (2, 3), target (3,)). The elevation of sensor 2 is irrelevant (1D).
     """
@@ -192,7 +195,7 @@ def _feasible_point(t1, t2):
 
 @dataclass
 class CutAngleResult:
-    """Optimal cut angle of seed 004 for one (k1, k2, ε1).
+    """Optimal cut angle (Wang, Su, Bai & Zhong (2009)) for one (k1, k2, ε1).
 
     Attributes (angles in radians):
         k1, k2, elevation: the inputs.
@@ -266,7 +269,7 @@ def _newton(x, k1, k2, elevation, tol, max_iter):
 
 
 def _grid_starts(k1, k2, elevation, n):
-    """Coarse numeric start points (seed 004 section 4).
+    """Coarse numeric start points (Wang, Su, Bai & Zhong (2009), section 4).
 
     f and G = (∂f/∂θ1)² + (∂f/∂θ2)² on an n-step grid of the triangle 0 < θ1 < θ2 < π; the
     starts are the grid's local minima of f and of G (the paper's G(x) = 0 search).
@@ -290,15 +293,15 @@ def _grid_starts(k1, k2, elevation, n):
 
 
 def optimal_cut_angle(k1, k2=0.0, elevation=0.0, grid=120, tol=1e-11, max_iter=100):
-    """Optimal cut angle φ = θ2 − θ1 minimising seed 004's f (eq. (6)) at fixed ε1.
+    """Optimal cut angle φ = θ2 − θ1 minimising f (eq. (6)) at fixed ε1.
 
-    Method (seed 004 section 4): coarse numeric start points from an n = ``grid`` step grid
-    of f and G = |∇f|² over 0 < θ1 < θ2 < π, then Newton's method on eq. (7) (∇f = 0,
-    safeguarded, see :func:`_newton`). A converged point is kept if its Hessian is positive
-    definite (a minimum, not a saddle) and it is strictly inside the domain (not at a sensor,
-    not on the baseline or its extension; margins ANGLE_MARGIN, RANGE_MARGIN). The best
-    interior minimum is the optimum if its f is below both boundary limits
-    (:func:`boundary_limits`); otherwise the result is the lower limit point with
+    Method (Wang, Su, Bai & Zhong (2009), section 4): coarse numeric start points from an
+    n = ``grid`` step grid of f and G = |∇f|² over 0 < θ1 < θ2 < π, then Newton's method on
+    eq. (7) (∇f = 0, safeguarded, see :func:`_newton`). A converged point is kept if its
+    Hessian is positive definite (a minimum, not a saddle) and it is strictly inside the
+    domain (not at a sensor, not on the baseline or its extension; margins ANGLE_MARGIN,
+    RANGE_MARGIN). The best interior minimum is the optimum if its f is below both boundary
+    limits (:func:`boundary_limits`); otherwise the result is the lower limit point with
     ``feasible=False`` and a reason.
 
     Args:
@@ -342,16 +345,16 @@ def optimal_cut_angle(k1, k2=0.0, elevation=0.0, grid=120, tol=1e-11, max_iter=1
 
 
 def cut_angle_table(k1_values, k2_values=(0.0,), elevation=0.0, **options):
-    """Seed 004 tables 1-4: :func:`optimal_cut_angle` for every (k2, k1) pair, k2 outermost.
+    """Tables 1-4 of Wang, Su, Bai & Zhong (2009): :func:`optimal_cut_angle` per (k2, k1).
 
-    Returns a list of :class:`CutAngleResult`.
+    k2 is the outer loop. Returns a list of :class:`CutAngleResult`.
     """
     return [optimal_cut_angle(k1, k2, elevation, **options)
             for k2 in k2_values for k1 in k1_values]
 
 
 def pure_bearing_theta1(theta2, k1):
-    """Seed 004 eqs. (10)-(11): the θ1 in [0, π] solving eq. (8) for a given θ2.
+    """Wang, Su, Bai & Zhong (2009) eqs. (10)-(11): θ1 in [0, π] solving eq. (8) for a given θ2.
 
     With z = cos θ2 and λ = −k1 z sqrt(1 − z²) (eq. (11)), eq. (8) sin 2θ1 = −k1 sin 2θ2 = 2λ
     gives cos²θ1 = (1 ± sqrt(1 − 4λ²))/2, i.e. cos θ1 = ±sqrt(2 ± 2 sqrt(1 − 4λ²))/2 (eq. (10)).

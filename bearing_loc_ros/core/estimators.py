@@ -162,7 +162,7 @@ class _MLProblem:
             q = np.empty((12, x.shape[0]))
             factor = None
             if self.d_ref is not None:
-                # Seed 003 eqs. (9)-(11): σ_k(d) = σ_ref (d_k / d_ref).
+                # Zong & Cui (2015) eqs. (9)-(11): σ_k(d) = σ_ref (d_k / d_ref).
                 factor = self.d_ref * self.d_ref / r2
                 rr = ra * ra + re * re
                 q[_OLD] = (rr * (factor if old_factor is None else old_factor)).sum(axis=0)

@@ -3,22 +3,23 @@
 Pure numpy (no rclpy). One vectorised estimator call per (noise level, estimator): the M
 trials of a noise level are one :class:`~bearing_loc_ros.core.bearings.BearingSet` batch.
 
-Experiment (seed 003 section 3): stations s_i fixed, one target X_m per trial m (for seed 003
-drawn uniformly from a box), bearings θ_mi = θ_i(X_m) + n_mi, ψ_mi = ψ_i(X_m) + m_mi with
-n_mi ~ N(0, σ_θ,mi²), m_mi ~ N(0, σ_ψ,mi²) (seed 003 sec. 1; seed 000 eq. (1)). The σ that
-generates the noise may grow with range, σ_mi = σ · clip(d_mi / d_ref, f_min, f_max) (seed
-003 eqs. (9)-(10); the stations' ``sigma_growth`` of the scenario, core.simulation), while
-the bearings *report* σ (the value at d_ref), as a DF receiver that does not know the range
-would. The estimators see only the reported values.
+Experiment (Zong & Cui (2015), section 3): stations s_i fixed, one target X_m per trial m
+(in that paper drawn uniformly from a box), bearings θ_mi = θ_i(X_m) + n_mi,
+ψ_mi = ψ_i(X_m) + m_mi with n_mi ~ N(0, σ_θ,mi²), m_mi ~ N(0, σ_ψ,mi²) (Zong & Cui (2015),
+sec. 1; Wang, Zhang & Wu (2006) eq. (1)). The σ that generates the noise may grow with range,
+σ_mi = σ · clip(d_mi / d_ref, f_min, f_max) (Zong & Cui (2015) eqs. (9)-(10); the stations'
+``sigma_growth`` of the scenario, core.simulation), while the bearings *report* σ (the value at
+d_ref), as a DF receiver that does not know the range would. The estimators see only the reported
+values.
 
 Statistics over the trials m whose estimate converged (error e_m = X̂_m − X_m, m):
 
-* RMSE = sqrt(mean_m |e_m|²)                                    (seed 003 figs. 2-4)
+* RMSE = sqrt(mean_m |e_m|²)                           (Zong & Cui (2015) figs. 2-4)
 * bias = |mean_m e_m| (norm of the mean error vector)
 * CRLB = sqrt(mean_m trace(J_m⁻¹)), J_m the Fisher information of trial m at the true target
-  with the *true* (generating) σ (seed 003 eqs. (6)-(8), :func:`~.crlb.crlb`): the root of
-  the smallest mean squared error any unbiased estimator can reach over the same targets.
-  RMSE/CRLB >= 1 up to Monte Carlo error (and up to estimator bias).
+  with the *true* (generating) σ (Zong & Cui (2015) eqs. (6)-(8), :func:`~.crlb.crlb`): the
+  root of the smallest mean squared error any unbiased estimator can reach over the same
+  targets. RMSE/CRLB >= 1 up to Monte Carlo error (and up to estimator bias).
 * mean NEES = mean_m e_mᵀ P_m⁻¹ e_m with P_m the estimator's reported covariance: 3 for a
   consistent estimator in 3D (chi-square with 3 degrees of freedom); > 3 means the
   estimator claims more accuracy than it delivers.
@@ -51,8 +52,8 @@ import numpy as np
 from .crlb import crlb as crlb_matrix
 from .crlb import safe_inverse
 
-#: Sweeps of seed 003: ``joint`` σ_θ = σ_ψ = σ (fig. 2); ``azimuth`` σ_θ varies, σ_ψ fixed;
-#: ``elevation`` σ_ψ varies, σ_θ fixed (figs. 3-4).
+#: Sweeps of Zong & Cui (2015): ``joint`` σ_θ = σ_ψ = σ (fig. 2); ``azimuth`` σ_θ varies,
+#: σ_ψ fixed; ``elevation`` σ_ψ varies, σ_θ fixed (figs. 3-4).
 SWEEPS = ('joint', 'azimuth', 'elevation')
 #: Expected mean NEES of a consistent 3D estimator (chi-square, 3 degrees of freedom).
 NEES_DOF = 3
@@ -111,8 +112,9 @@ class Stats:
 def noise_levels(sigmas_deg, sweep='joint', fixed_deg=0.5):
     """Noise levels of a sweep from σ values in degrees.
 
-    ``joint``: σ_θ = σ_ψ = σ (seed 003 fig. 2); ``azimuth``: σ_θ = σ, σ_ψ = ``fixed_deg``;
-    ``elevation``: σ_ψ = σ, σ_θ = ``fixed_deg`` (seed 003 figs. 3-4, fixed value 0.5°).
+    ``joint``: σ_θ = σ_ψ = σ (Zong & Cui (2015) fig. 2); ``azimuth``: σ_θ = σ,
+    σ_ψ = ``fixed_deg``; ``elevation``: σ_ψ = σ, σ_θ = ``fixed_deg`` (Zong & Cui (2015)
+    figs. 3-4, fixed value 0.5°).
     Returns a list of :class:`NoiseLevel` in radians. Raises ValueError for σ <= 0.
     """
     if sweep not in SWEEPS:
@@ -163,7 +165,7 @@ class Trials:
     def sigma_factor(self):
         """(M, N) growth factor f = clip(r / r_ref, f_min, f_max), 1 without growth.
 
-        Seed 003 eqs. (9)-(10), as core.simulation.SigmaGrowth.factor: σ(r) = σ_ref · f.
+        Zong & Cui (2015) eqs. (9)-(10), as core.simulation.SigmaGrowth.factor: σ(r) = σ_ref · f.
         """
         r = np.linalg.norm(self.targets[:, None, :] - self.stations, axis=-1)
         grow = np.isfinite(self.range_ref)
@@ -180,12 +182,12 @@ class Trials:
 def trials_from_scenario(scenario, trials, seed=0, range_ref=None):
     """Monte Carlo geometry of a scenario (core.simulation): trial m uses simulator seed seed+m.
 
-    Targets come from ``core.simulation.realize_targets(scenario, seed + m)`` (a
-    ``random_static`` target is drawn anew from its box each trial, seed 003 section 3.1; a
-    Monte Carlo run = a simulator seed, so ``bearing_loc bag simulate --seed <seed+m>``
-    replays trial m's target). Moving targets and stations are taken at scenario time
-    t_m = duration · m / trials. A scenario with T targets gives T problems per trial
-    (M = trials · T), target-major within a trial. σ growth and 1D/2D come from the stations.
+    Targets come from ``core.simulation.realize_targets(scenario, seed + m)`` (a ``random_static``
+    target is drawn anew from its box each trial, Zong & Cui (2015) section 3.1; a Monte Carlo
+    run = a simulator seed, so ``bearing_loc bag simulate --seed <seed+m>`` replays trial m's
+    target). Moving targets and stations are taken at scenario time t_m = duration · m / trials. A
+    scenario with T targets gives T problems per trial (M = trials · T), target-major within a
+    trial. σ growth and 1D/2D come from the stations.
     ``range_ref`` (m) overrides every station's growth reference range r_ref (stations
     without growth get σ(r) = σ · r / r_ref, unclipped); 0 turns growth off (constant σ).
     """
@@ -465,8 +467,8 @@ def findings(rows):
     * ``ranking``: for each sweep and swept σ, estimator names sorted by RMSE (best first).
     * ``azimuth_vs_elevation``: for each σ present in both single-angle sweeps and each
       estimator (and ``CRLB``), RMSE with the azimuth σ varied / RMSE with the elevation σ
-      varied (> 1: azimuth error costs more). Seed 003 sec. 3.2 conclusion 2) compares
-      exactly these two curves (its figs. 3-4).
+      varied (> 1: azimuth error costs more). Zong & Cui (2015), sec. 3.2, conclusion 2)
+      compares exactly these two curves (its figs. 3-4).
     """
     def key(r):
         return r.sigma_el_deg if r.sweep == 'elevation' else r.sigma_az_deg

@@ -89,7 +89,7 @@ class Trajectory:
 
 @dataclass(frozen=True)
 class SigmaGrowth:
-    """Range-dependent σ, seed 003 eqs. (9)-(10): σ(r) = σ_ref · clip(r/r_ref, f_min, f_max).
+    """Range-dependent σ (Zong & Cui (2015) eqs. (9)-(10)): σ_ref · clip(r/r_ref, f_min, f_max).
 
     ``report`` says which σ goes into the published bearing: ``nominal`` (σ_ref, what a
     station that does not know the range reports; default) or ``actual`` (σ(r), an oracle).
@@ -144,7 +144,7 @@ class Target:
     """An emitter. ``trajectory`` is None for an unrealized ``random_static`` target.
 
     ``random_static``: a static point drawn uniformly in the box [box_min, box_max] (m) from
-    the simulation seed (:func:`realize_targets`); seed 003 section 3.1.
+    the simulation seed (:func:`realize_targets`); Zong & Cui (2015), section 3.1.
     """
 
     namespace: str

@@ -7,14 +7,16 @@ The scenario model lives in :mod:`.scenario_model` and the YAML loader in
 import path for the whole simulator.
 
 
-Measurement model (seed 000 eq. (1) with the additive Gaussian noise of eq. (6); seed 003
-eqs. (1)-(2) and, for range-dependent σ, eqs. (9)-(10)). For station i at s_i(t), target at
-X(t), observation k at the true (scenario) time t_k and d = X(t_k) − s_i(t_k):
+Measurement model (Wang, Zhang & Wu (2006) eq. (1) with the additive Gaussian noise of its
+eq. (6); Zong & Cui (2015) eqs. (1)-(2) and, for range-dependent σ, eqs. (9)-(10)). For
+station i at s_i(t), target at X(t), observation k at the true (scenario) time t_k and
+d = X(t_k) − s_i(t_k):
 
     θ_ik = wrap(atan2(d_y, d_x) + σ_θ(r) n_ik + o_ik a_θ),
     ψ_ik = clip(atan2(d_z, hypot(d_x, d_y)) + σ_ψ(r) m_ik + o_ik a_ψ),   (2D stations only)
-    σ(r) = σ_ref · clip(r / r_ref, f_min, f_max)   (seed 003 eqs. (9)-(10); σ(r) = σ_ref
-                                                    when no ``sigma_growth`` is configured)
+    σ(r) = σ_ref · clip(r / r_ref, f_min, f_max)   (Zong & Cui (2015) eqs. (9)-(10);
+                                                    σ(r) = σ_ref when no ``sigma_growth``
+                                                    is configured)
 
 with r = |d|, n, m ~ N(0, 1), o_ik ~ Bernoulli(outlier) and a = ±outlier_size (random sign);
 with ``outlier_size_max`` the magnitude is uniform in [outlier_size, outlier_size_max] (a
@@ -28,8 +30,8 @@ Each observation is dropped with probability ``dropout``. Timing of observation 
     publish_k = epoch + t_k + max(0, latency + latency_jitter·l_k)           (simulated clock)
 
 c, l ~ N(0, 1); drift = clock_drift_ppm·1e-6. The truth attached to a bearing is X(t_k).
-Observation times are the half-open interval [0, duration): seed 000 section 4 (every 2 s for
-100 s) gives k = 0..49. Periods are rounded to whole nanoseconds.
+Observation times are the half-open interval [0, duration): section 4 of Wang, Zhang & Wu
+(2006) (every 2 s for 100 s) gives k = 0..49. Periods are rounded to whole nanoseconds.
 
 Determinism: every random number comes from numpy Generators seeded with
 ``SeedSequence([seed, stream, index...])``: stream 0 = target j's random draws, stream 1 =
@@ -191,7 +193,8 @@ def realize_targets(scenario, seed=0):
     """Targets with every ``random_static`` one drawn uniformly in its box (seed stream 0).
 
     X_j = box_min + (box_max − box_min) · U, U ~ U[0, 1)³ from ``SeedSequence([seed, 0, j])``
-    (seed 003 section 3.1: sources uniform in X(−3000, 3000), Y(1000, 7000), Z(−500, 500) m).
+    (Zong & Cui (2015), section 3.1: sources uniform in X(−3000, 3000), Y(1000, 7000),
+    Z(−500, 500) m).
     """
     seed = _check_seed(seed)
     out = []

@@ -33,8 +33,8 @@ Angle conventions (DESIGN.md, REP-103), with a = raw azimuth and δ = ``azimuth_
   ``enu`` gives the body yaw θ_b = a_c (CCW from the bow); ``compass`` is a relative bearing
   clockwise from the bow, θ_b = −a_c. The body line of sight u_b = (cos ψ_b cos θ_b,
   cos ψ_b sin θ_b, sin ψ_b) is rotated into the world, u = R(q) u_b, and θ, ψ are recomputed
-  from u (seed 000 eq. (1) applied to u). σ is kept. An azimuth-only (1D) reading uses
-  ψ_b = 0: exact for a level platform, an approximation when it rolls or pitches (the
+  from u (Wang, Zhang & Wu (2006) eq. (1) applied to u). σ is kept. An azimuth-only (1D)
+  reading uses ψ_b = 0: exact for a level platform, an approximation when it rolls or pitches (the
   measured quantity is then a plane, not a ray).
 """
 
