@@ -1,0 +1,214 @@
+"""Consensus and refit of a maximum likelihood fix (steps 2-3 of the :mod:`.robust` docstring).
+
+Candidates from the pseudo-linear ``ls`` fix (Wang, Zhang & Wu eq. (4)) of station subsets,
+an MSAC score with the log σ² term, and Levenberg-Marquardt on the full negative
+log-likelihood of the inliers (Zong & Cui 2015 eqs. (3)-(11) with the log σ(d) term).
+Units: m, rad. Re-exported from :mod:`.robust`.
+"""
+
+from itertools import combinations
+
+import numpy as np
+
+from .crlb import safe_inverse
+from .robust_model import chi2_upper, fisher, outlier_c2, REFIT_ITERATIONS, REFIT_ROUNDS
+
+
+def _ls_candidates(data, masks):
+    """Pseudo-linear LS (Wang, Zhang & Wu eq. (4)) for station masks (K, N) -> (M, K, 3)."""
+    az, el, has = data.az, data.el, data.has_el
+    s, c = np.sin(az), np.cos(az)
+    sp, cp = np.sin(el), np.cos(el)
+    m = has.astype(float)
+    rows = np.stack([np.stack([s, -c, np.zeros_like(s)], -1),
+                     np.stack([m * c * sp, m * s * sp, -m * cp], -1)], axis=-2)  # (M,N,2,3)
+    y = np.einsum('mnkj,mnj->mnk', rows, data.pos)
+    A = np.einsum('mnki,mnkj->mnij', rows, rows)
+    b = np.einsum('mnki,mnk->mni', rows, y)
+    Ak = np.einsum('kn,mnij->mkij', masks, A)
+    bk = np.einsum('kn,mni->mki', masks, b)
+    inv = safe_inverse(Ak.reshape(-1, 3, 3)).reshape(Ak.shape)
+    return np.einsum('mkij,mkj->mki', inv, bk)
+
+
+def _station_masks(N):
+    """Station subsets of the consensus: all, leave one out, leave two out (N ≥ 5)."""
+    rows = [np.ones(N)]
+    for k in range(N):
+        m = np.ones(N)
+        m[k] = 0.0
+        rows.append(m)
+    if N >= 5:
+        for i, j in combinations(range(N), 2):
+            m = np.ones(N)
+            m[[i, j]] = 0.0
+            rows.append(m)
+    return np.array(rows)
+
+
+def _score(data, X, c2):
+    """MSAC score with the log σ² of the inliers (:mod:`.robust` docstring step 2), (M, K)."""
+    ra, re, _, _, _, _, log_s2 = data.evaluate(X)
+    has = data.has_el if X.ndim == 2 else data.has_el[:, None]
+    qa, qe = ra * ra, np.where(has, re * re, 0.0)
+    ina, ine = qa <= c2, has & (qe <= c2)
+    s = (np.minimum(qa, c2) + np.minimum(qe, c2) + log_s2 * (ina + ine.astype(float)))
+    s = s.sum(axis=-1)
+    return np.where(np.isfinite(s), s, np.inf)
+
+
+def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
+    """Levenberg-Marquardt on L(X) = Σ w_j (r_j² + log σ_j²) over M problems -> X (M, 3).
+
+    Fisher scoring step: (F + λ diag F) Δ = −½∇L with F = Σ w_j g_j g_jᵀ (+ Σ w_j 2 u uᵀ/d²,
+    the information of σ(d) under range growth), ½∇L = Σ_j w_j [−r_j g_j + (1 − r_j²) u_k/d_k]
+    with range growth (the σ(d) and log σ(d) derivatives) and −Σ w_j r_j g_j without. A step
+    is taken when L does not increase; λ ×10 on rejection, ÷10 on acceptance. A problem
+    stops when its step is below 1e-10 of its rms range or λ > 1e10 (each problem on its
+    own: the result does not depend on the other problems of the batch).
+    """
+    grow = data.d_ref is not None
+    X = X0.copy()
+    lam = np.zeros(X.shape[0])
+    done = np.zeros(X.shape[0], dtype=bool)
+
+    def parts(X):
+        ra, re, ga, ge, u, d, log_s2 = data.evaluate(X)
+        cost = (wa * (ra * ra + log_s2) + we * (re * re + log_s2)).sum(axis=-1)
+        return cost, ra, re, ga, ge, u, d
+
+    cost, ra, re, ga, ge, u, d = parts(X)
+    cost = np.where(np.isfinite(cost), cost, np.inf)
+    for _ in range(iterations):
+        F = fisher(ga, ge, wa, we)
+        grad = -(np.einsum('mn,mni->mi', wa * ra, ga) + np.einsum('mn,mni->mi', we * re, ge))
+        if grow:
+            k = (wa * (1.0 - ra * ra) + we * (1.0 - re * re)) / d
+            grad = grad + np.einsum('mn,mni->mi', k, u)
+            F = F + np.einsum('mn,mni,mnj->mij', 2.0 * (wa + we) / (d * d), u, u)
+        diag = np.einsum('mii->mi', F)
+        Fd = F + lam[:, None, None] * np.einsum('mi,ij->mij', diag, np.eye(3))
+        with np.errstate(all='ignore'):
+            try:
+                step = -np.linalg.solve(Fd, grad[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                step = -np.einsum('mij,mj->mi', safe_inverse(Fd), grad)
+        step = np.where(np.isfinite(step), step, 0.0)
+        Xt = X + step
+        ct, rat, ret, gat, get, ut, dt = parts(Xt)
+        acc = np.isfinite(ct) & (ct <= cost) & ~done
+        X = np.where(acc[:, None], Xt, X)
+        cost = np.where(acc, ct, cost)
+        ra, re = np.where(acc[:, None], rat, ra), np.where(acc[:, None], ret, re)
+        ga = np.where(acc[:, None, None], gat, ga)
+        ge = np.where(acc[:, None, None], get, ge)
+        u = np.where(acc[:, None, None], ut, u)
+        d = np.where(acc[:, None], dt, d)
+        lam = np.where(done, lam,
+                       np.where(acc, 0.1 * lam * (lam > 1e-6), np.maximum(10.0 * lam, 1e-3)))
+        scale = np.sqrt(np.mean(d * d, axis=-1))
+        done |= (np.linalg.norm(step, axis=-1) <= 1e-10 * scale) | (lam > 1e10)
+        if np.all(done):
+            break
+    return X
+
+
+def _inliers(data, X, c2):
+    ra, re, *_ = data.evaluate(X)
+    wa = (ra * ra <= c2).astype(float)
+    we = (data.has_el & (re * re <= c2)).astype(float)
+    return wa, we
+
+
+def _solvable(data, wa, we):
+    """At least two stations with a kept angle, one kept elevation, three kept angles."""
+    st = ((wa + we) > 0).sum(axis=-1)
+    return (st >= 2) & (we.sum(axis=-1) >= 1) & ((wa + we).sum(axis=-1) >= 3)
+
+
+def consensus_fit(data, X_ml, c2=None):
+    """Steps 2-3 of the :mod:`.robust` docstring for M problems: (X (M, 3), wa, we (M, N)).
+
+    ``X_ml`` (M, 3) is the estimator's own fix (a candidate; NaN allowed). wa, we are the
+    inlier indicators of the azimuths and elevations (1 kept, 0 excluded).
+    """
+    c2 = outlier_c2() if c2 is None else c2
+    M, N = data.az.shape
+    masks = _station_masks(N)
+    cand = _ls_candidates(data, masks)                       # (M, K, 3)
+    cand = np.concatenate([np.where(np.isfinite(X_ml), X_ml, np.nan)[:, None], cand], axis=1)
+    score = _score(data, np.where(np.isfinite(cand), cand, 0.0), c2)
+    score = np.where(np.all(np.isfinite(cand), axis=-1), score, np.inf)
+    best = np.argmin(score, axis=1)
+    X = cand[np.arange(M), best]
+    X = np.where(np.isfinite(X), X, 0.0)
+    wa, we = _inliers(data, X, c2)
+    active = np.arange(M)
+    for _ in range(REFIT_ROUNDS):
+        # Only problems whose inlier set changed are refitted again (each problem's result
+        # is independent of the batch it is in).
+        sub = data.take(active)
+        a, e = wa[active], we[active]
+        good = _solvable(sub, a, e)
+        a = np.where(good[:, None], a, 1.0)
+        e = np.where(good[:, None], e, sub.has_el.astype(float))
+        Xa = _refit(sub, X[active], a, e)
+        na, ne = _inliers(sub, Xa, c2)
+        solvable = _solvable(sub, na, ne)[:, None]
+        na, ne = np.where(solvable, na, a), np.where(solvable, ne, e)
+        same = np.all((na == a) & (ne == e), axis=-1)
+        X[active], wa[active], we[active] = Xa, na, ne
+        active = active[~same]
+        if not active.size:
+            break
+    return _prefer_all_bearings(data, X, wa, we, X_ml, cand[:, 1])
+
+
+def _cost(data, X, wa, we):
+    """Full negative log-likelihood L(X) = Σ w_j (r_j² + log σ_j²) (:mod:`.robust` step 3)."""
+    ra, re, _, _, _, _, log_s2 = data.evaluate(X)
+    c = (wa * (ra * ra + log_s2) + we * (re * re + log_s2)).sum(axis=-1)
+    return np.where(np.isfinite(c), c, np.inf)
+
+
+def _prefer_all_bearings(data, X, wa, we, X_ml, X_ls):
+    """Keep every bearing when a consistent fit of all of them exists (steps 2-3).
+
+    A bearing is called an outlier only when no fit of *all* the bearings passes the
+    residual χ² test: for the problems with an excluded angle, the full likelihood of all
+    angles is refitted from the estimator's fix and from the all-station ``ls`` fix, the
+    better one kept; if its χ² ≤ the χ²_dof quantile of
+    :data:`.robust_model.CONSISTENCY_PROBABILITY` it replaces the fit with exclusions. (At
+    low SNR a subset can fit a wrong point closer to the stations, where range-grown σ are
+    small, and exclude the good bearings that contradict it.)
+    """
+    has = data.has_el
+    exc = np.any(wa == 0, axis=-1) | np.any(has & (we == 0), axis=-1)
+    idx = np.flatnonzero(exc)
+    if not idx.size:
+        return X, wa, we
+    sub = data.take(idx)
+    ones = np.ones_like(sub.az)
+    she = sub.has_el.astype(float)
+    best, cost = None, None
+    for start in (X_ml[idx], X_ls[idx]):
+        good = np.all(np.isfinite(start), axis=-1)
+        Xs = _refit(sub, np.where(good[:, None], start, X[idx]), ones, she)
+        cs = np.where(good, _cost(sub, Xs, ones, she), np.inf)
+        if best is None:
+            best, cost = Xs, cs
+        else:
+            better = cs < cost
+            best = np.where(better[:, None], Xs, best)
+            cost = np.where(better, cs, cost)
+    ra, re, *_ = sub.evaluate(best)
+    chi2 = (ra * ra + she * re * re).sum(axis=-1)
+    dof = sub.az.shape[1] + sub.has_el.sum(axis=-1) - 3
+    use = np.isfinite(cost) & (chi2 <= chi2_upper(dof))
+    if use.any():
+        X, wa, we = X.copy(), wa.copy(), we.copy()
+        k = idx[use]
+        X[k] = best[use]
+        wa[k] = 1.0
+        we[k] = has[k].astype(float)
+    return X, wa, we
