@@ -42,6 +42,9 @@ error ±U(a, b) with a random sign (elevation clipped as above).
   method on the mean of |e|²) and SE(mean NEES) = sd_m(NEES_m) / sqrt(n). They describe the
   Monte Carlo spread of the statistic itself, so tests and plots can say whether two curves
   differ by more than chance.
+
+One module (about 500 lines) on purpose: trials, noise levels, statistics and the sweep are
+one pipeline that is read top to bottom, and each part is used only by the next.
 """
 
 from dataclasses import asdict, dataclass, field

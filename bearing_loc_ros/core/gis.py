@@ -22,6 +22,9 @@ Conventions (DESIGN.md "Frames, units, angles"):
   ``MultiLineString`` / ``MultiPolygon`` parts that meet at ±180° (RFC 7946 section 3.1.9).
   Polar origins (|lat0| > :data:`MAX_ORIGIN_LAT_DEG`) are refused with a one-line
   ``ValueError``: a local tangent-plane picture there does not map onto longitude/latitude.
+
+One module (about 500 lines) on purpose: the ellipse, antimeridian splitting and feature
+builders share the origin checks and the ring/line helpers and are read together.
 """
 
 from dataclasses import dataclass, field

@@ -34,6 +34,9 @@ Rejection reasons: ``malformed_xml``, ``malformed_csv``, ``malformed_json``,
 ``out_of_range``, ``too_large`` (document over the size limit); :class:`TimeFilter` adds
 ``duplicate_time``, ``old_time`` (earlier than the last accepted) and ``stale_time``
 (older than the allowed age); the error's ``field`` names the offending field.
+
+One module (about 500 lines) on purpose: the three format parsers share the field checks
+and the record type, and the time filter and channel map apply to their records.
 """
 
 from dataclasses import dataclass

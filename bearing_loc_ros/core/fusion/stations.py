@@ -33,6 +33,9 @@ its clock, and nothing about estimation:
 
 Cost: O(1) amortised per bearing (only the bearing's station buffer is pruned on arrival,
 every buffer before an epoch; states are rescanned only when one may have changed).
+
+One module (about 500 lines) on purpose: the registry's buffers, arrival checks, states and
+clock hints change together on every bearing.
 """
 
 from collections import Counter, deque
