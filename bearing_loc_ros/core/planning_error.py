@@ -1,12 +1,13 @@
 """Expected position error of a station layout: the crlb and ctls error models, accuracy maps.
 
 Error models (both give a 3×3 position covariance P, m², per target; the reported expected
-error is ε = sqrt(trace P), seed 000 eq. (32)):
+error is ε = sqrt(trace P), Wang, Zhang & Wu (2006) eq. (32)):
 
 * ``crlb``: the Cramér-Rao lower bound J⁻¹ of :mod:`bearing_loc_ros.core.crlb`
-  (seed 003 eqs. (6)-(8)), the best any unbiased estimator can do.
-* ``ctls``: seed 000's first-order error model of its constrained TLS estimator, eq. (30),
-  with P_E = diag(σ_θi², σ_ψi²) (eq. (31) when all σ are equal, P_E = σ² I):
+  (Zong & Cui (2015) eqs. (6)-(8)), the best any unbiased estimator can do.
+* ``ctls``: the first-order error model of the constrained TLS estimator of Wang, Zhang & Wu
+  (2006), eq. (30), with P_E = diag(σ_θi², σ_ψi²) (eq. (31) when all σ are equal,
+  P_E = σ² I):
 
       P = A⁻¹ B A⁻¹,  A = H*ᵀ W H*,  B = H*ᵀ W H_X P_E H_Xᵀ W H*,  W = (H_X G⁻¹ H_Xᵀ)⁻¹,
 
@@ -26,9 +27,10 @@ H_X = diag(−ρ_i, −r_i) (horizontal and slant range), so W_i = H_X⁻ᵀ G_i
 estimator is efficient (P = CRLB) only if G_i = c P_Ei⁻¹ with one c for all stations.
 Where a station's line of sight is perpendicular to its position vector,
 p = cos θ x_i + sin θ y_i = 0 and G_i's elevation entry 1 + (cos ψ p + sin ψ z_i)² collapses
-(from ~1e7 to ~1e4 in metres for the seed 000 layout at 1.5 km from a station): that
-station's elevation equation loses almost all its weight and the error jumps. These are the
-"narrow regions" of seed 000 section 4, an artefact of the weighting (the CRLB map has none).
+(from ~1e7 to ~1e4 in metres for the Wang, Zhang & Wu (2006) layout at 1.5 km from a
+station): that station's elevation equation loses almost all its weight and the error jumps.
+These are the "narrow regions" of that paper's section 4, an artefact of the weighting (the
+CRLB map has none).
 """
 
 from dataclasses import dataclass
@@ -49,7 +51,7 @@ def check_model(model):
 
 
 def _crlb_terms(targets, positions, sigma_az, sigma_el):
-    """Fisher information J (M, 3, 3), 1/m², summed over stations (core.crlb, seed 003)."""
+    """Fisher information J (M, 3, 3), 1/m², summed over stations (crlb, Zong & Cui (2015))."""
     mask = np.isfinite(sigma_el)
     return fisher_information(targets, positions, sigma_az, np.where(mask, sigma_el, np.nan),
                               mask)
@@ -58,7 +60,8 @@ def _crlb_terms(targets, positions, sigma_az, sigma_el):
 def _ctls_terms(targets, positions, sigma_az, sigma_el, length_unit=1.0):
     """A = Σ_i H_iᵀ W_i H_i and B = Σ_i H_iᵀ W_i H_Xi P_Ei H_Xiᵀ W_i H_i (M, 3, 3).
 
-    Seed 000 eq. (30) per station block i, at the true angles θ_i, ψ_i of each target:
+    Wang, Zhang & Wu (2006) eq. (30) per station block i, at the true angles θ_i, ψ_i of each
+    target:
 
         H_i  = [[sin θ, −cos θ, 0], [cos θ sin ψ, sin θ sin ψ, −cos ψ]]        (eq. (3))
         f_1i = [[−cos θ, 0], [sin θ sin ψ, −cos θ cos ψ]]
@@ -136,7 +139,7 @@ def _ctls_terms(targets, positions, sigma_az, sigma_el, length_unit=1.0):
 
 
 def ctls_error_covariance(targets, stations, length_unit=1.0):
-    """Seed 000 eq. (30) (eq. (31) for equal σ): CTLS position covariance (M, 3, 3), m².
+    """CTLS position covariance (M, 3, 3), m², of Wang, Zhang & Wu (2006) eq. (30) ((31) equal σ).
 
     ``targets`` (M, 3) or (3,) true positions, m; ``stations`` a :class:`Stations`.
     See :func:`_ctls_terms` for the block formulas and the module docstring for the origin and
