@@ -26,8 +26,11 @@ S = 1_000_000_000
 
 @pytest.fixture
 def scenario_file(tmp_path):
-    """Seed 000 section 4 with a bearing every 0.5 s (instead of 2 s) for 50 s: 100 epochs,
-    enough fixes for a tight statistical bound; geometry, noise and motion unchanged."""
+    """Wang, Zhang & Wu (2006), section 4, with a bearing every 0.5 s (not 2 s) for 50 s.
+
+    100 epochs, enough fixes for a tight statistical bound; geometry, noise and motion
+    unchanged.
+    """
     with open(os.path.join(REPO, 'config/scenarios/seed000.yaml'), encoding='utf-8') as f:
         data = yaml.safe_load(f)
     data['station_defaults']['rate'] = 2.0

@@ -83,7 +83,8 @@ def test_results_are_well_formed_on_noisy_hard_input(method):
 
 
 def test_tls_is_the_smallest_right_singular_vector_of_minus_y_h():
-    # Seed 000 eq. (5): X_TLS = v4(2:4) / v4(1), v4 of [−Y H] (absent elevation rows dropped).
+    # Wang, Zhang & Wu (2006) eq. (5): X_TLS = v4(2:4) / v4(1), v4 of [−Y H] (absent elevation
+    # rows dropped).
     rng = np.random.default_rng(5)
     _, bs = random_problems(rng, 20, 6, noise=True, sigma=0.02)
     H, Y, mask = pseudo_linear_system(bs)
@@ -97,7 +98,8 @@ def test_tls_is_the_smallest_right_singular_vector_of_minus_y_h():
 
 @pytest.mark.parametrize('weighting', ['paper', 'am'])
 def test_ctls_gradient_and_hessian_match_finite_differences(weighting):
-    # Seed 000 appendix A: T_n and H_n are the derivatives of f of eq. (11) (mixed 1D/2D).
+    # Wang, Zhang & Wu (2006) appendix A: T_n and H_n are the derivatives of f of eq. (11)
+    # (mixed 1D/2D).
     rng = np.random.default_rng(3)
     tgt, bs = random_problems(rng, 1, 6, spread=5e3, sigma=0.02, noise=True)
     X = tgt + rng.normal(size=(1, 3)) * 300.0

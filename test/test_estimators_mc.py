@@ -4,7 +4,7 @@ Tolerances: for K independent trials with Gaussian errors the relative standard 
 RMSE estimate is at most 1/sqrt(2K) (exactly that for one error component; smaller when the
 3D error spreads over several components). Each bound below is 4 standard errors plus a
 stated allowance for the estimator's second-order bias, which the first-order predictions
-(CRLB, seed 000 eq. (32)) do not contain.
+(CRLB, Wang, Zhang & Wu (2006) eq. (32)) do not contain.
 """
 import numpy as np
 import pytest
@@ -25,9 +25,10 @@ def rmse(est, truth):
 
 @pytest.mark.parametrize('target_km', [(20.0, 40.0, 5.0), (-40.0, -30.0, 5.0)])
 def test_ctls_rmse_agrees_with_its_eq32_prediction(target_km):
-    # Seed 000 scenario, σ = 1.5 mrad, K = 2000: SE ≤ 1/sqrt(4000) = 1.6 %; bound 4 SE + 2 %
-    # second-order allowance = 8.3 %. The two targets are ones where the paper's weighting
-    # is far from efficient (prediction 1.2 and 1.9 × CRLB), so agreement is informative.
+    # Wang, Zhang & Wu (2006) stations, σ = 1.5 mrad, K = 2000: SE ≤ 1/sqrt(4000) = 1.6 %;
+    # bound 4 SE + 2 % second-order allowance = 8.3 %. The two targets are ones where the
+    # paper's weighting is far from efficient (prediction 1.2 and 1.9 × CRLB), so agreement
+    # is informative.
     K = 2000
     tgt = np.array(target_km) * 1e3
     bs = simulate_bearings(np.tile(tgt, (K, 1)), SEED000_STATIONS, 1.5e-3,
@@ -92,7 +93,10 @@ def test_default_estimator_covariance_is_honest_mixed_1d_2d_short_range():
 
 
 def _seed003(sigma_ref, d_ref, K, rng):
-    """Seed 003 section 3.1: 6 stations on the x axis, random sources, σ(d) = σ_ref d/d_ref."""
+    """Zong & Cui (2015), sec. 3.1: 6 stations on the x axis, random sources, σ ∝ range.
+
+    σ(d) = σ_ref d / d_ref.
+    """
     st = np.column_stack([np.linspace(-3000.0, 3000.0, 6), np.zeros(6), np.zeros(6)])
     src = rng.uniform([-3000.0, 1000.0, -500.0], [3000.0, 7000.0, 500.0], size=(K, 3))
     d = src[:, None, :] - st
@@ -105,7 +109,7 @@ def _seed003(sigma_ref, d_ref, K, rng):
 
 
 def test_seed003_ls_worse_than_mle_worse_than_wmle_and_near_crlb():
-    # Seed 003 scenario, σ_ref = 2° at d_ref = 5 km (σ from ~0.4° to ~3.7°), K = 20000
+    # Zong & Cui (2015) scenario, σ_ref = 2° at d_ref = 5 km (σ from ~0.4° to ~3.7°), K = 20000
     # random sources. Ordering: paired per-trial differences of squared error, mean > 3
     # standard errors of that mean (the sources vary, so only a paired test has the power to
     # resolve the ~1 % mle-wmle gap). RMSE/CRLB: the relative SE of a mixture of sources is

@@ -1,9 +1,10 @@
 """Every estimator reproduces its stored reference results (relative 1e-9), batched and one by one.
 
 The inputs and outputs in test/data/estimators_reference.npz were written by
-bench/estimator_reference.py: seeded problems on the seed 000 and seed 003 station layouts,
-random layouts with N = 3-10 mixed azimuth-only / azimuth-elevation stations, and
-single-station TMA problems. A change of any fix beyond rounding fails here.
+bench/estimator_reference.py: seeded problems on the station layouts of Wang, Zhang & Wu
+(2006) and Zong & Cui (2015), random layouts with N = 3-10 mixed azimuth-only /
+azimuth-elevation stations, and single-station TMA problems. A change of any fix beyond
+rounding fails here.
 """
 import os
 

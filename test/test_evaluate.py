@@ -147,7 +147,7 @@ def test_deterministic_for_a_seed_and_independent_of_the_estimator_set():
 
 @pytest.fixture(scope='module')
 def seed003_csv(tmp_path_factory):
-    """`bearing_loc evaluate` on seed 003's scenario, 300 trials (the docs use 1000)."""
+    """`bearing_loc evaluate` on Zong & Cui (2015) (seed003), 300 trials (the docs use 1000)."""
     out = tmp_path_factory.mktemp('eval')
     argv = ['evaluate', '--scenario', SEED003, '--estimator', 'ls,mle,wmle',
             '--sigma-deg', '0.5,1,3', '--trials', '300', '--seed', '0', '--out', str(out),
@@ -199,7 +199,7 @@ def test_seed003_csv_table_is_complete(seed003_csv):
 
 
 def test_seed003_estimator_ordering(seed003_csv):
-    """Seed 003 sec. 3.2 conclusion 1: PLE (ls) worst, MLE/WMLE near the CRLB.
+    """Zong & Cui (2015), sec. 3.2, conclusion 1: PLE (ls) worst, MLE/WMLE near the CRLB.
 
     Reproduced wherever the Monte Carlo resolves it: the joint sweep up to σ = 1° and the
     elevation sweep at σ = 1° and 3°. (At σ_ref = 3° with σ growing to 18° at long range the
@@ -212,7 +212,7 @@ def test_seed003_estimator_ordering(seed003_csv):
     for x in (0.5, 1.0):
         r = t[('joint', x, 'wmle')]
         assert r['rmse'] - r['crlb'] < K * r['rmse_se'] + 0.1 * r['crlb']
-    # seed 003's motivation for WMLE: MLE's constant σ misstates its accuracy (NEES >> 3),
+    # Zong & Cui's (2015) motivation for WMLE: MLE's constant σ misstates its accuracy (NEES >> 3),
     # WMLE's range-grown σ gives a consistent covariance (NEES = 3) at small σ
     w, m = t[('joint', 0.5, 'wmle')], t[('joint', 0.5, 'mle')]
     assert abs(w['mean_nees'] - ev.NEES_DOF) < K * w['nees_se']
@@ -220,7 +220,7 @@ def test_seed003_estimator_ordering(seed003_csv):
 
 
 def test_seed003_azimuth_error_costs_more_than_elevation_error(seed003_csv):
-    """Seed 003 sec. 3.2 conclusion 2 compares figs. 3 and 4 (one angle's σ varied).
+    """Zong & Cui (2015), sec. 3.2, conclusion 2 compares figs. 3 and 4 (one angle's σ varied).
 
     Its text names the dominant angle inconsistently (σφ is azimuth in its eq. (7) and
     figure description, elevation in section 1). For its geometry (stations on the x axis,

@@ -216,9 +216,9 @@ def test_estimator_failures_never_escape_or_publish_nan(monkeypatch):
 
 
 def test_wmle_gate_uses_range_grown_sigmas():
-    # Bearings whose noise grows with range as wmle assumes (seed 003 eq. (9)), sigma_ref at
-    # d_ref = 1 km, stations 3-6 km away: gating with the reported sigma_ref would reject
-    # nearly everything; with the wmle noise model the false-alarm rate is the gate's.
+    # Bearings whose noise grows with range as wmle assumes (Zong & Cui (2015) eq. (9)),
+    # sigma_ref at d_ref = 1 km, stations 3-6 km away: gating with the reported sigma_ref would
+    # reject nearly everything; with the wmle noise model the false-alarm rate is the gate's.
     rng = np.random.default_rng(5)
     d_ref, s_ref = 1000.0, 1e-3
     n_trials, rejected_w, rejected_m = 40, 0, 0
@@ -356,7 +356,8 @@ def test_replay_is_deterministic():
 
 @pytest.mark.parametrize('trigger', ['event', 'timer'])
 def test_seed000_fixes_match_the_crlb(trigger):
-    # Seed 000 section 4 (3 stations, target at ~60 km, sigma 3 mrad), 4 seeds x 50 epochs.
+    # Wang, Zhang & Wu (2006), section 4 (3 stations, target at ~60 km, sigma 3 mrad), 4 seeds
+    # x 50 epochs.
     # For an efficient unbiased estimator, r = |e|^2 / tr(CRLB) and m = e^T P^-1 e / 3 have
     # mean 1; mean_ratio_bounds gives the 99.9 % Chernoff bounds for K fixes. Margin for
     # estimator inefficiency and bias at this range: 25 % (the MLE measures ~6 % above the

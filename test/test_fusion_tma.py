@@ -1,5 +1,5 @@
 """Fusion TMA mode (issue 5): the core.fusion TMA strategy without ROS, plus one in-process node
-test (track and fix on the seed-001 scenario). Seed 001: one airborne station, a cruising
+test (track and fix on the seed001 scenario). Lin et al.: one airborne station, a cruising
 target, σ = 0.1°, prior relative speed 380 m/s (config/scenarios/seed001.yaml)."""
 import math
 import os
@@ -14,7 +14,7 @@ from bearing_loc_ros.core.simulation import load_scenario, simulate
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 SCENARIO = os.path.join(os.path.dirname(HERE), 'config', 'scenarios', 'seed001.yaml')
-SPEED = 380.0                                   # seed 001 prior (true 380.13 m/s)
+SPEED = 380.0                                   # Lin et al. prior (true 380.13 m/s)
 V_TARGET = np.array([-340.0, 80.0, -1.21])      # seed001.yaml
 V_OBSERVER = np.array([0.0, 250.0, 0.0])
 S = 1_000_000_000
@@ -33,7 +33,7 @@ def tma_config(estimator='tma_ctls6', **kw):
 
 
 def run(scenario, seed, config):
-    """Replay one seed-001 simulation through the core; return (core, epochs, sim)."""
+    """Replay one seed001 simulation through the core; return (core, epochs, sim)."""
     sim = simulate(scenario, seed=seed)
     core = make_core(config, stations=['station_1'])
     eps = list(replay(core, [(e.publish_ns, e.bearing) for e in sim.bearings]))
@@ -195,7 +195,7 @@ def test_bad_inputs_are_counted_not_raised(scenario):
 # ------------------------------------------------------------------------------- the node
 @pytest.mark.ros
 def test_node_publishes_track_and_fix_on_seed001(ros, scenario):
-    """In-process FusionNode in tma mode fed the simulator's seed-001 bearings (40 s) over
+    """In-process FusionNode in tma mode fed the simulator's seed001 bearings (40 s) over
     DDS with a simulated /clock: one track (nav_msgs/Odometry) per fix, the same state, a
     sane covariance, errors consistent with it; estimator switches across modes refused."""
     from nav_msgs.msg import Odometry

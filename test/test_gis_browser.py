@@ -121,7 +121,7 @@ def test_leaflet_draws_every_demo_feature(demo, tmp_path):  # noqa: F811
     leaflet_dist(tmp_path)
     fc = demo['fc']
     page = write_page(tmp_path, fc, demo['dir'] / 'demo.kml',
-                      'seed 000 demo: 50 MLE fixes, 95% ellipses')
+                      'seed000 demo: 50 MLE fixes, 95% ellipses')
     proc = run_chromium(exe, tmp_path, '--dump-dom', page.as_uri())
     m = re.search(r'<pre id="result">(.*?)</pre>', proc.stdout, re.S)
     assert m and m.group(1), proc.stdout[-2000:] + proc.stderr[-2000:]

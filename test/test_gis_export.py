@@ -66,7 +66,7 @@ def run_cli(*args, check=True):
 
 @pytest.fixture(scope='module')
 def demo(tmp_path_factory):
-    """The seed 000 section-4 demo bag processed with the GIS exports."""
+    """The seed000 (Wang, Zhang & Wu (2006), section 4) demo bag processed with the GIS exports."""
     d = tmp_path_factory.mktemp('gisdemo')
     run_cli('bag', 'simulate', '--scenario', 'config/scenarios/seed000.yaml', '--out', d / 'sim')
     out = run_cli('bag', 'process', d / 'sim', '--out', d / 'fixes', '--estimator', 'mle',

@@ -88,7 +88,8 @@ def test_map_png_and_csv_from_stations(capsys, tmp_path):
 
 
 def test_map_from_scenario_uses_the_scenario_loader(capsys, tmp_path):
-    # seed000.yaml: 3 mrad stations at the seed 000 positions; --sigma-deg overrides σ.
+    # seed000.yaml: 3 mrad stations at the Wang, Zhang & Wu (2006) positions; --sigma-deg
+    # overrides σ.
     rc, out, _ = _run(capsys, 'map', '--scenario', SCENARIO, '--altitude', '5000',
                       '--extent-km', '60', '--resolution', '6000', '--csv',
                       str(tmp_path / 'g.csv'))
@@ -135,8 +136,8 @@ def test_console_script_subprocess(tmp_path):
 
 
 def test_documented_figures_exist_and_are_small():
-    # The manual (README and docs/) shows the seed 000 maps (and other figures); each PNG
-    # must exist and be < 300 kB.
+    # The manual (README and docs/) shows the Wang, Zhang & Wu (2006) maps (and other
+    # figures); each PNG must exist and be < 300 kB.
     import glob
     import re
     refs = set()

@@ -1,4 +1,7 @@
-"""Seed 004 optimal cut angle (core/cutangle.py): eq. (6), its link to the CRLB, the optimum."""
+"""Optimal cut angle of Wang, Su, Bai & Zhong (2009) (core/cutangle.py).
+
+Checks eq. (6), its link to the CRLB, and the optimum.
+"""
 import numpy as np
 import pytest
 
@@ -79,7 +82,7 @@ def test_equal_accuracy_bearings_give_arccos_minus_one_third():
 def test_pure_bearing_k1_up_to_half_is_infeasible(k1):
     # Near sensor 2 (θ1 = ρβ..., target at distance ρD in direction π/2 + β) f ≈ k1 + k1β²
     # − 4k1ρβ + (2k1 + 1)ρ²: a local minimum at the sensor iff det = k1(1 − 2k1) > 0, so no
-    # interior optimum for k1 ≤ 1/2 (seed 004 section 5.2.1 says the same).
+    # interior optimum for k1 ≤ 1/2 (Wang, Su, Bai & Zhong (2009), section 5.2.1, says the same).
     r = optimal_cut_angle(k1, 0.0, 0.0)
     assert not r.feasible and 'sensor 2' in r.reason
     assert (np.degrees(r.theta1), np.degrees(r.theta2)) == pytest.approx((0.0, 90.0))

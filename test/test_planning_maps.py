@@ -13,7 +13,10 @@ SEED000 = np.array([[30, -10, 0.1], [30, 20, 0.2], [-30, 5, 0.15]]) * KM
 
 
 def dense_eq30(target, positions, sigma, has_el, unit=1.0):
-    """Seed 000 eq. (30) literally: 2N x 2N block-diagonal F_j, G, H_X (1D: 1 x 1 blocks)."""
+    """Wang, Zhang & Wu (2006) eq. (30) literally: 2N x 2N block-diagonal F_j, G, H_X.
+
+    1D stations have 1 x 1 blocks.
+    """
     tgt = np.asarray(target, float) / unit
     pos = np.asarray(positions, float) / unit
     rows, F = [], [[], [], [], []]
@@ -128,12 +131,12 @@ def test_unobservable_and_on_axis_cells():
     assert np.isnan(e[0, 0]) and np.all(np.isfinite(e.ravel()[1:]))
 
 
-# ------------------------------------------------------------------- seed 000 section 4 maps
+# ----------------------------------------------- Wang, Zhang & Wu (2006), section 4 maps
 
 
 @pytest.fixture(scope='module')
 def seed000_maps():
-    """The four maps of seed 000 fig. 2 (CTLS and CRLB), 300 m cells over ±60 km."""
+    """The four maps of Wang, Zhang & Wu (2006) fig. 2 (CTLS and CRLB), 300 m cells over ±60 km."""
     out = {}
     for sigma in (1.5e-3, 4.5e-3):
         st = Stations.from_arrays(SEED000, sigma)

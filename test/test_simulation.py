@@ -80,7 +80,7 @@ def test_seed003_scenario_line_array_random_sources_and_sigma_growth():
     half = np.array([3000.0, 3000.0, 500.0])
     se = half / np.sqrt(3.0) / np.sqrt(len(pts))
     assert np.all(np.abs(pts.mean(axis=0) - [0.0, 4000.0, 0.0]) < 3.3 * se)
-    # σ(d) = 0.5° · clip(d / 1000 m, ., 6): 0.5° .. 3°, as in seed 003's experiments
+    # σ(d) = 0.5° · clip(d / 1000 m, ., 6): 0.5° .. 3°, as in the experiments of Zong & Cui (2015)
     sim = simulate(sc, seed=4)
     for s in sim.streams:
         expect = np.radians(0.5) * np.minimum(s.range_ / 1000.0, 6.0)
@@ -280,7 +280,7 @@ def test_trajectories_vectorised():
 
 
 def test_moving_station_seed001_geometry():
-    # seed 001 (TMA): observer at the origin moving (0, 250, 0) m/s; target from
+    # Lin et al. (TMA): observer at the origin moving (0, 250, 0) m/s; target from
     # (100, 100, 10) km at (-340, 80, -1.21) m/s; a bearing every 0.2 s for 100 s.
     sc = parse_scenario({
         'duration': 100.0,

@@ -1,9 +1,9 @@
 """bearing_loc_ros.core.station without ROS: datagrams, configuration, raw -> world bearings,
 platform pose interpolation.
 
-Expected bearings are computed from the geometry (target − station, seed 000 eq. (1)) and the
-reading is built the way each kind of sensor would report it, so the conversions are checked
-against the definition, not against themselves.
+Expected bearings are computed from the geometry (target − station, Wang, Zhang & Wu (2006)
+eq. (1)) and the reading is built the way each kind of sensor would report it, so the
+conversions are checked against the definition, not against themselves.
 """
 
 import math

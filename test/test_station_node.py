@@ -3,8 +3,8 @@ parameter failures (exit code 1) and one node in its own process talking over DD
 
 In-process tests follow tf2_ros: the station nodes and a probe node share one
 SingleThreadedExecutor (own rclpy Context) stepped with spin_once. Expected bearings come from
-the geometry (target − station, seed 000 eq. (1)) and each reading is what the sensor would
-report in its own reference, so the node is checked against the definitions.
+the geometry (target − station, Wang, Zhang & Wu (2006) eq. (1)) and each reading is what
+the sensor would report in its own reference, so the node is checked against the definitions.
 """
 
 import json

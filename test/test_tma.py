@@ -1,6 +1,6 @@
-"""TMA core (seed 001): exactness, recursion, bias, efficiency, observability, validation.
+"""TMA core (Lin et al.): exactness, recursion, bias, efficiency, observability, validation.
 
-Scenario of seed 001 sec. 4.2.1 (config/scenarios/seed001.yaml): observer from the origin at
+Scenario of Lin et al., sec. 4.2.1 (config/scenarios/seed001.yaml): observer from the origin at
 (0, 250, 0) m/s, target from (100, 100, 10) km at (−340, 80, −1.21) m/s, a bearing every
 0.2 s for 100 s. Statistical tests use fixed seeds; each tolerance is derived in a comment
 from the standard error of the statistic, never fitted to one run.
@@ -143,7 +143,7 @@ def test_recursive_p_omega_equal_batch_recomputation(window):
 
 
 def _paper_setting(start, sigma, n, seed):
-    """n noisy runs whose first bearing is exact (seed 001 sec. 3.1 assumes it)."""
+    """n noisy runs whose first bearing is exact (Lin et al., sec. 3.1, assume it)."""
     exact, _ = T.simulate_tma(TIMES, start, V_T, OBS, sigma)
     bs, t = T.simulate_tma(TIMES, start, V_T, OBS, sigma, rng=np.random.default_rng(seed),
                            M=n)
@@ -207,7 +207,7 @@ def test_mle_reaches_the_crlb_and_ctls6_is_close():
 
 
 def test_fisher_information_has_the_scale_null_vector():
-    # Bearings alone fix (p0, v) only up to a common scale (seed 001 sec. 2): J x = 0 for
+    # Bearings alone fix (p0, v) only up to a common scale (Lin et al., sec. 2): J x = 0 for
     # x = (p0, v) with a constant-velocity observer; a manoeuvring observer removes it.
     # Rayleigh quotient xᵀJx / (|x|² λ_max) in units made comparable by v -> v · 100 s:
     # 1e-16 (rounding) for the straight observer, about 1e-4 for a ±3 km weave.
