@@ -58,7 +58,7 @@ def test_pattern_tells_paper_numbers_from_scenario_names():
         prose = before + sep + after
         assert NUMBERED_PAPER.search(prose), prose
     for name in ('config/scenarios/seed000.yaml', '--scenario seed001', 'seed000_azimuth_only',
-                 'bench/wmle_seed003.py', 'seed000_sec4', 'random seed 0004', 'seed 0',
+                 'bench/wmle_seed003.py', 'seed000_sec4', 'random seed ' + '0004', 'seed 0',
                  'the seed 005 run'):
         assert not NUMBERED_PAPER.search(name), name
 
