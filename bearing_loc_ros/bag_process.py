@@ -8,8 +8,9 @@ import math
 import os
 import sys
 
-from .cli import InputError
+from .cli import InputError, load_yaml
 from .core import parameters
+from .core.receiver_params import flatten
 
 NS_PER_S = 1_000_000_000
 UPPER_TRIANGLE = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
@@ -36,31 +37,12 @@ def read_params_file(path):
     Accepts ``fusion:``, ``/fusion:``, ``/**:`` or ``/ns/fusion:`` keys (the forms
     ``--ros-args --params-file`` accepts). Raises InputError naming the file.
     """
-    import yaml
-    try:
-        with open(path, encoding='utf-8') as f:
-            data = yaml.safe_load(f)
-    except OSError as exc:
-        raise InputError(f'params_file: cannot read {path} ({exc.strerror})') from None
-    except yaml.YAMLError as exc:
-        raise InputError(f'params_file: {path}: invalid YAML ({" ".join(str(exc).split())})') \
-            from None
+    data = load_yaml(path, 'params_file')
     if isinstance(data, dict):
         for node, body in data.items():
             if isinstance(body, dict) and isinstance(body.get('ros__parameters'), dict):
                 return dict(body['ros__parameters'])
     raise InputError(f'params_file: {path}: no "<node>: ros__parameters:" mapping')
-
-
-def _flatten(params, prefix=''):
-    """Nested YAML mappings (``accuracy_map: {size: ...}``) as dotted names."""
-    out = {}
-    for k, v in params.items():
-        if isinstance(v, dict):
-            out.update(_flatten(v, f'{prefix}{k}.'))
-        else:
-            out[f'{prefix}{k}'] = v
-    return out
 
 
 def fusion_params(params_file=None, overrides=(), estimator=None):
@@ -76,7 +58,7 @@ def fusion_params(params_file=None, overrides=(), estimator=None):
         given[name.strip()] = yaml.safe_load(value)
     if estimator is not None:
         given['estimator'] = estimator
-    given = {k: v for k, v in _flatten(given).items() if k not in ROS_BUILTIN_PARAMS}
+    given = {k: v for k, v in flatten(given).items() if k not in ROS_BUILTIN_PARAMS}
     try:
         return parameters.resolve('fusion_node', given,
                                   warn=lambda text: print(f'warning: {text}', file=sys.stderr))

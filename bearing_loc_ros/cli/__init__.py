@@ -26,6 +26,23 @@ class InputError(ValueError):
     """Bad user input: reported as one line on stderr with exit code 2."""
 
 
+def load_yaml(path, name):
+    """The parsed YAML document of the file ``path`` (None when empty).
+
+    An unreadable file or invalid YAML is an :class:`InputError` ``<name>: ...`` naming the
+    file (``name``: the option or parameter that gave the path).
+    """
+    import yaml
+    try:
+        with open(path, encoding='utf-8') as f:
+            return yaml.safe_load(f)
+    except OSError as exc:
+        raise InputError(f'{name}: cannot read {path} ({exc.strerror})') from None
+    except yaml.YAMLError as exc:
+        raise InputError(f'{name}: {path}: invalid YAML ({" ".join(str(exc).split())})') \
+            from None
+
+
 def _load(verb):
     return importlib.import_module(f'{__name__}.{verb}')
 

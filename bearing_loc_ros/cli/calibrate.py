@@ -18,7 +18,7 @@ from collections import Counter
 import math
 import os
 
-from . import InputError
+from . import InputError, load_yaml
 
 STATION_NODE = 'station_node'
 
@@ -42,15 +42,7 @@ def add_arguments(parser):
 
 def load_station_params(path):
     """The parsed parameter YAML (dict) of ``path``; InputError naming the file."""
-    import yaml
-    try:
-        with open(path, encoding='utf-8') as f:
-            data = yaml.safe_load(f)
-    except OSError as exc:
-        raise InputError(f'params: cannot read {path} ({exc.strerror})') from None
-    except yaml.YAMLError as exc:
-        raise InputError(f'params: {path}: invalid YAML ({" ".join(str(exc).split())})') \
-            from None
+    data = load_yaml(path, 'params')
     if data is None:
         return {}
     if not isinstance(data, dict):
