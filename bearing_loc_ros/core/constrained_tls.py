@@ -51,8 +51,11 @@ from .solvers import COST_RTOL, CHI2_STEP_TOL, inv2, newton_backtracking
 WEIGHTINGS = ('paper', 'am')
 
 
-def _blocks(theta, psi, has_el, positions):
-    """F_1..F_4 of Wang, Zhang & Wu eq. (9) as (M, N, 4, 2, 2) blocks (1D rows/columns zeroed)."""
+def ctls_blocks(theta, psi, has_el, positions):
+    """F_1..F_4 of Wang, Zhang & Wu eq. (9) as (M, N, 4, 2, 2) blocks (1D rows/columns zeroed).
+
+    θ, ψ (M, N) rad, ``has_el`` (M, N) bool, ``positions`` (M, N, 3) m (F_4 is in m).
+    """
     c, s = np.cos(theta), np.sin(theta)
     cp, sp = np.cos(psi), np.sin(psi)
     x, y, z = positions[..., 0], positions[..., 1], positions[..., 2]
@@ -73,6 +76,72 @@ def _blocks(theta, psi, has_el, positions):
     return F
 
 
+# The per-station 2 × 2 block algebra of eqs. (11), (20) and appendix A, shared with the
+# plane-reduced problem of core.horizontal_ctls: F holds the n blocks F_1..F_n of the unknowns
+# and the constant block F_{n+1} last (n = 3 here, 2 there), X is (M, n).
+
+def block_ginv(F, PE, one_d, weighting):
+    """G⁻¹ per station (M, N, 2, 2): P_E for ``am`` (Abatzoglou-Mendel), else
+    (Σ_j F_jᵀ F_j)⁻¹ (Wang, Zhang & Wu Theorem 1); a 1D station's elevation entry is 1."""
+    if weighting == 'am':
+        return PE                                         # G⁻¹ = P_E (Abatzoglou-Mendel)
+    G = np.einsum('mnjki,mnjkl->mnil', F, F)              # G = Σ_j F_jᵀ F_j (Theorem 1)
+    G[one_d, 1, 1] = 1.0
+    return inv2(G)
+
+
+def block_hx(X, F):
+    """H_X = Σ_j a_j F_j − F_{n+1} (Wang, Zhang & Wu Theorem 1), (M, N, 2, 2); X (M, n)."""
+    n = X.shape[-1]
+    return np.einsum('mj,mnjkl->mnkl', X, F[:, :, :n]) - F[:, :, n]
+
+
+def block_s(Hx, Ginv, one_d):
+    """S = H_X G⁻¹ H_Xᵀ per station (M, N, 2, 2); a 1D station's elevation entry is 1."""
+    S = Hx @ Ginv @ np.swapaxes(Hx, -1, -2)
+    S[one_d, 1, 1] = 1.0
+    return S
+
+
+def block_cost(X, F, Ginv, H, Y, one_d):
+    """f(X) of Wang, Zhang & Wu eq. (11), (M,); NaN where S is singular. r = H X − Y."""
+    Sinv = inv2(block_s(block_hx(X, F), Ginv, one_d))
+    r = np.einsum('mnki,mi->mnk', H, X) - Y               # C [X; −1] = H X − Y
+    return np.einsum('mnk,mnkl,mnl->m', r, Sinv, r)
+
+
+def block_derivatives(X, F, Ginv, H, Y, one_d):
+    """f, gradient T_n (M, n), Hessian H_n (M, n, n) and its first (PSD) part.
+
+    Wang, Zhang & Wu (2006) eq. (20) and appendix A:
+        U  = (H_X G⁻¹ H_Xᵀ)⁻¹ C [X; −1]
+        B1 = [H_X G⁻¹ F_1ᵀU  H_X G⁻¹ F_2ᵀU  H_X G⁻¹ F_3ᵀU]
+        B2 = [F_1 G⁻¹ H_XᵀU  F_2 G⁻¹ H_XᵀU  F_3 G⁻¹ H_XᵀU]
+        B3 = [F_1ᵀU  F_2ᵀU  F_3ᵀU]
+        T_n = 2 (UᵀH − UᵀB1)ᵀ
+        H_n = 2 (H − B1 − B2)ᵀ (H_X G⁻¹ H_Xᵀ)⁻¹ (H − B1 − B2) − 2 B3ᵀ G⁻¹ B3
+    (the appendix's last line drops the factor 2 of T_n, and its intermediate second
+    derivative prints (F_jG⁻¹H_Xᵀ + H_XG⁻¹F_jᵀ)⁻¹ where no inverse belongs; the final H_n
+    above is the correct derivative, checked by finite differences in the tests).
+    """
+    n = X.shape[-1]
+    Hx = block_hx(X, F)
+    Sinv = inv2(block_s(Hx, Ginv, one_d))
+    r = np.einsum('mnki,mi->mnk', H, X) - Y
+    U = np.einsum('mnkl,mnl->mnk', Sinv, r)
+    f = np.einsum('mnk,mnk->m', r, U)
+    HxG = Hx @ Ginv                                       # H_X G⁻¹ (M, N, 2, 2)
+    B3 = np.einsum('mnjlk,mnl->mnkj', F[:, :, :n], U)     # column j: F_jᵀ U
+    B1 = np.einsum('mnkl,mnlj->mnkj', HxG, B3)            # column j: H_X G⁻¹ F_jᵀ U
+    K = np.einsum('mnlk,mnl->mnk', HxG, U)                # G⁻¹ H_Xᵀ U (G⁻¹ symmetric)
+    B2 = np.einsum('mnjkl,mnl->mnkj', F[:, :, :n], K)     # column j: F_j G⁻¹ H_Xᵀ U
+    D = H - B1 - B2
+    T = 2.0 * np.einsum('mnk,mnkj->mj', U, H - B1)
+    H_gn = 2.0 * np.einsum('mnki,mnkl,mnlj->mij', D, Sinv, D)
+    H_n = H_gn - 2.0 * np.einsum('mnki,mnkl,mnlj->mij', B3, Ginv, B3)
+    return f, T, H_n, H_gn
+
+
 class _CTLSProblem:
     """Blocks of Wang, Zhang & Wu eq. (11) for a batch, with the measured angles (fixed over X)."""
 
@@ -83,7 +152,7 @@ class _CTLSProblem:
         self.has_el = bearings.has_elevation
         self.one_d = ~self.has_el
         psi = np.where(self.has_el, bearings.elevation, 0.0)
-        self.F = _blocks(bearings.azimuth, psi, self.has_el, bearings.positions)
+        self.F = ctls_blocks(bearings.azimuth, psi, self.has_el, bearings.positions)
         self.H, self.Y, _ = pseudo_linear_system(bearings)
         self.PE = np.zeros(bearings.azimuth.shape + (2, 2))
         self.PE[..., 0, 0] = bearings.sigma_az ** 2
@@ -92,20 +161,7 @@ class _CTLSProblem:
         self.positions = bearings.positions
 
     def _ginv(self, F):
-        if self.weighting == 'am':
-            return self.PE                                # G⁻¹ = P_E (Abatzoglou-Mendel)
-        G = np.einsum('mnjki,mnjkl->mnil', F, F)          # G = Σ_j F_jᵀ F_j (Theorem 1)
-        G[self.one_d, 1, 1] = 1.0
-        return inv2(G)
-
-    def _hx(self, X, F):
-        # H_X = Σ_j a_j F_j − F_4 (Theorem 1)
-        return np.einsum('mj,mnjkl->mnkl', X, F[:, :, :3]) - F[:, :, 3]
-
-    def _s(self, Hx, Ginv):
-        S = Hx @ Ginv @ np.swapaxes(Hx, -1, -2)           # S = H_X G⁻¹ H_Xᵀ, per station
-        S[self.one_d, 1, 1] = 1.0
-        return S
+        return block_ginv(F, self.PE, self.one_d, self.weighting)
 
     def take(self, idx):
         out = object.__new__(_CTLSProblem)
@@ -116,40 +172,11 @@ class _CTLSProblem:
 
     def cost(self, X):
         """f(X) of Wang, Zhang & Wu eq. (11), (M,); NaN where S is singular."""
-        Sinv = inv2(self._s(self._hx(X, self.F), self.Ginv))
-        r = np.einsum('mnki,mi->mnk', self.H, X) - self.Y    # C [X; −1] = H X − Y
-        return np.einsum('mnk,mnkl,mnl->m', r, Sinv, r)
+        return block_cost(X, self.F, self.Ginv, self.H, self.Y, self.one_d)
 
     def derivatives(self, X):
-        """f, gradient T_n (M, 3), Hessian H_n (M, 3, 3) and its first (PSD) part.
-
-        Wang, Zhang & Wu (2006) eq. (20) and appendix A:
-            U  = (H_X G⁻¹ H_Xᵀ)⁻¹ C [X; −1]
-            B1 = [H_X G⁻¹ F_1ᵀU  H_X G⁻¹ F_2ᵀU  H_X G⁻¹ F_3ᵀU]
-            B2 = [F_1 G⁻¹ H_XᵀU  F_2 G⁻¹ H_XᵀU  F_3 G⁻¹ H_XᵀU]
-            B3 = [F_1ᵀU  F_2ᵀU  F_3ᵀU]
-            T_n = 2 (UᵀH − UᵀB1)ᵀ
-            H_n = 2 (H − B1 − B2)ᵀ (H_X G⁻¹ H_Xᵀ)⁻¹ (H − B1 − B2) − 2 B3ᵀ G⁻¹ B3
-        (the appendix's last line drops the factor 2 of T_n, and its intermediate second
-        derivative prints (F_jG⁻¹H_Xᵀ + H_XG⁻¹F_jᵀ)⁻¹ where no inverse belongs; the final H_n
-        above is the correct derivative, checked by finite differences in the tests).
-        """
-        F, Ginv = self.F, self.Ginv
-        Hx = self._hx(X, F)
-        Sinv = inv2(self._s(Hx, Ginv))
-        r = np.einsum('mnki,mi->mnk', self.H, X) - self.Y
-        U = np.einsum('mnkl,mnl->mnk', Sinv, r)
-        f = np.einsum('mnk,mnk->m', r, U)
-        HxG = Hx @ Ginv                                   # H_X G⁻¹ (M, N, 2, 2)
-        B3 = np.einsum('mnjlk,mnl->mnkj', F[:, :, :3], U)   # column j: F_jᵀ U
-        B1 = np.einsum('mnkl,mnlj->mnkj', HxG, B3)        # column j: H_X G⁻¹ F_jᵀ U
-        K = np.einsum('mnlk,mnl->mnk', HxG, U)            # G⁻¹ H_Xᵀ U (G⁻¹ symmetric)
-        B2 = np.einsum('mnjkl,mnl->mnkj', F[:, :, :3], K)   # column j: F_j G⁻¹ H_Xᵀ U
-        D = self.H - B1 - B2
-        T = 2.0 * np.einsum('mnk,mnkj->mj', U, self.H - B1)
-        H_gn = 2.0 * np.einsum('mnki,mnkl,mnlj->mij', D, Sinv, D)
-        H_n = H_gn - 2.0 * np.einsum('mnki,mnkl,mnlj->mij', B3, Ginv, B3)
-        return f, T, H_n, H_gn
+        """f, T_n (M, 3), H_n (M, 3, 3) and its first part (:func:`block_derivatives`)."""
+        return block_derivatives(X, self.F, self.Ginv, self.H, self.Y, self.one_d)
 
     def covariance(self, X, sigma_az, sigma_el):
         """P_ΔX of Wang, Zhang & Wu eq. (30) at X (M, 3), m²; everything evaluated at X.
@@ -164,10 +191,10 @@ class _CTLSProblem:
         pred = BearingSet(self.positions, th, np.where(self.has_el, ps, np.nan), sigma_az,
                           sigma_el)
         Hs, _, _ = pseudo_linear_system(pred)
-        F = _blocks(th, ps, self.has_el, self.positions)
+        F = ctls_blocks(th, ps, self.has_el, self.positions)
         Ginv = self._ginv(F)
-        Hx = self._hx(X, F)
-        Sinv = inv2(self._s(Hx, Ginv))
+        Hx = block_hx(X, F)
+        Sinv = inv2(block_s(Hx, Ginv, self.one_d))
         Q = Hx @ self.PE @ np.swapaxes(Hx, -1, -2)       # H_X P_E H_Xᵀ (eq. (29))
         A = np.einsum('mnki,mnkl,mnlj->mij', Hs, Sinv, Hs)
         B = np.einsum('mnki,mnkl,mnlp,mnpq,mnqj->mij', Hs, Sinv, Q, Sinv, Hs)

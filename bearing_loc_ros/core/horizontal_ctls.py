@@ -46,6 +46,8 @@ treats z₀ as exact.
 
 import numpy as np
 
+from .constrained_tls import block_cost, block_derivatives, block_ginv, block_hx, block_s, \
+    ctls_blocks
 from .horizontal_crlb import inverse2
 from .estimators import (STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_MAX_ITERATIONS,
                          STATUS_OK)
@@ -56,23 +58,12 @@ WEIGHTINGS = ('paper', 'am')
 
 
 def blocks(theta, psi, use_el, px, py, dz):
-    """F_1, F_2, F_4 of the module docstring as (M, N, 3, 2, 2); 1D rows/columns zeroed."""
-    c, s = np.cos(theta), np.sin(theta)
-    cp, sp = np.cos(psi), np.sin(psi)
-    F = np.zeros(theta.shape + (3, 2, 2))
-    F[..., 0, 0, 0] = -c
-    F[..., 0, 1, 0] = s * sp
-    F[..., 0, 1, 1] = -c * cp
-    F[..., 1, 0, 0] = -s
-    F[..., 1, 1, 0] = -c * sp
-    F[..., 1, 1, 1] = -s * cp
-    F[..., 2, 0, 0] = -(c * px + s * py)
-    F[..., 2, 1, 0] = s * sp * px - c * sp * py
-    F[..., 2, 1, 1] = -(c * cp * px + s * cp * py - sp * dz)
-    one_d = ~use_el
-    F[one_d, :, 1, :] = 0.0
-    F[one_d, :, :, 1] = 0.0
-    return F
+    """F_1, F_2, F_4 of the module docstring as (M, N, 3, 2, 2); 1D rows/columns zeroed.
+
+    The 3D blocks of :func:`~.constrained_tls.ctls_blocks` at the station position
+    (p_x, p_y, −Δz), Δz = z₀ − p_z, without F_3 (z₀ is known).
+    """
+    return ctls_blocks(theta, psi, use_el, np.stack([px, py, -dz], axis=-1))[:, :, (0, 1, 3)]
 
 
 class PlaneCTLS:
@@ -93,19 +84,7 @@ class PlaneCTLS:
         self.Ginv = self._ginv(self.F)
 
     def _ginv(self, F):
-        if self.weighting == 'am':
-            return self.PE
-        G = np.einsum('mnjki,mnjkl->mnil', F, F)            # G = Σ_j F_jᵀ F_j
-        G[self.one_d, 1, 1] = 1.0
-        return inv2(G)
-
-    def _hx(self, X, F):
-        return np.einsum('mj,mnjkl->mnkl', X, F[:, :, :2]) - F[:, :, 2]
-
-    def _s(self, Hx, Ginv):
-        S = Hx @ Ginv @ np.swapaxes(Hx, -1, -2)
-        S[self.one_d, 1, 1] = 1.0
-        return S
+        return block_ginv(F, self.PE, self.one_d, self.weighting)
 
     def take(self, idx):
         """The problems ``idx`` only."""
@@ -118,28 +97,11 @@ class PlaneCTLS:
 
     def cost(self, X):
         """f(X) (M,) of the reduced eq. (11); NaN where some S_i is singular."""
-        Sinv = inv2(self._s(self._hx(X, self.F), self.Ginv))
-        r = np.einsum('mnki,mi->mnk', self.H, X) - self.Y
-        return np.einsum('mnk,mnkl,mnl->m', r, Sinv, r)
+        return block_cost(X, self.F, self.Ginv, self.H, self.Y, self.one_d)
 
     def derivatives(self, X):
         """f (M,), gradient T_n (M, 2), Hessian H_n and its Gauss-Newton part (M, 2, 2)."""
-        F, Ginv = self.F, self.Ginv
-        Hx = self._hx(X, F)
-        Sinv = inv2(self._s(Hx, Ginv))
-        r = np.einsum('mnki,mi->mnk', self.H, X) - self.Y
-        U = np.einsum('mnkl,mnl->mnk', Sinv, r)
-        f = np.einsum('mnk,mnk->m', r, U)
-        HxG = Hx @ Ginv
-        B3 = np.einsum('mnjlk,mnl->mnkj', F[:, :, :2], U)
-        B1 = np.einsum('mnkl,mnlj->mnkj', HxG, B3)
-        K = np.einsum('mnlk,mnl->mnk', HxG, U)
-        B2 = np.einsum('mnjkl,mnl->mnkj', F[:, :, :2], K)
-        D = self.H - B1 - B2
-        T = 2.0 * np.einsum('mnk,mnkj->mj', U, self.H - B1)
-        H_gn = 2.0 * np.einsum('mnki,mnkl,mnlj->mij', D, Sinv, D)
-        H_n = H_gn - 2.0 * np.einsum('mnki,mnkl,mnlj->mij', B3, Ginv, B3)
-        return f, T, H_n, H_gn
+        return block_derivatives(X, self.F, self.Ginv, self.H, self.Y, self.one_d)
 
     def covariance(self, X):
         """Reduced eq. (30) with the σ_z term (module docstring): (M, 3, 3), m²."""
@@ -152,8 +114,8 @@ class PlaneCTLS:
         Hs, _, _ = plane_system(pred)
         F = blocks(th, ps, p.use_el, p.px, p.py, self.dz)
         Ginv = self._ginv(F)
-        Hx = self._hx(X, F)
-        Sinv = inv2(self._s(Hx, Ginv))
+        Hx = block_hx(X, F)
+        Sinv = inv2(block_s(Hx, Ginv, self.one_d))
         Q = Hx @ self.PE @ np.swapaxes(Hx, -1, -2)
         A = np.einsum('mnki,mnkl,mnlj->mij', Hs, Sinv, Hs)
         B = np.einsum('mnki,mnkl,mnlp,mnpq,mnqj->mij', Hs, Sinv, Q, Sinv, Hs)
