@@ -209,13 +209,12 @@ def error_png(error, path, vmin=None, vmax=None, cmap='viridis'):
     from matplotlib import colormaps
     from matplotlib.colors import LogNorm
     import matplotlib.pyplot as plt
+    from .core.display import log_color_limits
     err = np.asarray(error, dtype=float)
-    fin = err[np.isfinite(err) & (err > 0)]
-    if not fin.size:
+    limits = log_color_limits(err, vmin, vmax)
+    if limits is None:
         raise ValueError('map: no finite error anywhere; nothing to draw')
-    vmin = float(fin.min()) if vmin is None else float(vmin)
-    vmax = float(np.percentile(fin, 99)) if vmax is None else float(vmax)
-    vmax = max(vmax, vmin * 1.01)
+    vmin, vmax = limits
     rgba = colormaps[cmap](LogNorm(vmin, vmax, clip=True)(np.where(err > 0, err, vmin)))
     rgba[~np.isfinite(err)] = 0.0
     plt.imsave(path, rgba[::-1])

@@ -245,14 +245,13 @@ def plot_map(amap, path, title=None, levels=None, vmax=None, extra=None, vmin=No
     import matplotlib.pyplot as plt
     from matplotlib.colors import LogNorm
 
+    from ..core.display import log_color_limits
     g = amap.grid
     err = amap.error
-    fin = err[np.isfinite(err) & (err > 0)]
-    if not fin.size:
+    limits = log_color_limits(err, vmin, vmax)
+    if limits is None:
         raise InputError('map: no finite error anywhere (unobservable layout); nothing to plot')
-    vmin = float(fin.min()) if vmin is None else float(vmin)
-    vmax = float(np.percentile(fin, 99)) if vmax is None else float(vmax)
-    vmax = max(vmax, vmin * 1.01)
+    vmin, vmax = limits
     fig, ax = plt.subplots(figsize=(6.4, 5.2), dpi=100)
     ext = [v / KM for v in g.extent]
     im = ax.imshow(np.where(np.isfinite(err), err, np.nan), origin='lower', extent=ext,

@@ -26,6 +26,21 @@ AUTO_CELLS = 100
 MAX_MAP_CELLS = 2000
 
 
+def log_color_limits(error, vmin=None, vmax=None):
+    """(vmin, vmax), m, of the log colour scale of an error map (plots and overlays).
+
+    Defaults: the smallest finite positive error and the 99th percentile of those errors;
+    vmax is raised to at least 1.01 vmin. None when no error is finite and positive.
+    """
+    err = np.asarray(error, dtype=float)
+    fin = err[np.isfinite(err) & (err > 0)]
+    if not fin.size:
+        return None
+    vmin = float(fin.min()) if vmin is None else float(vmin)
+    vmax = float(np.percentile(fin, 99)) if vmax is None else float(vmax)
+    return vmin, max(vmax, vmin * 1.01)
+
+
 def quaternion_from_matrix(R):
     """Unit quaternion(s) (x, y, z, w), w >= 0, of rotation matrices R (..., 3, 3).
 
