@@ -232,25 +232,26 @@ def test_rejects_non_unit_quaternion(b, scale):
     assert _reason(msg) == 'bad_quaternion'
 
 
+def _reason_with_variance(b, index, var):
+    """The rejection reason of b's message with covariance entry ``index`` set to ``var``."""
+    msg = rc.bearing_to_msg(b)
+    cov = list(msg.pose.covariance)
+    cov[index] = var
+    msg.pose.covariance = cov
+    return _reason(msg)
+
+
 @PROP
 @given(bearings(), st.one_of(st.floats(max_value=0.0), st.just(math.nan)))
 def test_rejects_bad_azimuth_variance(b, var):
-    msg = rc.bearing_to_msg(b)
-    cov = list(msg.pose.covariance)
-    cov[rc.IDX_AZ_VAR] = var
-    msg.pose.covariance = cov
-    assert _reason(msg) == 'bad_azimuth_variance'
+    assert _reason_with_variance(b, rc.IDX_AZ_VAR, var) == 'bad_azimuth_variance'
 
 
 @PROP
 @given(bearings(), st.one_of(st.floats(max_value=0.0).filter(lambda v: v != -1.0),
                              st.just(math.nan), st.just(math.inf)))
 def test_rejects_bad_elevation_variance(b, var):
-    msg = rc.bearing_to_msg(b)
-    cov = list(msg.pose.covariance)
-    cov[rc.IDX_EL_VAR] = var
-    msg.pose.covariance = cov
-    assert _reason(msg) == 'bad_elevation_variance'
+    assert _reason_with_variance(b, rc.IDX_EL_VAR, var) == 'bad_elevation_variance'
 
 
 @PROP

@@ -123,6 +123,7 @@ def test_json_post_body():
     assert m.doa_deg == 0.0 and m.gps_time_ns == 0
 
 
+# One fixture table per format, like the XML one above: the tables are data, not logic.
 @pytest.mark.parametrize('name, reason, field', [
     ('doa_post_nan.json', 'malformed_json', ''),
     ('doa_post_missing.json', 'missing_field', 'radioBearing'),
