@@ -77,3 +77,24 @@ def test_trust_update_and_scale_match_the_definition():
     for station, h in trust._hist.items():
         expect = np.sqrt(max(1.0, float(np.median([e / k for e, k, _, _ in h]))))
         assert trust.scale(station) == expect
+
+
+def test_station_leaving_two_angles_is_untestable_on_both_paths():
+    # Two 2D stations: without one, the other's two angles leave the fix undetermined, and
+    # P_(-k) is the inverse of a numerically singular matrix (cond ~1e16) whose smallest
+    # eigenvalue has a random sign. Both paths must call such a station untestable.
+    x = np.array([2500.0, 3000.0, 800.0])
+    items = []
+    for p in ([0.0, 0.0, 0.0], [6000.0, -1000.0, 20.0]):
+        d = x - p
+        items.append((Bearing(f's{len(items)}', 0, np.array(p), float(np.arctan2(d[1], d[0])),
+                              float(np.arctan2(d[2], np.hypot(d[0], d[1]))), 3e-3, 3e-3),
+                      True))
+    F = np.zeros((3, 3))                 # the fix's information: both stations' angles
+    for b, _ in items:
+        J, _, R = st._angles(b, x)
+        F += J.T @ np.diag(1.0 / R) @ J
+    P = np.linalg.inv(F)
+    assert st.deletion_residuals(items, {}, x, P, F) == [None, None]
+    assert [st.deletion_residual(b, i, {}, x, P, F) for b, i in items] == [None, None]
+    assert st.StationTrust().update([b for b, _ in items], {}, x, P) == {}

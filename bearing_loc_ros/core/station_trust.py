@@ -41,6 +41,11 @@ DEFAULT_WINDOW = 20
 SUSPECT_PROBABILITY = 0.9999
 #: Samples before a station's scale is used (fewer: its claim, floored).
 MIN_SAMPLES = 3
+#: A station is testable only if the others determine the fix: the smallest eigenvalue of
+#: P_(−k) must exceed this fraction of the largest. Below it P_(−k) is the inverse of a
+#: numerically singular information (two 2D stations: the one left gives two angles for
+#: three unknowns; cond ~1e16) whose eigenvalues' signs are rounding noise.
+MIN_EIGEN_RATIO = 1e-10
 
 
 class StationTrust:
@@ -170,7 +175,7 @@ def deletion_residual(b, inside, claims, x, P, F):
         except np.linalg.LinAlgError:
             return None
         w = np.linalg.eigvalsh(0.5 * (P_others + P_others.T))
-        if not (np.all(np.isfinite(w)) and w[0] > 0):
+        if not (np.all(np.isfinite(w)) and w[0] > MIN_EIGEN_RATIO * w[-1]):
             return None
         A = np.eye(len(R)) - J @ P @ J.T @ Rinv
     else:
@@ -241,7 +246,8 @@ def deletion_residuals(items, claims, x, P, F):
                 Ji, Jti, Ri = J[inside], Jt[inside], Rinv[inside]
                 Po = np.linalg.inv(F - Jti @ Ri @ Ji)
                 w = np.linalg.eigvalsh(0.5 * (Po + Po.transpose(0, 2, 1)))
-                ok[inside] &= np.isfinite(w).all(axis=1) & (w[:, 0] > 0)
+                ok[inside] &= np.isfinite(w).all(axis=1) & (w[:, 0] > MIN_EIGEN_RATIO
+                                                            * w[:, -1])
                 P_others[inside] = Po
                 A[inside] = eye[inside] - Ji @ P @ Jti @ Ri
             V = J @ P_others @ Jt
