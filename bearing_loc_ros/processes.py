@@ -11,6 +11,18 @@ import subprocess
 import tempfile
 
 
+def interrupt(proc, timeout):
+    """Stop a ``subprocess.Popen`` child: SIGINT, then SIGKILL if it has not exited within
+    ``timeout`` s; always reap it. Returns its exit code (for children read through a pipe,
+    which :class:`ChildProcess` does not offer)."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        return proc.wait(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        return proc.wait()
+
+
 class ChildProcess:
     """A child process whose stdout+stderr go to ``log_path`` (or a temporary file).
 

@@ -38,6 +38,7 @@ sys.path.insert(0, os.path.dirname(HERE))
 from bearing_loc_ros.core.bearings import Bearing  # noqa: E402
 from bearing_loc_ros.core.conventions import azimuth_elevation  # noqa: E402
 from bearing_loc_ros.core.fusion import FusionConfig, FusionCore  # noqa: E402
+from bearing_loc_ros.processes import interrupt  # noqa: E402
 
 RATE = 10.0
 SIGMA = 2e-3
@@ -171,12 +172,7 @@ def over_dds(n, seconds, estimator, baseline=False):
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
-        proc.send_signal(2)
-        try:
-            proc.wait(timeout=5)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        interrupt(proc, 5)
     lat = np.array([received[s] - t for s, t in sent.items() if s in received]) * 1e3
     return lat, len(sent), cpu
 

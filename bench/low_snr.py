@@ -74,6 +74,16 @@ def verdict(r):
     return ('' if ok_nees else ' NEES') + ('' if ok_tail else ' TAIL')
 
 
+def print_rows(sweep, sig, res, ls):
+    """One table row per sigma: the estimator's results ``res`` against ``ls``."""
+    for s in sig:
+        r, q = res[s], ls[s]
+        print(f'{sweep:10s} {s:4.1f}  {q.rmse_all:7.0f}  {r.rmse_all:9.0f}  '
+              f'{r.rmse_all / r.crlb:5.2f}  {100 * r.ok_fraction:5.1f}   '
+              f'{r.nees_ok:5.2f} (±{band(r):4.2f})   {100 * r.confident_wrong_fraction:6.3f}'
+              f'  {"RMSE>ls" if r.rmse_all > q.rmse_all else ""}{verdict(r)}')
+
+
 def acceptance(n):
     sig = [0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 4.0, 5.0]
     _, tr = trials_of(RANGE_GROWN, n)
@@ -82,12 +92,7 @@ def acceptance(n):
     for sweep in ('joint', 'azimuth', 'elevation'):
         ls = run('ls', {}, tr, sig, sweep)
         wm = run('wmle', {'robust': True}, tr, sig, sweep)
-        for s in sig:
-            r, q = wm[s], ls[s]
-            print(f'{sweep:10s} {s:4.1f}  {q.rmse_all:7.0f}  {r.rmse_all:9.0f}  '
-                  f'{r.rmse_all / r.crlb:5.2f}  {100 * r.ok_fraction:5.1f}   '
-                  f'{r.nees_ok:5.2f} (±{band(r):4.2f})   {100 * r.confident_wrong_fraction:6.3f}'
-                  f'  {"RMSE>ls" if r.rmse_all > q.rmse_all else ""}{verdict(r)}')
+        print_rows(sweep, sig, wm, ls)
     _, tr = trials_of(CONST, n)
     print(f'\n## {CONST}: mle (default, robust), {n} trials per sigma')
     print('sweep      sigma  ls RMSE   mle RMSE  /CRLB   ok %   NEES ok (band)      wrong %  fail')
@@ -95,12 +100,7 @@ def acceptance(n):
     for sweep in ('joint', 'azimuth', 'elevation'):
         ls = run('ls', {}, tr, sig, sweep)
         ml = run('mle', {}, tr, sig, sweep)
-        for s in sig:
-            r, q = ml[s], ls[s]
-            print(f'{sweep:10s} {s:4.1f}  {q.rmse_all:7.0f}  {r.rmse_all:9.0f}  '
-                  f'{r.rmse_all / r.crlb:5.2f}  {100 * r.ok_fraction:5.1f}   '
-                  f'{r.nees_ok:5.2f} (±{band(r):4.2f})   {100 * r.confident_wrong_fraction:6.3f}'
-                  f'  {"RMSE>ls" if r.rmse_all > q.rmse_all else ""}{verdict(r)}')
+        print_rows(sweep, sig, ml, ls)
     print(f'\n## {CONST}: 10 % outliers of ±(20-90) deg, mle (default, robust)')
     sig = [1.0, 2.5]
     clean = run('mle', {}, tr, sig)

@@ -37,6 +37,8 @@ def run_publisher(n, rate, seconds):
     from bearing_loc_ros.ros_common import keep_last_qos
     from bearing_loc_ros.ros_conversions import bearing_to_msg
 
+    # A paced synthetic-station loop like test/lossy_link_peer.py's, kept here on purpose: a
+    # benchmark stays a self-contained script with its own station count and rate.
     rclpy.init()
     node = rclpy.create_node('soak_stations', namespace='/soak')
     pos = station_positions(n)
@@ -98,6 +100,8 @@ def main(argv=None):
                       ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
+
+    from bearing_loc_ros.processes import interrupt
     rclpy.init()
     node = rclpy.create_node('soak_probe')
     last = {}
@@ -143,12 +147,7 @@ def main(argv=None):
         rclpy.try_shutdown()
         for p in (pub, fusion):
             if p.poll() is None:
-                p.send_signal(2)
-                try:
-                    p.wait(timeout=10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
+                interrupt(p, 10)
 
 
 if __name__ == '__main__':

@@ -33,6 +33,8 @@ def run_stations(qos, seconds):
     from bearing_loc_ros.ros_common import keep_last_qos
     from bearing_loc_ros.ros_conversions import bearing_to_msg
 
+    # A paced synthetic-station loop like bench/soak_fusion.py's, kept here on purpose: this
+    # peer is a self-contained script the lossy-link test starts, with its own QoS and seed.
     rclpy.init()
     node = rclpy.create_node('stations', namespace='/lossy')
     pubs = {s: node.create_publisher(PoseWithCovarianceStamped, f'{s}/bearing',

@@ -15,6 +15,7 @@ import yaml
 from bearing_loc_ros import ros_common
 from bearing_loc_ros.core import parameter_docs as docs
 from bearing_loc_ros.core import parameters as schema
+from bearing_loc_ros.processes import interrupt
 from ros_helpers import node_env, REPO
 
 pytestmark = pytest.mark.ros
@@ -205,12 +206,7 @@ def test_integer_array_on_the_command_line():
                 break
         assert 'position [1.0, 2.0, 3.0] m' in out, out
     finally:
-        proc.send_signal(2)
-        try:
-            proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+        interrupt(proc, 10)
 
 
 class _Failing(Node):
