@@ -142,7 +142,25 @@ def block_derivatives(X, F, Ginv, H, Y, one_d):
     return f, T, H_n, H_gn
 
 
-class _CTLSProblem:
+class BlockProblem:
+    """A batch of CTLS problems as per-station blocks, fixed over X: ``F`` (M, N, n+1, 2, 2),
+    ``Ginv``, ``H``, ``Y``, ``PE``, ``one_d`` and ``weighting`` (set by the subclass: the 3D
+    problem here, the plane-reduced one in core.horizontal_ctls)."""
+
+    def _ginv(self, F):
+        return block_ginv(F, self.PE, self.one_d, self.weighting)
+
+    def cost(self, X):
+        """f(X) of Wang, Zhang & Wu eq. (11), (M,); NaN where some S_i is singular."""
+        return block_cost(X, self.F, self.Ginv, self.H, self.Y, self.one_d)
+
+    def derivatives(self, X):
+        """f (M,), gradient T_n (M, n), Hessian H_n and its first part (M, n, n)
+        (:func:`block_derivatives`)."""
+        return block_derivatives(X, self.F, self.Ginv, self.H, self.Y, self.one_d)
+
+
+class _CTLSProblem(BlockProblem):
     """Blocks of Wang, Zhang & Wu eq. (11) for a batch, with the measured angles (fixed over X)."""
 
     def __init__(self, bearings, weighting):
@@ -160,23 +178,12 @@ class _CTLSProblem:
         self.Ginv = self._ginv(self.F)
         self.positions = bearings.positions
 
-    def _ginv(self, F):
-        return block_ginv(F, self.PE, self.one_d, self.weighting)
-
     def take(self, idx):
         out = object.__new__(_CTLSProblem)
         out.weighting = self.weighting
         for name in ('has_el', 'one_d', 'F', 'H', 'Y', 'PE', 'Ginv', 'positions'):
             setattr(out, name, getattr(self, name)[idx])
         return out
-
-    def cost(self, X):
-        """f(X) of Wang, Zhang & Wu eq. (11), (M,); NaN where S is singular."""
-        return block_cost(X, self.F, self.Ginv, self.H, self.Y, self.one_d)
-
-    def derivatives(self, X):
-        """f, T_n (M, 3), H_n (M, 3, 3) and its first part (:func:`block_derivatives`)."""
-        return block_derivatives(X, self.F, self.Ginv, self.H, self.Y, self.one_d)
 
     def covariance(self, X, sigma_az, sigma_el):
         """P_ΔX of Wang, Zhang & Wu eq. (30) at X (M, 3), m²; everything evaluated at X.

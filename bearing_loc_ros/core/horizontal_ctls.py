@@ -46,8 +46,7 @@ treats z₀ as exact.
 
 import numpy as np
 
-from .constrained_tls import block_cost, block_derivatives, block_ginv, block_hx, block_s, \
-    ctls_blocks
+from .constrained_tls import block_hx, block_s, BlockProblem, ctls_blocks
 from .horizontal_crlb import inverse2
 from .estimators import (STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_MAX_ITERATIONS,
                          STATUS_OK)
@@ -66,7 +65,7 @@ def blocks(theta, psi, use_el, px, py, dz):
     return ctls_blocks(theta, psi, use_el, np.stack([px, py, -dz], axis=-1))[:, :, (0, 1, 3)]
 
 
-class PlaneCTLS:
+class PlaneCTLS(BlockProblem):
     """Blocks of the plane-reduced eq. (11) for a batch (measured angles, fixed over X)."""
 
     def __init__(self, p, weighting):
@@ -83,9 +82,6 @@ class PlaneCTLS:
         self.PE[..., 1, 1] = np.where(p.use_el, np.nan_to_num(p.sel), 0.0) ** 2
         self.Ginv = self._ginv(self.F)
 
-    def _ginv(self, F):
-        return block_ginv(F, self.PE, self.one_d, self.weighting)
-
     def take(self, idx):
         """The problems ``idx`` only."""
         out = object.__new__(PlaneCTLS)
@@ -94,14 +90,6 @@ class PlaneCTLS:
         for name in ('one_d', 'dz', 'F', 'H', 'Y', 'PE', 'Ginv'):
             setattr(out, name, getattr(self, name)[idx])
         return out
-
-    def cost(self, X):
-        """f(X) (M,) of the reduced eq. (11); NaN where some S_i is singular."""
-        return block_cost(X, self.F, self.Ginv, self.H, self.Y, self.one_d)
-
-    def derivatives(self, X):
-        """f (M,), gradient T_n (M, 2), Hessian H_n and its Gauss-Newton part (M, 2, 2)."""
-        return block_derivatives(X, self.F, self.Ginv, self.H, self.Y, self.one_d)
 
     def covariance(self, X):
         """Reduced eq. (30) with the σ_z term (module docstring): (M, 3, 3), m²."""
