@@ -96,6 +96,8 @@ class BearingSet:
     Use :meth:`from_arrays` to build one from (N, ...) or (M, N, ...) arrays; it validates.
     """
 
+    # Fields and size properties: alike other batch containers (planning layouts,
+    # horizontal problems) in shape only, each holds its own arrays.
     positions: np.ndarray
     azimuth: np.ndarray
     elevation: np.ndarray

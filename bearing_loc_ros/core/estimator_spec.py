@@ -203,6 +203,7 @@ class EstimatorSpec:
     positionally (TMA: the bearing times and the prior speed).
     """
 
+    # Fields and lookups by name: alike the scenario's in shape only (different records).
     name: str
     mode: str
     options: tuple

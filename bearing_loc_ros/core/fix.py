@@ -22,6 +22,7 @@ import typing
 
 import numpy as np
 
+# Named string constants: alike core.fusion.results' no-fix reasons in shape only.
 STATUS_OK = 'ok'
 STATUS_MAX_ITERATIONS = 'max_iterations'
 STATUS_DIVERGED = 'diverged'

@@ -91,6 +91,7 @@ class HorizontalProblem:
 
     _FIELDS = ('px', 'py', 'pz', 'az', 'el', 'saz', 'sel', 'use_el', 'z0', 'sz')
 
+    # Size properties: alike BearingSet's in shape only (a different container).
     @property
     def M(self):
         """Number of problems."""

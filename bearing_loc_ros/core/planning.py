@@ -40,6 +40,7 @@ class PlacementResult:
         grid_best: (3,) best grid candidate before local refinement.
     """
 
+    # Dataclass fields: alike other field lists in shape only, there is no logic to share.
     position: np.ndarray
     objective: str
     before: float

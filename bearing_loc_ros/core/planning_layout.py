@@ -20,6 +20,7 @@ class Stations:
         names: N station names.
     """
 
+    # Dataclass fields: alike other field lists in shape only, there is no logic to share.
     positions: np.ndarray
     sigma_az: np.ndarray
     sigma_el: np.ndarray

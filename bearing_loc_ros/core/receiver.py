@@ -103,6 +103,7 @@ class SigmaModel:
     result of :meth:`sigma` is radians.
     """
 
+    # Dataclass fields: alike other field lists in shape only, there is no logic to share.
     sigma_conf1_deg: float = 3.0
     sigma_conf0_deg: float = 12.0
     snr_slope: float = 0.0

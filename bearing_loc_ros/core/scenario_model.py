@@ -114,6 +114,7 @@ class Station:
     (azimuth-only) station. ``clock_drift`` is a fraction (ppm · 1e-6).
     """
 
+    # Dataclass fields: alike other field lists in shape only, there is no logic to share.
     id: str
     trajectory: Trajectory
     dims: int = 2
@@ -174,6 +175,7 @@ class Scenario:
     geodetic_origin: tuple = None
     source: str = '<dict>'
 
+    # Time conversions and lookups by name: alike other records' in shape only.
     @property
     def epoch_ns(self):
         """Simulated time of scenario time 0, integer ns."""

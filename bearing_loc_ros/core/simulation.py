@@ -161,6 +161,7 @@ class Simulation:
         end_ns: simulated time at which the last message is due (>= epoch + duration).
     """
 
+    # Dataclass fields: alike other field lists in shape only, there is no logic to share.
     scenario: Scenario
     seed: int
     duration: float

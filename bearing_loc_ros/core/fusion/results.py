@@ -12,7 +12,8 @@ import numpy as np
 
 OK = 'ok'
 
-#: No-fix reasons (each counted in diagnostics under ``no_fix.<reason>``).
+#: No-fix reasons (each counted in diagnostics under ``no_fix.<reason>``). Named string
+#: constants, alike core.fix's statuses in shape only.
 TOO_FEW_STATIONS = 'too_few_stations'
 NO_ELEVATION = 'no_elevation'
 DEGENERATE_GEOMETRY = 'degenerate_geometry'
