@@ -1,13 +1,12 @@
 """Receiver input sources (receiver_inputs.py) against a fake KrakenSDR on loopback."""
 
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import json
 import math
 import os
-import threading
 import time
 import urllib.request
 
+from http_fakes import LoopbackHTTP
 import pytest
 
 from bearing_loc_ros import receiver_inputs as ri
@@ -22,7 +21,7 @@ def fixture(name):
         return f.read()
 
 
-class FakeKraken:
+class FakeKraken(LoopbackHTTP):
     """A KrakenSDR web server on 127.0.0.1: serves ``body`` with ``status`` after ``delay``.
 
     ``stop()`` closes the socket (the receiver "dies"); ``start()`` binds the same port
@@ -30,49 +29,22 @@ class FakeKraken:
     """
 
     def __init__(self, port=0):
+        super().__init__(port)
         self.body, self.status, self.delay, self.redirect = b'', 200, 0.0, False
         self.requests = 0
-        self.port = port
-        self.httpd = None
 
-    def start(self):
-        fake = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *a):
-                pass
-
-            def do_GET(self):   # noqa: N802
-                fake.requests += 1
-                time.sleep(fake.delay)
-                if fake.redirect:
-                    self.send_response(302)
-                    self.send_header('Location', 'http://192.0.2.1/doa.xml')
-                    self.end_headers()
-                    return
-                self.send_response(fake.status)
-                self.send_header('Content-Length', str(len(fake.body)))
-                self.end_headers()
-                self.wfile.write(fake.body)
-
-        class Server(ThreadingHTTPServer):
-            daemon_threads = True
-            allow_reuse_address = True
-
-            def handle_error(self, request, client_address):
-                pass     # a client that timed out closed the connection
-
-        self.httpd = Server(('127.0.0.1', self.port), Handler)
-        self.port = self.httpd.server_address[1]
-        threading.Thread(target=self.httpd.serve_forever, kwargs={'poll_interval': 0.05},
-                         daemon=True).start()
-        return self
-
-    def stop(self):
-        if self.httpd is not None:
-            self.httpd.shutdown()
-            self.httpd.server_close()
-            self.httpd = None
+    def respond(self, handler):
+        self.requests += 1
+        time.sleep(self.delay)
+        if self.redirect:
+            handler.send_response(302)
+            handler.send_header('Location', 'http://192.0.2.1/doa.xml')
+            handler.end_headers()
+            return
+        handler.send_response(self.status)
+        handler.send_header('Content-Length', str(len(self.body)))
+        handler.end_headers()
+        handler.wfile.write(self.body)
 
     @property
     def url(self):

@@ -8,13 +8,13 @@ default ``inverted`` sense, β the true compass bearing of the transmitter, H th
 front) and the published ENU azimuth must be θ = 90° − β.
 """
 
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import math
 import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from http_fakes import LoopbackHTTP
 import numpy as np
 import pymap3d
 import pytest
@@ -67,48 +67,23 @@ def compass_deg(frm, to):
     return math.degrees(math.atan2(to[0] - frm[0], to[1] - frm[1]))
 
 
-class FakeKrakens:
+class FakeKrakens(LoopbackHTTP):
     """KrakenSDR web servers on one loopback port: ``docs[path]`` is served at ``path``
     (404 else). ``stop()`` closes the socket (the receivers die), ``start()`` binds the same
     port again."""
 
     def __init__(self):
-        self.docs, self.port, self.httpd = {}, 0, None
+        super().__init__()
+        self.docs = {}
         self.lock = threading.Lock()
 
-    def start(self):
-        fake = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def log_message(self, *a):
-                pass
-
-            def do_GET(self):   # noqa: N802
-                with fake.lock:
-                    body = fake.docs.get(self.path)
-                self.send_response(404 if body is None else 200)
-                self.send_header('Content-Length', str(len(body or b'')))
-                self.end_headers()
-                self.wfile.write(body or b'')
-
-        class Server(ThreadingHTTPServer):
-            daemon_threads = True
-            allow_reuse_address = True
-
-            def handle_error(self, request, client_address):
-                pass
-
-        self.httpd = Server(('127.0.0.1', self.port), Handler)
-        self.port = self.httpd.server_address[1]
-        threading.Thread(target=self.httpd.serve_forever, kwargs={'poll_interval': 0.05},
-                         daemon=True).start()
-        return self
-
-    def stop(self):
-        if self.httpd is not None:
-            self.httpd.shutdown()
-            self.httpd.server_close()
-            self.httpd = None
+    def respond(self, handler):
+        with self.lock:
+            body = self.docs.get(handler.path)
+        handler.send_response(404 if body is None else 200)
+        handler.send_header('Content-Length', str(len(body or b'')))
+        handler.end_headers()
+        handler.wfile.write(body or b'')
 
     def set(self, path, body):
         with self.lock:
