@@ -1,9 +1,9 @@
 """Wall time of the full Zong & Cui (2015) Monte Carlo evaluation (README "Evaluation").
 
-The issue's target: 1000 trials x 6 σ values x 5 estimators (ls, tls, ctls, mle, wmle) on
+The target: 1000 trials x 6 σ values x 5 estimators (ls, tls, ctls, mle, wmle) on
 config/scenarios/seed003.yaml in under 60 s on one core. This runs exactly what
 ``bearing_loc evaluate`` runs (core.evaluation.evaluate over trials_from_scenario), first the
-joint sweep alone (the issue's 6 × 5 grid), then all three sweeps (joint, azimuth-only,
+joint sweep alone (the 6 × 5 grid), then all three sweeps (joint, azimuth-only,
 elevation-only: 18 noise levels), and prints the wall time of each and the time per fix of
 every estimator. Pin it to one core with ``taskset -c 0`` to measure the one-core figure;
 numpy's BLAS threads are limited to one here (OMP/OPENBLAS/MKL_NUM_THREADS=1 set before

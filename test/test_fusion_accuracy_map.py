@@ -1,4 +1,4 @@
-"""fusion_node accuracy_map (issue 6): an in-process FusionNode (test_fusion_node.Harness,
+"""fusion_node accuracy_map: an in-process FusionNode (test_fusion_node.Harness,
 simulated /clock) publishes the expected-accuracy OccupancyGrid of its live stations; a late
 transient-local subscriber gets it, its cells follow the documented mapping of
 core.planning.occupancy_error_map, and a station going stale triggers exactly one recompute

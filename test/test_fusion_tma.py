@@ -1,4 +1,4 @@
-"""Fusion TMA mode (issue 5): the core.fusion TMA strategy without ROS, plus one in-process node
+"""Fusion TMA mode: the core.fusion TMA strategy without ROS, plus one in-process node
 test (track and fix on the seed001 scenario). Lin et al.: one airborne station, a cruising
 target, σ = 0.1°, prior relative speed 380 m/s (config/scenarios/seed001.yaml)."""
 import math
