@@ -5,6 +5,10 @@
 * :class:`NodeProcess` stops its child with SIGINT, waits with a timeout, escalates to
   SIGTERM then SIGKILL, and always reaps it. Use it as a context manager.
 * :func:`spin_until` spins an executor until a predicate holds or a timeout passes.
+* :class:`Probe` is a node in a fresh rclpy context with its own executor, torn down by
+  :meth:`Probe.close`.
+* :func:`seed000_variant` writes the seed000 scenario with another rate and duration;
+  :func:`static3_bags` simulates the static3 scenario into a bag of every storage.
 """
 import os
 import sys
@@ -48,3 +52,63 @@ def spin_until(executor, predicate, timeout):
         if value:
             return value
     return predicate()
+
+
+class Probe:
+    """A node ``name`` in a fresh rclpy context, added to its own single-threaded executor.
+
+    ``node``, ``executor`` and ``context`` are public; :meth:`close` (also on leaving a
+    ``with`` block) removes and destroys the extra ``nodes``, shuts the executor down,
+    destroys the probe node and shuts the context down.
+    """
+
+    def __init__(self, name='probe'):
+        import rclpy
+        from rclpy.executors import SingleThreadedExecutor
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor.add_node(self.node)
+
+    def close(self, nodes=()):
+        import rclpy
+        for node in nodes:
+            self.executor.remove_node(node)
+            node.destroy_node()
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def seed000_variant(tmp_path, name, rate, duration):
+    """config/scenarios/seed000.yaml with every station at ``rate`` Hz and ``duration`` s,
+    written to ``tmp_path / name``; returns its path (str)."""
+    import yaml
+    with open(os.path.join(REPO, 'config/scenarios/seed000.yaml'), encoding='utf-8') as f:
+        data = yaml.safe_load(f)
+    data['station_defaults']['rate'] = rate
+    data['duration'] = duration
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+def static3_bags(root, seed):
+    """config/scenarios/static3.yaml simulated with ``seed`` into one bag per storage,
+    ``root / 'static3_<storage>'``; returns (scenario, {storage: path})."""
+    from bearing_loc_ros import bagio
+    from bearing_loc_ros.cli.bag import simulate_bag
+    from bearing_loc_ros.core.simulation import load_scenario
+    scenario = load_scenario(os.path.join(REPO, 'config', 'scenarios', 'static3.yaml'))
+    out = {}
+    for storage in bagio.STORAGES:
+        out[storage] = root / f'static3_{storage}'
+        simulate_bag(scenario, out[storage], seed=seed, storage=storage)
+    return scenario, out

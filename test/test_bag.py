@@ -46,14 +46,8 @@ def bearing_loc(*args):
 @pytest.fixture(scope='module')
 def bags(tmp_path_factory):
     """static3 (2 s, imperfect stations, 1D station) simulated into both storages."""
-    root = tmp_path_factory.mktemp('bags')
-    scenario = load_scenario(STATIC3)
-    out = {}
-    for storage in bagio.STORAGES:
-        path = root / f'static3_{storage}'
-        simulate_bag(scenario, path, seed=SEED, storage=storage)
-        out[storage] = path
-    return scenario, out
+    from ros_helpers import static3_bags
+    return static3_bags(tmp_path_factory.mktemp('bags'), SEED)
 
 
 @pytest.mark.parametrize('storage', bagio.STORAGES)
@@ -263,11 +257,9 @@ def test_bag_simulate_is_deterministic(tmp_path):
 @pytest.mark.ros
 def test_bag_play_publishes_every_message_with_clock(bags):
     """`bag play` (separate process) over DDS: every raw message arrives, /clock advances."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from rosgraph_msgs.msg import Clock
-    from ros_helpers import spin_until
+    from ros_helpers import Probe, spin_until
 
     from bearing_loc_ros.bag_player import _import_msg_class
     from bearing_loc_ros.ros_conversions import time_to_ns
@@ -279,11 +271,8 @@ def test_bag_play_publishes_every_message_with_clock(bags):
         for m in r.messages():
             want.setdefault(m.topic, []).append(m.raw)
             r_end = m.log_time_ns
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = rclpy.create_node('bag_play_listener', context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
+    probe = Probe('bag_play_listener')
+    node, ex = probe.node, probe.executor
     got, clock = {}, []
     try:
         for name, t in topics.items():
@@ -306,9 +295,7 @@ def test_bag_play_publishes_every_message_with_clock(bags):
             assert proc.wait(15.0) == 0, proc.output()
             spin_until(ex, lambda: False, 0.3)
     finally:
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=ctx)
+        probe.close()
     for name, raws in want.items():
         if name != '/clock':
             assert got.get(name) == raws, name       # every message, in order, byte for byte
@@ -434,11 +421,9 @@ def test_offline_process_equals_live_fusion(bags, processed, tmp_path):
     then (and only then) the fixes may differ from the bag's.
     """
     import csv
-    import rclpy
     from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
-    from ros_helpers import node_env, NodeProcess, spin_until
+    from ros_helpers import node_env, NodeProcess, Probe, spin_until
     from fusion_recorder import arrivals, load_calls, replay_calls
 
     from bearing_loc_ros.bag_process import fusion_config, fusion_params
@@ -448,11 +433,8 @@ def test_offline_process_equals_live_fusion(bags, processed, tmp_path):
     params, out = processed
     with open(str(out) + '.csv', encoding='utf-8') as f:
         offline = [r for r in csv.DictReader(f) if r['status'] == 'ok']
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = rclpy.create_node('fix_listener', context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
+    probe = Probe('fix_listener')
+    node, ex = probe.node, probe.executor
     live = []
     qos = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE)
     node.create_subscription(PoseWithCovarianceStamped, '/fix',
@@ -476,9 +458,7 @@ def test_offline_process_equals_live_fusion(bags, processed, tmp_path):
             spin_until(ex, lambda: False, 0.5)
             assert fusion.proc.poll() is None, fusion.output()
     finally:
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=ctx)
+        probe.close()
     p = fusion_params(params)
     calls, offline_calls = load_calls(calls_file), load_calls(out.parent / 'offline.calls')
 

@@ -17,11 +17,7 @@ import yaml
 from bearing_loc_ros import bagio
 from bearing_loc_ros.bag_process import fusion_params, process_bag
 from bearing_loc_ros.cli import main as cli_main
-from bearing_loc_ros.cli.bag import simulate_bag
-from bearing_loc_ros.core.simulation import load_scenario
 
-REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-STATIC3 = os.path.join(REPO, 'config', 'scenarios', 'static3.yaml')
 UNKNOWN_TYPE = 'krakensdr_msgs/msg/Doa'
 UNKNOWN_TOPIC = '/station_1/doa'
 
@@ -64,12 +60,9 @@ def _with_unknown_topic(src, dst):
 @pytest.fixture(scope='module')
 def bags(tmp_path_factory):
     """static3 (2 s) in mcap and sqlite3, and the mcap one with a topic of an unknown type."""
+    from ros_helpers import static3_bags
     root = tmp_path_factory.mktemp('rough')
-    scenario = load_scenario(STATIC3)
-    out = {}
-    for storage in bagio.STORAGES:
-        out[storage] = root / f'static3_{storage}'
-        simulate_bag(scenario, out[storage], seed=3, storage=storage)
+    _, out = static3_bags(root, 3)
     out['unknown'] = _with_unknown_topic(out['mcap'], root / 'with_unknown')
     return out
 
@@ -142,19 +135,14 @@ def test_process_skips_a_topic_of_an_unknown_type(bags, capsys):
 def test_play_waits_for_subscribers_skips_unknown_types_and_unheard_topics(bags):
     """Default `bag play`: the subscribed topic gets every message, /truth (no subscriber)
     does not hold playback, the unknown type is skipped with a warning."""
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
     from rclpy.qos import QoSProfile, ReliabilityPolicy
     from geometry_msgs.msg import PoseWithCovarianceStamped
-    from ros_helpers import spin_until
+    from ros_helpers import Probe, spin_until
     topic = '/station_2/bearing'
     with bagio.BagReader(bags['unknown']) as r:
         want = [m.raw for m in r.messages(topics={topic})]
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = rclpy.create_node('rough_edges_listener', context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
+    probe = Probe('rough_edges_listener')
+    node, ex = probe.node, probe.executor
     got = []
     node.create_subscription(PoseWithCovarianceStamped, topic, got.append,
                              QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE),
@@ -166,9 +154,7 @@ def test_play_waits_for_subscribers_skips_unknown_types_and_unheard_topics(bags)
             spin_until(ex, lambda: len(got) >= len(want), 3.0)
             log = proc.output()
     finally:
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.shutdown(context=ctx)
+        probe.close()
     assert got == want, log
     assert f'not installed, not played: {UNKNOWN_TOPIC} ({UNKNOWN_TYPE})' in log, log
     idle = [x for x in log.splitlines() if 'no subscriber on' in x]

@@ -1,7 +1,6 @@
 """End to end over DDS, separate processes: simulator_node (publishing /clock) -> fusion_node
 (use_sim_time) -> this test's subscriber. The fixes' errors against the published truth are
 checked against the Cramér-Rao bound of the scenario."""
-import os
 
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
@@ -10,12 +9,11 @@ import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import QoSProfile, ReliabilityPolicy
-import yaml
 
 from bearing_loc_ros.core.crlb import crlb
 from bearing_loc_ros.core.simulation import load_scenario
 from bearing_loc_ros.ros_conversions import fix_from_msg, time_to_ns
-from ros_helpers import REPO, spin_until, start_node
+from ros_helpers import seed000_variant, spin_until, start_node
 from test_fusion_core import mean_ratio_bounds
 
 pytestmark = pytest.mark.ros
@@ -31,13 +29,7 @@ def scenario_file(tmp_path):
     100 epochs, enough fixes for a tight statistical bound; geometry, noise and motion
     unchanged.
     """
-    with open(os.path.join(REPO, 'config/scenarios/seed000.yaml'), encoding='utf-8') as f:
-        data = yaml.safe_load(f)
-    data['station_defaults']['rate'] = 2.0
-    data['duration'] = 50.0
-    path = tmp_path / 'seed000_2hz.yaml'
-    path.write_text(yaml.safe_dump(data))
-    return str(path)
+    return seed000_variant(tmp_path, 'seed000_2hz.yaml', 2.0, 50.0)
 
 
 def test_simulator_to_fusion_fixes_meet_the_crlb(scenario_file):

@@ -16,12 +16,11 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import deserialize_message
 from visualization_msgs.msg import MarkerArray
-import yaml
 
 from bearing_loc_ros import msgdefs
 from bearing_loc_ros.core import geodesy
 from bearing_loc_ros.ros_conversions import fix_from_msg
-from ros_helpers import REPO, spin_until, start_node
+from ros_helpers import REPO, seed000_variant, spin_until, start_node
 from view_client import FoxgloveClient, geojson_payload
 
 pytestmark = pytest.mark.ros
@@ -54,13 +53,7 @@ def test_ros2msg_schema_matches_the_typestore(msgtype):
 
 @pytest.fixture
 def scenario_file(tmp_path):
-    with open(os.path.join(REPO, 'config/scenarios/seed000.yaml'), encoding='utf-8') as f:
-        data = yaml.safe_load(f)
-    data['station_defaults']['rate'] = 1.0
-    data['duration'] = 60.0
-    path = tmp_path / 'seed000_view.yaml'
-    path.write_text(yaml.safe_dump(data))
-    return str(path)
+    return seed000_variant(tmp_path, 'seed000_view.yaml', 1.0, 60.0)
 
 
 class Listener:
