@@ -18,10 +18,8 @@ from http_fakes import LoopbackHTTP
 import numpy as np
 import pymap3d
 import pytest
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from ros_helpers import spin_until
+from ros_helpers import Probe, spin_until
 from scipy.stats import chi2
 
 from bearing_loc_ros.core import parameters as schema
@@ -97,11 +95,9 @@ class Net:
     """Station nodes, an optional fusion node and a probe in one executor."""
 
     def __init__(self):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.probe = rclpy.create_node('probe', context=self.context)
-        self.executor.add_node(self.probe)
+        self._probe = Probe('probe')
+        self.context, self.executor = self._probe.context, self._probe.executor
+        self.probe = self._probe.node
         self.nodes, self.received, self.diagnostics, self.fixes = {}, {}, {}, []
         # receiver TIME of frame 0 (ms): the wall clock, as a live fusion node expects
         self.t0_ms = int(time.time() * 10) * 100
@@ -139,12 +135,7 @@ class Net:
         return self.diagnostics.get(f'station_node: {name}')
 
     def close(self):
-        for node in self.nodes.values():
-            self.executor.remove_node(node)
-            node.destroy_node()
-        self.executor.shutdown()
-        self.probe.destroy_node()
-        rclpy.shutdown(context=self.context)
+        self._probe.close(self.nodes.values())
 
 
 @pytest.fixture

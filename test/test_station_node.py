@@ -20,10 +20,8 @@ from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from nav_msgs.msg import Odometry
 import numpy as np
 import pytest
-import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from ros_helpers import node_env, REPO, spin_until, start_node
+from ros_helpers import node_env, Probe, REPO, spin_until, start_node
 from scipy.spatial.transform import Rotation
 
 from bearing_loc_ros.core.conventions import azimuth_elevation, wrap_angle
@@ -78,11 +76,9 @@ class Harness:
     }
 
     def __init__(self):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.probe = rclpy.create_node('probe', context=self.context)
-        self.executor.add_node(self.probe)
+        self._probe = Probe('probe')
+        self.context, self.executor = self._probe.context, self._probe.executor
+        self.probe = self._probe.node
         self.stations, self.ports, self.raw_pubs, self.received = {}, {}, {}, {}
         self.diagnostics = []
         for name, cfg in self.CONFIGS.items():
@@ -120,12 +116,7 @@ class Harness:
         return [bearing_from_msg(m, name) for m in self.received[name]]
 
     def close(self):
-        for node in self.stations.values():
-            self.executor.remove_node(node)
-            node.destroy_node()
-        self.executor.shutdown()
-        self.probe.destroy_node()
-        rclpy.shutdown(context=self.context)
+        self._probe.close(self.stations.values())
 
 
 @pytest.fixture(scope='module')
@@ -320,11 +311,8 @@ def test_bad_parameter_files_exit_1_naming_the_parameter(tmp_path):
 def test_separate_process_over_dds():
     """The node in its own process (example config/station.yaml, UDP on) talking over DDS."""
     port = _free_udp_port()
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    probe = rclpy.create_node('dds_probe', context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(probe)
+    dds = Probe('dds_probe')
+    probe, ex = dds.node, dds.executor
     got = []
     probe.create_subscription(PoseWithCovarianceStamped, '/station_9/bearing', got.append,
                               OUTPUT_QOS)
@@ -360,9 +348,7 @@ def test_separate_process_over_dds():
             assert b.azimuth == pytest.approx(math.pi / 2, abs=TOL)
         assert node.proc.returncode == 0, node.output()
     finally:
-        ex.shutdown()
-        probe.destroy_node()
-        rclpy.shutdown(context=ctx)
+        dds.close()
 
 
 def test_unparsable_ros_args_exit_1_with_one_line():
