@@ -148,6 +148,7 @@ class ReceiverConfig:
     station id, frame, fixed position, position covariance and ``local_to_world``.
     """
 
+    # Dataclass fields: alike other field lists in shape only, there is no logic to share.
     station: object
     sense: str = 'inverted'
     heading_source: str = 'fixed'

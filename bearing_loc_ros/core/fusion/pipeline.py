@@ -131,6 +131,8 @@ class FusionCore:
         joins, goes stale, comes back, is removed or moves more than 1 m)."""
         return self.strategy.geometry()
 
+    # Read-only views of the registry's counters, one property each on purpose: the node and
+    # the diagnostics read them from the pipeline without reaching into its parts.
     @property
     def geometry_version(self):
         """Counter of live-geometry changes (see :meth:`geometry`)."""
