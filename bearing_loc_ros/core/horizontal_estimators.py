@@ -246,7 +246,7 @@ def on_station_line(p):
     a target on the line. Problems with a usable elevation are never flagged (with the
     altitude known an elevation measures the range).
     """
-    from scipy.stats import chi2
+    from . import chisq as chi2
     d = np.stack([p.px - p.px.mean(axis=1, keepdims=True),
                   p.py - p.py.mean(axis=1, keepdims=True)], axis=-1)
     C = np.einsum('mni,mnj->mij', d, d)

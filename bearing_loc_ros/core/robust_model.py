@@ -9,7 +9,7 @@ from East, elevation ψ above the horizontal. Re-exported from :mod:`.robust`.
 from functools import lru_cache
 
 import numpy as np
-from scipy.stats import chi2 as _chi2
+from . import chisq as _chi2
 
 from .crlb import safe_inverse
 

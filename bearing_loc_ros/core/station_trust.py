@@ -33,7 +33,7 @@ import math
 import statistics
 
 import numpy as np
-from scipy.stats import chi2 as _chi2
+from . import chisq as _chi2
 
 #: Fixes in a station's residual window.
 DEFAULT_WINDOW = 20
