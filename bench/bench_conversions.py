@@ -11,8 +11,8 @@ Times, best of 5 ``timeit`` repeats on one typical 2D bearing (and a 1D one):
 ``--old FILE`` also times a previous version of ros_conversions.py for comparison, loaded from
 a file outside the package, for example::
 
-    git show e4d0465~1:bearing_loc_ros/ros_conversions.py > /tmp/ros_conversions_old.py
-    .venv/bin/python bench/bench_conversions.py --old /tmp/ros_conversions_old.py
+    git show e4d0465~1:bearing_loc_ros/ros_conversions.py > ros_conversions_old.py
+    .venv/bin/python bench/bench_conversions.py --old ros_conversions_old.py
 
 (the old ``bearing_to_msg`` then runs with today's ``Bearing.validate``, so its figure is the
 old conversion without the old 40 µs validation; the "full check" row shows that part).

@@ -137,7 +137,7 @@ def experiment(start, velocity, sigma, runs, seed, stride, t, obs):
     rde_c = 100 * np.sqrt(np.einsum('ei,eij,ej->e', u, Cx[:, :3, :3], u)) / r_true
     ape_c = np.sqrt(np.trace(Cx[:, :3, :3], axis1=1, axis2=2)) / 1e3
     res['CRLB'] = (rde_c, ape_c, 0)
-    # Sanity: the single-problem CRLB helper agrees with the prefix computation at 100 s.
+    # Sanity: the single-problem CRLB function agrees with the prefix computation at 100 s.
     C100 = tma_crlb(truth_bs, times[:1], rel0, velocity - v_o)[0]
     assert np.allclose(C100, C[-1], rtol=1e-6, atol=0), 'CRLB mismatch'
     return res

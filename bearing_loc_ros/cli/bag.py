@@ -104,7 +104,7 @@ def run(args):
             'info': run_info}[args.bag_command](args)
 
 
-# ----------------------------------------------------------------------------------- helpers
+# --------------------------------------------------------------------------- shared functions
 
 def _abs(topic):
     return topic if topic.startswith('/') else '/' + topic

@@ -84,7 +84,7 @@ def _station(p, th, ps, s_az, s_el, has_el):
 
 
 # cost() and derivatives() share their first lines (H_X, S⁻¹ and r of one station): kept inline
-# on purpose, a helper call per station would cost more than the arithmetic it shares. Both
+# on purpose, a function call per station would cost more than the arithmetic it shares. Both
 # use G⁻¹ = P_E = diag(g0, g3) (Abatzoglou-Mendel): the terms of the general 2 × 2 products
 # with G⁻¹'s zero off-diagonal entries, F_3's zero first row and F_2's zero first column are
 # left out (they add exact zeros in constrained_tls._CTLSProblem).

@@ -24,7 +24,7 @@ Conventions (DESIGN.md "Frames, units, angles"):
   ``ValueError``: a local tangent-plane picture there does not map onto longitude/latitude.
 
 One module (about 500 lines) on purpose: the ellipse, antimeridian splitting and feature
-builders share the origin checks and the ring/line helpers and are read together.
+builders share the origin checks and the ring/line builders and are read together.
 """
 
 from dataclasses import dataclass, field

@@ -117,7 +117,7 @@ def observer_track(tau, observer):
 
 
 # --------------------------------------------------------------------------------------------
-# Simulation helper (Lin et al. sec. 4.2)
+# Simulation (Lin et al. sec. 4.2)
 # --------------------------------------------------------------------------------------------
 
 def simulate_tma(times, target_position, target_velocity, observer_positions, sigma_az,
