@@ -29,6 +29,7 @@ NS_PER_S = 1_000_000_000
 
 
 def parse_args(argv):
+    """Parse and range-check the demo's command line (durations in s)."""
     ap = argparse.ArgumentParser(prog='python -m bearing_loc_ros.demo',
                                  description=__doc__.splitlines()[0])
     ap.add_argument('--duration', type=float, default=30.0, help='simulated seconds (30)')
@@ -50,6 +51,7 @@ def parse_args(argv):
 
 
 def child_env(domain_id):
+    """Environment of the node processes: ROS_DOMAIN_ID, loopback discovery, unbuffered."""
     env = dict(os.environ)
     env['ROS_DOMAIN_ID'] = str(domain_id)
     env.setdefault('ROS_AUTOMATIC_DISCOVERY_RANGE', 'LOCALHOST')

@@ -22,6 +22,7 @@ MAX_ABS = 1e12
 
 
 def finite(value, flag, positive=False):
+    """``value`` if finite with |value| <= MAX_ABS (and > 0 if ``positive``), else InputError."""
     if value is None or not math.isfinite(value) or (positive and value <= 0) \
             or abs(value) > MAX_ABS:
         raise InputError(f'{flag}: must be a finite number{" > 0" if positive else ""} of '
@@ -152,6 +153,11 @@ def load_stations(args):
 
 
 def grid_spec(args, default_box):
+    """GridSpec of --extent-km (else ``default_box`` (xmin, xmax, ymin, ymax), m), --resolution.
+
+    Cell size in m (default: the longer side / 400; at least 1 mm, at most 4000 cells per
+    side) at target altitude --altitude (m, world z).
+    """
     from ..core.planning import GridSpec
     box = parse_box_km(args.extent_km, '--extent-km') if args.extent_km else default_box
     res = args.resolution
@@ -167,10 +173,12 @@ def grid_spec(args, default_box):
 
 
 def ctls_unit(args):
+    """Length unit (m) inside the CTLS weighting G (Wang, Zhang & Wu): 1000 for km, else 1."""
     return KM if args.ctls_unit == 'km' else 1.0
 
 
 def contour_levels(args):
+    """Sorted contour levels of --levels (m, all > 0), or None for automatic levels."""
     if args.levels is None:
         return None
     lv = sorted(v for v in parse_values(args.levels, '--levels'))
@@ -189,5 +197,6 @@ def writing(flag, path):
 
 
 def num_or_none(v):
+    """``float(v)``, or None when it is NaN or infinite (JSON has no such numbers)."""
     v = float(v)
     return v if math.isfinite(v) else None
