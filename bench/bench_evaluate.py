@@ -1,4 +1,4 @@
-"""Wall time of the full Zong & Cui (2015) Monte Carlo evaluation (README "Evaluation").
+"""Wall time of the full Zong & Cui (2015) Monte Carlo evaluation (docs/benchmarks.md).
 
 The target: 1000 trials x 6 σ values x 5 estimators (ls, tls, ctls, mle, wmle) on
 config/scenarios/seed003.yaml in under 60 s on one core. This runs exactly what

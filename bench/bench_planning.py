@@ -1,4 +1,4 @@
-"""Timings of the planning core (README "Planning"): maps, placement, cut angle.
+"""Timings of the planning core (docs/planning.md): maps, placement, cut angle.
 
 Prints, best of ``--repeat`` runs on one thread:
 

@@ -1,4 +1,4 @@
-"""``bearing_loc bag``: rosbag2 datasets without the ROS 2 CLI (README "Recorded data").
+"""``bearing_loc bag``: rosbag2 datasets without the ROS 2 CLI (docs/bags.md).
 
 Sub-commands:
 

@@ -10,7 +10,7 @@ Prints a table and writes ``<out>/evaluation.csv``, ``<out>/evaluation.json`` an
 plots ``eval_rmse_joint.png`` (σ_θ = σ_ψ = σ, Zong & Cui (2015) fig. 2),
 ``eval_rmse_azimuth.png`` and ``eval_rmse_elevation.png`` (one angle's σ varies, the other
 fixed at ``--fixed-sigma-deg``; figs. 3-4) and ``eval_az_vs_el.png`` (the two single-angle
-sweeps on one plot). The maths is core.evaluation; README "Evaluation" has the results.
+sweeps on one plot). The maths is core.evaluation; docs/benchmarks.md "Evaluation" has the results.
 """
 
 import csv
@@ -36,7 +36,7 @@ def add_arguments(parser):
     """Register the ``evaluate`` options."""
     parser.add_argument('--scenario', required=True,
                         help='scenario YAML: stations, targets (random_static: a new draw '
-                             'per trial), σ growth (README "Simulator")')
+                             'per trial), σ growth (docs/nodes.md "Scenario YAML")')
     parser.add_argument('--estimator', default=DEFAULT_ESTIMATORS,
                         help=f'comma-separated estimator names (default {DEFAULT_ESTIMATORS})')
     parser.add_argument('--estimators', dest='estimator', action=DeprecatedOption,

@@ -53,7 +53,7 @@ TOP_FIELDS = ('estimator', 'options', 'bearings', 'problems')
 def add_arguments(parser):
     """Command line of ``bearing_loc locate``."""
     parser.description = ('Localize emitters from bearings: JSON in (file or stdin), JSON out '
-                          '(stdout). Format: README "Estimation".')
+                          '(stdout). Format: docs/cli.md "locate".')
     add_io_arguments(parser)
     from .gisargs import add_gis_arguments
     add_gis_arguments(parser)

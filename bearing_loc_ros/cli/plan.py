@@ -1,4 +1,4 @@
-"""``bearing_loc plan``: where to put stations (README "Planning").
+"""``bearing_loc plan``: where to put stations (docs/planning.md).
 
 Sub-commands:
 

@@ -52,7 +52,7 @@ def add_arguments(parser):
     """Command line of ``bearing_loc tma``."""
     parser.description = ('Target motion analysis from one moving station with a speed prior '
                           '(Lin et al.): JSON in (file or stdin), JSON out. Format: '
-                          'README "Target motion analysis".')
+                          'docs/cli.md "tma".')
     add_io_arguments(parser)
     parser.add_argument('--estimator', default=None, metavar='NAME',
                         help=f'TMA estimator: {", ".join(registry.names(registry.MODE_TMA))}; '

@@ -465,7 +465,7 @@ def evaluate(estimators, trials, sigmas_deg, sweeps=('joint',), seed=0, fixed_si
 
 
 def findings(rows):
-    """Summaries used by the report (README "Evaluation") and the tests.
+    """Summaries used by the report (docs/benchmarks.md "Evaluation") and the tests.
 
     * ``ranking``: for each sweep and swept σ, estimator names sorted by RMSE (best first).
     * ``azimuth_vs_elevation``: for each σ present in both single-angle sweeps and each

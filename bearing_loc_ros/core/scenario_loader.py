@@ -1,7 +1,7 @@
 """Scenario YAML loader: validates a mapping into a :class:`.scenario_model.Scenario`.
 
 Every error names the file and the key path (``<file>: <key path>: <problem>``). The format
-and every key are described in the README section "Simulator". Re-exported from
+and every key are described in docs/nodes.md, section "Scenario YAML". Re-exported from
 :mod:`.simulation`.
 """
 
@@ -319,7 +319,7 @@ def parse_scenario(data, source='<dict>'):
 
 
 def load_scenario(path):
-    """Read and validate a scenario YAML file (format: README "Simulator").
+    """Read and validate a scenario YAML file (format: docs/nodes.md "Scenario YAML").
 
     Raises ValueError naming the file and the offending key (or the YAML syntax error).
     """

@@ -108,7 +108,7 @@ class SigmaGrowth:
 
 @dataclass(frozen=True)
 class Station:
-    """A simulated DF station (see README "Simulator" for every key and default).
+    """A simulated DF station (docs/nodes.md "Scenario YAML" has every key and default).
 
     Angles in rad, times in s, rates in Hz, distances in m. ``sigma_el`` is NaN for a 1D
     (azimuth-only) station. ``clock_drift`` is a fraction (ppm · 1e-6).
