@@ -176,6 +176,14 @@ class AccuracyMapConfig:
     max_error: float = 100.0
     move_threshold: float = 0.0
 
+    @classmethod
+    def from_parameters(cls, values, prefix='accuracy_map.'):
+        """The settings of node parameter values (name -> value): each ``<prefix><field>``
+        but ``<prefix>enabled``, lists as tuples (not validated here)."""
+        return cls(**{k[len(prefix):]: (tuple(v) if isinstance(v, list) else v)
+                      for k, v in values.items()
+                      if k.startswith(prefix) and k != prefix + 'enabled'})
+
     def validate(self):
         """Raise ``ValueError('accuracy_map.<field>: ...')`` for the first invalid field."""
         def bad(name, text):

@@ -7,6 +7,7 @@ node reports as ``parameter '<field>': <problem>`` and ``bag process`` as one li
 
 from dataclasses import dataclass, field, replace
 import math
+import re
 
 from .. import parameters as _parameters
 from .. import registry as _registry
@@ -38,6 +39,25 @@ def _estimator_options(values):
             raise ValueError(f'target_altitude: expected [] (not stated) or [z] (m), got {z}')
         out['target_altitude'] = float(z[0]) if z else None
     return out
+
+
+#: A station id: one or more ROS name tokens separated by '/' (the topic namespace).
+STATION_ID_RE = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*(/[A-Za-z_][A-Za-z0-9_]*)*$')
+
+
+def check_station_ids(names):
+    """The station ids ``names`` as a list, each a valid ROS name path (STATION_ID_RE) listed
+    once; ``ValueError('stations: ...')`` naming the first problem."""
+    names = list(names)
+    seen = set()
+    for s in names:
+        if not STATION_ID_RE.match(s):
+            raise ValueError(f'stations: {s!r} is not a valid station id (ROS name tokens '
+                             'separated by /)')
+        if s in seen:
+            raise ValueError(f'stations: {s!r} is listed twice')
+        seen.add(s)
+    return names
 
 
 #: Defaults: the fusion node's parameter schema (core.parameters), the one place they live.
