@@ -27,6 +27,16 @@ class ParameterError(ValueError):
         self.name = name
 
 
+def core_parameter_error(exc, default_name):
+    """A core ValueError ``'<field>: <problem>'`` (or ``'options.<field>: ...'``, an
+    estimator option) as a ParameterError naming ``<field>``; a message without a field
+    names ``default_name``."""
+    text = str(exc)
+    head, _, rest = text.partition(':')
+    name = head.replace('options.', '') if rest and ' ' not in head else default_name
+    return ParameterError(name, rest.strip() if rest else text)
+
+
 #: Exit code of a node stopped by an unexpected exception raised while it was running.
 INTERNAL_ERROR = 70
 
@@ -259,3 +269,13 @@ def topics_under_namespace(node, suffix, msg_type, name_re):
             if name_re.match(rel):
                 out[rel] = name
     return out
+
+
+def log_events(logger, events):
+    """Log core events, (level, text) pairs: 'warn' as a warning, any other as info."""
+    for level, text in events:
+        # rclpy binds a severity to each call site: one call per severity.
+        if level == 'warn':
+            logger.warning(text)
+        else:
+            logger.info(text)
