@@ -1,0 +1,240 @@
+"""The fusion node's rclpy plumbing: bearing subscriptions in, publications out.
+
+:class:`BearingInputs` keeps one ``<station>/bearing`` subscription per station (from the
+``stations`` parameter and from discovery), counts losses (the middleware's message-lost
+events and gaps in a single publisher's sequence numbers) and reports incompatible QoS.
+:class:`FusionOutputs` owns the publishers and turns the core's epochs, accuracy maps and
+diagnostics into messages (built by ``ros_conversions``). No numerics here: alignment,
+solving, gating and the per-station counters live in ``bearing_loc_ros.core.fusion``.
+"""
+
+from functools import partial
+import time
+
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
+from nav_msgs.msg import OccupancyGrid, Odometry
+from rclpy.event_handler import SubscriptionEventCallbacks
+from sensor_msgs.msg import NavSatFix
+from visualization_msgs.msg import MarkerArray
+
+from .core.fusion import MODE_MULTISTATION, MODE_TMA
+from .core.fusion.config import STATION_ID_RE
+from .core.fusion.gating import LOW_CONFIDENCE
+from .ros_common import keep_last_qos, topics_under_namespace
+from .ros_conversions import (diagnostic_array, fix_markers_msg, fix_to_msg, fix_to_navsat,
+                              occupancy_grid_msg, track_to_msg)
+
+BEARING_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+#: New subscriptions made per discovery scan at most (the executor stays responsive when
+#: many publishers appear at once; the rest are taken on the next scans).
+MAX_NEW_PER_SCAN = 16
+
+
+class BearingInputs:
+    """The bearing subscriptions of a fusion node and their loss bookkeeping.
+
+    ``on_bearing(station, msg, info)`` receives each message with rclpy's message info.
+    ``subs``: station -> Subscription; ``discovered``: stations found by discovery (not in
+    the parameter); ``seq``: station -> last publication sequence number;
+    ``single_publisher``: station -> exactly one publisher (sequence gaps valid);
+    ``incompatible_qos``: station -> incompatible publishers seen (QoS events).
+    """
+
+    def __init__(self, node, core, qos, on_bearing):
+        self.node, self.core, self.qos, self.on_bearing = node, core, qos, on_bearing
+        self.subs = {}
+        self.incompatible_qos = {}
+        self.discovered = set()
+        self.seq = {}
+        self.single_publisher = {}
+
+    def subscribe(self, station, wait=True):
+        """Subscribe to ``<station>/bearing``; ``wait=False`` (discovered): the station is
+        not waited for before it delivered a valid bearing."""
+        if station in self.subs:
+            return
+        self.core.add_station(station, wait=wait)
+        events = SubscriptionEventCallbacks(
+            incompatible_qos=partial(self._on_incompatible_qos, station),
+            message_lost=partial(self._on_message_lost, station))
+        self.subs[station] = self.node.create_subscription(
+            PoseWithCovarianceStamped, f'{station}/bearing', partial(self.on_bearing, station),
+            self.qos, event_callbacks=events)
+        self.single_publisher[station] = False
+
+    def unsubscribe(self, station):
+        """Drop ``station``: its subscription, bookkeeping and core state."""
+        sub = self.subs.pop(station, None)
+        if sub is not None:
+            self.node.destroy_subscription(sub)
+        self.discovered.discard(station)
+        self.seq.pop(station, None)
+        self.single_publisher.pop(station, None)
+        self.incompatible_qos.pop(station, None)
+        self.core.remove_station(station)
+
+    def set_stations(self, stations, previous):
+        """The ``stations`` parameter changed from ``previous`` to ``stations``."""
+        for s in stations:
+            self.subscribe(s)
+        for s in set(previous) - set(stations):
+            self.unsubscribe(s)
+
+    def discover(self):
+        """Subscribe to new */bearing topics under the namespace (at most
+        MAX_NEW_PER_SCAN per scan); drop discovered stations whose publishers are gone once
+        they are not alive (waiting: at once; alive: after station_timeout, when stale)."""
+        node, log = self.node, self.node.get_logger()
+        found = topics_under_namespace(node, '/bearing', BEARING_TYPE, STATION_ID_RE)
+        new = 0
+        for station, name in found.items():
+            if new < MAX_NEW_PER_SCAN and station not in self.subs \
+                    and node.count_publishers(name) > 0:
+                self.discovered.add(station)
+                self.subscribe(station, wait=False)
+                new += 1
+                log.info(f'discovered station {station} ({name})')
+        for station in list(self.discovered):
+            topic = f'{node.get_namespace().rstrip("/")}/{station}/bearing'
+            gone = station not in found or node.count_publishers(topic) == 0
+            if gone and self.core.station_state(station) != 'alive':
+                self.unsubscribe(station)
+                log.info(f'station {station} left (no publisher on {topic})')
+
+    def count_publishers(self):
+        """Refresh which stations have exactly one publisher (sequence gaps are counted for
+        those only: several publishers interleave their sequence numbers)."""
+        ns = self.node.get_namespace().rstrip('/')
+        for station in self.subs:
+            one = self.node.count_publishers(f'{ns}/{station}/bearing') == 1
+            if one != self.single_publisher.get(station):
+                self.seq.pop(station, None)     # a new baseline after the change
+            self.single_publisher[station] = one
+
+    def count_sequence(self, station, info):
+        """Count a gap in ``station``'s publication sequence numbers (rclpy message
+        ``info``) as ``lost.sequence_gap`` when the station has a single publisher."""
+        seq = info.get('publication_sequence_number')
+        if seq is not None:
+            last = self.seq.get(station)
+            if last is not None and seq > last + 1 and self.single_publisher.get(station):
+                self.core.count_lost(station, 'sequence_gap', seq - last - 1)
+            self.seq[station] = seq
+
+    def _on_message_lost(self, station, info):
+        """The middleware reports messages of ``station`` lost (for example a sequence gap
+        seen by a best-effort reader)."""
+        self.core.count_lost(station, 'message_lost', int(info.total_count_change))
+
+    def _on_incompatible_qos(self, station, info):
+        """A publisher on <station>/bearing cannot match (typically best-effort vs reliable)."""
+        self.incompatible_qos[station] = int(info.total_count)
+        self.node.get_logger().warning(
+            f'{station}/bearing: {info.total_count} publisher(s) with incompatible QoS (policy '
+            f'{info.last_policy_kind}); a best-effort publisher needs qos_reliability:='
+            'best_effort here, or a reliable publisher', throttle_duration_sec=10.0)
+
+
+class FusionOutputs:
+    """The fusion node's publishers (module docstring of ``fusion_node``) and counters.
+
+    ``p``: the node's parameter values; ``accuracy_map``: a core.display.AccuracyMap or
+    None; ``ray_length``, ``ellipsoid_sigma``: the run-time display parameters.
+    """
+
+    def __init__(self, node, p, mode, frame_id, geodetic_origin, accuracy_map):
+        pub = node.create_publisher
+        self.node, self.frame_id, self.geodetic_origin = node, frame_id, geodetic_origin
+        self.ray_length = p['marker_ray_length']
+        self.ellipsoid_sigma = p['ellipsoid_sigma']
+        self.fix_pub = pub(PoseWithCovarianceStamped, 'fix', 10)
+        self.navsat_pub = pub(NavSatFix, 'fix/navsat', 10) if geodetic_origin is not None \
+            else None
+        self.marker_pub = pub(MarkerArray, 'markers', 10) if p['publish_markers'] else None
+        # Fixes that failed their consistency checks (core.robust): never on fix; here only
+        # when asked for.
+        self.low_confidence_pub = (pub(PoseWithCovarianceStamped, 'fix/low_confidence', 10)
+                                   if p['publish_low_confidence'] else None)
+        self.diag_pub = pub(DiagnosticArray, '/diagnostics', 10)
+        self.track_pub = pub(Odometry, 'track', 10) if mode == MODE_TMA else None
+        self.accuracy_map = accuracy_map
+        self.map_pub = None
+        self.fixes_published = 0
+        self.accuracy_maps = 0          # maps published
+        self.accuracy_map_ms = None     # wall time of the last map computation
+        if accuracy_map is not None and mode == MODE_MULTISTATION:
+            self.map_pub = pub(OccupancyGrid, 'accuracy_map', keep_last_qos(1, latched=True))
+
+    def publish_epochs(self, epochs, station_timeout):
+        """Publish the epochs' fixes first (the latency-critical output), then the rest
+        (low-confidence fixes, track, navsat, markers; ``station_timeout`` s: the marker
+        lifetime)."""
+        fixes = [ep for ep in epochs if ep.ok]
+        for ep in fixes:
+            self.fix_pub.publish(fix_to_msg(ep.position, ep.covariance, ep.stamp_ns,
+                                            self.frame_id))
+            self.fixes_published += 1
+        log = self.node.get_logger()
+        for ep in epochs:
+            if self.low_confidence_pub is not None and ep.reason == LOW_CONFIDENCE \
+                    and ep.position is not None:
+                self.low_confidence_pub.publish(fix_to_msg(ep.position, ep.covariance,
+                                                           ep.stamp_ns, self.frame_id))
+            if not ep.ok:
+                log.debug(f'epoch {ep.stamp_ns / 1e9:.3f}: no fix ({ep.reason}'
+                          f'{": " + ep.detail if ep.detail else ""})')
+        # Markers cost ~0.5-1.5 ms per fix at N = 10: built only when someone listens.
+        markers = self.marker_pub is not None and self.marker_pub.get_subscription_count() > 0
+        for ep in fixes:
+            if self.track_pub is not None and ep.velocity is not None:
+                self.track_pub.publish(track_to_msg(ep.position, ep.velocity,
+                                                    ep.state_covariance, ep.stamp_ns,
+                                                    self.frame_id))
+            if self.navsat_pub is not None:
+                try:
+                    self.navsat_pub.publish(fix_to_navsat(ep.position, ep.covariance,
+                                                          ep.stamp_ns, self.geodetic_origin,
+                                                          self.frame_id))
+                except ValueError as exc:
+                    log.warning(f'fix/navsat: {exc}', throttle_duration_sec=5.0)
+            if markers:
+                self.marker_pub.publish(fix_markers_msg(
+                    ep, self.frame_id, self.ray_length, self.ellipsoid_sigma,
+                    int(station_timeout * 1e9)))
+            if ep.rejected:
+                log.info(f'epoch {ep.stamp_ns / 1e9:.3f}: outlier bearing(s) from '
+                         f'{", ".join(b.station for b in ep.rejected)} rejected',
+                         throttle_duration_sec=5.0)
+
+    def publish_accuracy_map(self, geometry, now_ns):
+        """Publish the expected-accuracy OccupancyGrid when core.display.AccuracyMap says the
+        live station ``geometry`` changed (run from the tick, never per bearing)."""
+        log = self.node.get_logger()
+        t0 = time.perf_counter()
+        try:
+            out = self.accuracy_map.update(geometry)
+        except ValueError as exc:
+            log.warning(f'accuracy_map: {exc}', throttle_duration_sec=10.0)
+            return
+        if out is None:
+            return
+        grid, data = out
+        self.map_pub.publish(occupancy_grid_msg(grid, data, now_ns, self.frame_id))
+        self.accuracy_maps += 1
+        self.accuracy_map_ms = 1e3 * (time.perf_counter() - t0)
+        log.info(f'accuracy_map: {len(self.accuracy_map.stations)} live station(s), '
+                 f'{grid.width}x{grid.height} cells of {grid.resolution:g} m, '
+                 f'{self.accuracy_map_ms:.1f} ms')
+
+    def publish_diagnostics(self, entries, now_ns, incompatible_qos):
+        """Publish the core's diagnostic ``entries`` (overall first, then one per station)
+        with the map counters and the stations' incompatible QoS publishers added."""
+        if self.map_pub is not None:
+            entries[0].values.update(accuracy_maps=self.accuracy_maps, accuracy_map_ms=(
+                'n/a' if self.accuracy_map_ms is None else f'{self.accuracy_map_ms:.1f}'))
+        for d in entries[1:]:
+            if d.hardware_id in incompatible_qos:
+                d.values['incompatible_qos_publishers'] = incompatible_qos[d.hardware_id]
+        self.diag_pub.publish(diagnostic_array(
+            entries, self.node.get_fully_qualified_name().lstrip('/'), now_ns))
