@@ -2,6 +2,7 @@
 reported as converged, never an exception other than a ValueError naming the field), and
 the fusion core counts malformed bearings instead of raising."""
 import math
+import re
 
 import numpy as np
 import pytest
@@ -175,3 +176,27 @@ def test_fusion_core_clock_going_back_repeatedly_is_counted():
     assert core.dropped['too_late'] == 1 and core.dropped['from_future'] == 1
     core.tick(2 ** 62)
     core.diagnostics(2 ** 62)
+
+
+@pytest.mark.parametrize('field, value, message', [
+    ('azimuth', 1e300, 'azimuth: |azimuth| must be <= 10000 rad'),
+    ('azimuth', -2e4, 'azimuth: |azimuth| must be <= 10000 rad'),
+    ('position', 1e300, 'position: |coordinate| must be <= 1e+12 m'),
+    ('azimuth', float('nan'), 'azimuth: non-finite value'),
+])
+def test_huge_or_nan_angles_and_positions_are_named_errors(field, value, message):
+    """An azimuth beyond 1e4 rad keeps no direction after wrapping, and a coordinate beyond
+    1e12 m overflows the estimators' sums: both are named errors, never a fix (one problem
+    takes the fast validation path, two problems the vectorised one)."""
+    for M in (1, 2):
+        pos = np.tile(np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0], [0.0, 1000.0, 5.0]]),
+                      (M, 1, 1))
+        az = np.tile(np.array([0.8, 2.3, -0.8]), (M, 1))
+        el = np.tile(np.array([0.01, 0.01, np.nan]), (M, 1))
+        if field == 'azimuth':
+            az[-1, 1] = value
+        else:
+            pos[-1, 2, 0] = value
+        bs = BearingSet(pos, az, el, np.full((M, 3), 0.01), np.full((M, 3), 0.01))
+        with pytest.raises(ValueError, match=re.escape(message)):
+            bs.validate()

@@ -23,6 +23,13 @@ HALF_PI = np.pi / 2.0
 #: exceed it).
 SIGMA_MIN = 1e-12
 SIGMA_MAX = 1e3
+#: Largest |azimuth|, rad (about 1592 turns). Wrapping a larger angle into (−π, π] keeps
+#: fewer digits: the spacing of doubles near 1e4 is 1.8e-12 rad, near 1e9 it is 1.2e-7 rad
+#: and near 1e16 it is 2 rad, so such a value says nothing about the direction.
+MAX_ABS_ANGLE = 1.0e4
+#: Largest |station coordinate|, m (a thousand times the Earth-Moon distance); beyond it the
+#: estimators' squared ranges overflow float64 in intermediate sums.
+MAX_ABS_POSITION = 1.0e12
 
 
 @dataclass
@@ -189,7 +196,8 @@ class BearingSet:
     def validate(self, require_elevation=True):
         """Check every field; raise ``ValueError`` naming the bad field. Returns self.
 
-        Field rules: finite positions and azimuths; elevation finite or NaN (1D) with
+        Field rules: finite positions (|coordinate| ≤ 1e12 m) and azimuths (|θ| ≤ 1e4 rad,
+        :data:`MAX_ABS_ANGLE`); elevation finite or NaN (1D) with
         |ψ| < π/2; σ_θ in [SIGMA_MIN, SIGMA_MAX] = [1e-12, 1e3] rad; σ_ψ in that range wherever
         elevation is given; at least two bearings. With ``require_elevation`` (the 3D solve,
         default) also at least three independent scalar constraints with at least one
@@ -237,7 +245,7 @@ def _scalar_fields_valid(b):
         x, y, z, az, el, saz, sel = (float(v) for v in values)
     except OverflowError:
         return False
-    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z) and math.isfinite(az)
+    if not (max(abs(x), abs(y), abs(z)) <= MAX_ABS_POSITION and abs(az) <= MAX_ABS_ANGLE
             and SIGMA_MIN <= saz <= SIGMA_MAX):
         return False
     if math.isnan(el):
@@ -259,10 +267,9 @@ def _one_problem_valid(bs):
     N = bs.azimuth.shape[-1]
     if bs.positions.shape != (1, N, 3) or any(a.shape != (1, N) for a in arrays[1:]) or N < 2:
         return False
-    # A sum is finite only if every term is (a finite sum that overflows returns False and
-    # takes the full check).
-    if not (math.isfinite(sum(bs.positions.ravel().tolist()))
-            and math.isfinite(sum(bs.azimuth[0].tolist()))):
+    # Bounded positions and azimuths (NaN fails every comparison and takes the full check).
+    if not (all(abs(v) <= MAX_ABS_POSITION for v in bs.positions.ravel().tolist())
+            and all(abs(v) <= MAX_ABS_ANGLE for v in bs.azimuth[0].tolist())):
         return False
     n_el = 0
     for el, saz, sel in zip(bs.elevation[0].tolist(), bs.sigma_az[0].tolist(),
@@ -280,8 +287,12 @@ def _check_bearing_fields(pos, az, el, saz, sel):
     """Shared field checks for :class:`Bearing` and :class:`BearingSet` (ValueError)."""
     if not np.all(np.isfinite(pos)):
         raise ValueError('position: non-finite station coordinate')
+    if not np.all(np.abs(pos) <= MAX_ABS_POSITION):
+        raise ValueError(f'position: |coordinate| must be <= {MAX_ABS_POSITION:g} m')
     if not np.all(np.isfinite(az)):
         raise ValueError('azimuth: non-finite value')
+    if not np.all(np.abs(az) <= MAX_ABS_ANGLE):
+        raise ValueError(f'azimuth: |azimuth| must be <= {MAX_ABS_ANGLE:g} rad')
     if np.any(np.isinf(el)):
         raise ValueError('elevation: infinite value (use NaN/null for azimuth-only bearings)')
     has_el = np.isfinite(el)

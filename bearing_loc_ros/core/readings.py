@@ -8,16 +8,11 @@ rejections a station counts or reports. Re-exported from :mod:`.station`.
 from dataclasses import dataclass
 import math
 
-from .bearings import SIGMA_MAX, SIGMA_MIN
+from .bearings import MAX_ABS_ANGLE, SIGMA_MAX, SIGMA_MIN  # noqa: F401 (re-export)
 
 NS_PER_S = 1_000_000_000
 #: Largest stamp a builtin_interfaces/Time can carry (sec is an int32).
 MAX_STAMP_NS = (2 ** 31 - 1) * NS_PER_S
-#: Largest |raw angle|, rad (about 1592 turns, 573,000 degrees). Wrapping a larger angle
-#: into (−π, π] keeps fewer digits: the spacing of doubles near 1e4 is 1.8e-12 rad, near
-#: 1e9 it is 1.2e-7 rad and near 1e16 it is 2 rad, so such a reading says nothing about the
-#: direction; no sensor reports it.
-MAX_ABS_ANGLE = 1.0e4
 UNITS = ('deg', 'rad')
 AZIMUTH_REFERENCES = ('enu', 'compass')
 #: Tolerance on |q| − 1 for platform orientations (as for bearing messages).
