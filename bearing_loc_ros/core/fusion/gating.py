@@ -17,6 +17,7 @@ import math
 
 import numpy as np
 
+from .. import chisq
 from .. import estimators as _estimators
 from .. import registry as _registry
 from ..bearings import BearingSet
@@ -35,18 +36,14 @@ LOW_CONFIDENCE = 'low_confidence'
 def gate_threshold(probability, dof):
     """χ² gate: the ``probability`` quantile of χ² with ``dof`` degrees of freedom.
 
-    Closed forms (no scipy needed): k = 1: (Φ⁻¹((1 + p) / 2))², k = 2: −2 ln(1 − p).
-    p = 0.999 gives 10.83 (k = 1) and 13.82 (k = 2). p >= 1 disables the gate (inf).
+    p = 0.999 gives 10.83 (k = 1) and 13.82 (k = 2); p >= 1 disables the gate (inf).
     """
     p = float(probability)
     if p >= 1.0:
         return math.inf
-    if dof == 2:
-        return -2.0 * math.log1p(-p)
-    if dof == 1:
-        from statistics import NormalDist
-        return NormalDist().inv_cdf(0.5 * (1.0 + p)) ** 2
-    raise ValueError(f'dof: expected 1 or 2, got {dof}')
+    if dof not in (1, 2):
+        raise ValueError(f'dof: expected 1 or 2, got {dof}')
+    return float(chisq.ppf(p, dof))
 
 
 def normalized_residuals(bearings, position, position_covariance=None):
