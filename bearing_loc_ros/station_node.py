@@ -35,7 +35,6 @@ parameters exit with code 1 and a message naming the parameter; bad readings are
 reason, logged (throttled) and never stop the node.
 """
 
-from collections import Counter
 import socket
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -50,6 +49,7 @@ from .core.receiver_params import receiver_from_params
 from .core.simulation import bearing_topic
 from .core.station import (ConfigError, parse_datagram, PoseBuffer, ReadingError,
                            station_config, to_world_bearing)
+from .core.station_report import StationCounters
 from .core.udp import udp_drops
 from .receiver_inputs import KrakenInput, make_source
 from .ros_conversions import (bearing_to_msg, ConversionError, pose_from_odometry,
@@ -77,6 +77,10 @@ OUTPUT_QOS = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
 
 class StationNode(Node):
     """One DF station: raw readings (topic and/or UDP) -> ``bearing``; see module docstring."""
+
+    #: Counters, kept by core.station_report.StationCounters (read by tests and tools).
+    published = property(lambda self: self.counters.published)
+    last_stamp_ns = property(lambda self: self.counters.last_stamp_ns)
 
     def __init__(self, **kwargs):
         super().__init__('station_node', **kwargs)
@@ -113,13 +117,8 @@ class StationNode(Node):
                                      'kraken.low_speed or kraken.position_source odometry')
         self.input_units = p['input_units']
         self.restamp_udp = p['udp_stamp'] == 'receive'
-        self.published = 0
-        self.rejected = Counter()
-        self.received = Counter()
-        self.last_stamp_ns = None
-        self._rejected_reported = 0
-        self._published_reported = 0
-        self._udp_drops_reported = 0
+        self.counters = StationCounters()
+        self.rejected, self.received = self.counters.rejected, self.counters.received
         self.sources = []
         self.bearing_qos = rcm.keep_last_qos(p['qos_depth'], p['qos_reliability'])
 
@@ -162,8 +161,6 @@ class StationNode(Node):
             f"{'2D' if c.measures_elevation else '1D'}, reference {c.azimuth_reference}, "
             f"inputs: {'; '.join(self.sources)}")
 
-    # ------------------------------------------------------------------ parameters
-
     # ------------------------------------------------------------------ inputs
 
     def _open_receiver(self, p):
@@ -204,8 +201,7 @@ class StationNode(Node):
                 self._reject('invalid_bearing', 'receiver', exc)
                 continue
             self.pubs[channel].publish(msg)
-            self.published += 1
-            self.last_stamp_ns = b.stamp_ns
+            self.counters.count_published(b.stamp_ns)
         for reason, detail in rejected:
             self._reject(reason, 'receiver', detail)
 
@@ -286,8 +282,7 @@ class StationNode(Node):
             self._reject('invalid_bearing', source, exc)
             return
         self.pub.publish(msg)
-        self.published += 1
-        self.last_stamp_ns = reading.stamp_ns
+        self.counters.count_published(reading.stamp_ns)
 
     def _reject(self, reason, source, detail):
         self.rejected[reason] += 1
@@ -301,49 +296,21 @@ class StationNode(Node):
 
     def diagnostic_status(self):
         """The station's DiagnosticStatus: WARN when inputs were rejected since last report."""
-        total_rej = sum(self.rejected.values())
-        new_rej = total_rej - self._rejected_reported
-        new_pub = self.published - self._published_reported
-        self._rejected_reported, self._published_reported = total_rej, self.published
-        values = {
-            'station': self.config.station,
-            'frame_id': self.config.frame_id,
-            'sources': '; '.join(self.sources),
-            'published': self.published,
-            'published_since_last_report': new_pub,
-            'rejected': total_rej,
-            'last_stamp_ns': self.last_stamp_ns if self.last_stamp_ns is not None else '',
-            'last_stamp_s': (f'{self.last_stamp_ns // 10 ** 9}.'
-                             f'{self.last_stamp_ns % 10 ** 9:09d}'
-                             if self.last_stamp_ns is not None else ''),
-        }
-        values.update({f'received_{k}': v for k, v in sorted(self.received.items())})
-        values.update({f'rejected_{k}': v for k, v in sorted(self.rejected.items())})
-        new_drops = 0
-        receiver = None
+        values = {'station': self.config.station, 'frame_id': self.config.frame_id,
+                  'sources': '; '.join(self.sources)}
+        extra, receiver, drops = {}, None, None
         if self.kraken is not None:
             state, last_error, kvalues = self.kraken.status()
-            values.update(kvalues)
+            extra.update(kvalues)
             if state in KRAKEN_WARN_STATES:
                 receiver = f'receiver {state}' + (f' ({last_error})' if last_error else '')
         if self._sock is not None:  # datagrams the kernel discarded: the queue was full
             drops = udp_drops(self._sock)
-            values['udp_dropped_by_kernel'] = 'unsupported' if drops is None else drops
-            if drops is not None:
-                new_drops, self._udp_drops_reported = drops - self._udp_drops_reported, drops
-        if new_rej or new_drops or receiver:
-            level = rcm.WARN
-            message = '; '.join(
-                ([receiver] if receiver else [])
-                + ([f'{new_rej} input(s) rejected since last report'] if new_rej else [])
-                + ([f'{new_drops} UDP datagram(s) dropped by the kernel (node busy or '
-                    'receive buffer full) since last report'] if new_drops else []))
-        elif self.published == 0:
-            level, message = rcm.OK, 'waiting for readings'
-        else:
-            level, message = rcm.OK, f'{new_pub} bearing(s) published since last report'
-        return rcm.diagnostic_status(f'{self.get_name()}: {self.config.station}', level,
-                                     message, values, hardware_id=self.config.station)
+            extra['udp_dropped_by_kernel'] = 'unsupported' if drops is None else drops
+        level, message, values = self.counters.report(values, extra, receiver, drops)
+        return rcm.diagnostic_status(f'{self.get_name()}: {self.config.station}',
+                                     rcm.WARN if level == 'warn' else rcm.OK, message, values,
+                                     hardware_id=self.config.station)
 
     def _publish_diagnostics(self):
         arr = DiagnosticArray()
