@@ -162,3 +162,28 @@ def test_calibrate_cli_errors(tmp_path, capsys):
     code = cli_main(['calibrate', '--station', f'A={bad}', '--params', str(p),
                      '--transmitter', '0', '0', '0', '--out', str(tmp_path / 'o.yaml')])
     assert code == 2 and 'usable readings' in capsys.readouterr().err
+
+
+def test_compass_residuals_convert_enu_azimuths_and_wrap():
+    from bearing_loc_ros.core.calibration import compass_residuals
+    rng = np.random.default_rng(5)
+    st = rng.uniform(-1e3, 1e3, (200, 2))
+    tx = np.array([120.0, -40.0])
+    az = rng.uniform(-4 * math.pi, 4 * math.pi, 200)
+    r = compass_residuals(az, st, tx)
+    # the definition by hand: β = π/2 − θ (compass), β* = atan2(Δx, Δy), difference in (−π, π]
+    beta_true = np.arctan2(tx[0] - st[:, 0], tx[1] - st[:, 1])
+    d = (math.pi / 2 - az) - beta_true
+    assert np.all(np.abs(r) <= math.pi)
+    np.testing.assert_allclose(np.cos(r), np.cos(d), atol=1e-12)
+    np.testing.assert_allclose(np.sin(r), np.sin(d), atol=1e-12)
+    # a bearing pointing straight at the transmitter has zero residual
+    exact = np.arctan2(tx[1] - st[:, 1], tx[0] - st[:, 0])
+    np.testing.assert_allclose(compass_residuals(exact, st, tx), 0.0, atol=1e-12)
+
+
+def test_corrected_heading_offset_subtracts_the_bias_and_wraps():
+    from bearing_loc_ros.core.calibration import corrected_heading_offset_deg
+    assert corrected_heading_offset_deg(10.0, math.radians(3.0)) == pytest.approx(7.0)
+    assert corrected_heading_offset_deg(-178.0, math.radians(5.0)) == pytest.approx(177.0)
+    assert corrected_heading_offset_deg(178.0, math.radians(-5.0)) == pytest.approx(-177.0)

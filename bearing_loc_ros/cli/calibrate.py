@@ -98,10 +98,10 @@ def residuals(station, records, params, transmitter_enu):
     """Compass residuals (rad) and confidences of one station's readings.
 
     Each reading -> bearing with the station's parameters (azimuth θ in the world ENU
-    axes); β = π/2 − θ; β* = atan2(Δx, Δy) from the bearing's station position to the
-    transmitter; r = β − β* (wrapped later). Returns (r list, c list, rejections Counter).
+    axes) -> residual from :func:`core.calibration.compass_residuals`. Returns (r list,
+    c list, rejections Counter).
     """
-    from ..core.calibration import true_compass
+    from ..core.calibration import compass_residuals
     from ..core.kraken import KrakenError
     from ..core.receiver import ReceiverGeometry
     from ..core.receiver_params import receiver_from_params
@@ -114,17 +114,18 @@ def residuals(station, records, params, transmitter_enu):
     if cfg.needs_odometry:
         raise InputError(f'params: station {station}: calibration needs a fixed or GPS '
                          'heading and position (no odometry)')
-    r, c, bad = [], [], Counter()
+    az, xy, c, bad = [], [], [], Counter()
     for rec in records:
         try:
             b = geo.to_bearing(rec)
         except KrakenError as exc:
             bad[exc.reason] += 1
             continue
-        beta = math.pi / 2.0 - b.azimuth
-        r.append(beta - float(true_compass(b.position[:2], transmitter_enu[:2])))
+        az.append(b.azimuth)
+        xy.append(b.position[:2])
         c.append(rec.confidence)
-    return r, c, bad
+    r = compass_residuals(az, xy, transmitter_enu[:2]) if az else []
+    return list(r), c, bad
 
 
 def transmitter_position(args, params):
@@ -150,12 +151,13 @@ def transmitter_position(args, params):
 
 def corrected_params(params, result):
     """{station: nested ros__parameters} with the fitted correction applied."""
+    from ..core.calibration import corrected_heading_offset_deg
     from ..core.receiver_params import DEFAULTS, nest
     out = {}
     for k, s in enumerate(result.stations):
         p = dict(params[s])
         old = float(p.get('kraken.heading_offset_deg', DEFAULTS['kraken.heading_offset_deg']))
-        new = (old - math.degrees(result.bias[k]) + 180.0) % 360.0 - 180.0
+        new = corrected_heading_offset_deg(old, result.bias[k])
         p['kraken.heading_offset_deg'] = round(new, 6)
         p['kraken.sigma_conf1_deg'] = round(result.sigma_conf1_deg, 6)
         p['kraken.sigma_conf0_deg'] = round(result.sigma_conf0_deg, 6)

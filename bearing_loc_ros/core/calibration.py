@@ -36,7 +36,7 @@ import math
 import numpy as np
 from scipy import optimize
 
-from .conventions import wrap_angle
+from .conventions import enu_to_compass, wrap_angle, wrap_angle_scalar
 
 
 @dataclass
@@ -83,6 +83,35 @@ def true_compass(station_xy, transmitter_xy):
     s = np.asarray(station_xy, dtype=float)
     t = np.asarray(transmitter_xy, dtype=float)
     return np.arctan2(t[0] - s[..., 0], t[1] - s[..., 1])
+
+
+def compass_residuals(azimuth, station_xy, transmitter_xy):
+    """Compass residuals r_i = wrap(β_i − β*_i) (rad) of bearings against a known transmitter.
+
+    Maths: β_i = π/2 − θ_i is the measured compass bearing (clockwise from North) of the ENU
+    azimuth θ_i (counter-clockwise from East, :func:`conventions.enu_to_compass`); β*_i =
+    atan2(Δx, Δy) the true one from the bearing's station to the transmitter
+    (:func:`true_compass`); the difference is wrapped to (−π, π] (module docstring).
+
+    Args:
+        azimuth: (n,) ENU azimuths θ_i, rad.
+        station_xy: (n, 2) or (2,) station East/North positions, m (ENU).
+        transmitter_xy: (2,) transmitter East/North position, m (ENU).
+
+    Returns an (n,) array of residuals, rad.
+    """
+    beta = enu_to_compass(np.asarray(azimuth, dtype=float))
+    return np.atleast_1d(wrap_angle(beta - true_compass(station_xy, transmitter_xy)))
+
+
+def corrected_heading_offset_deg(offset_deg, bias):
+    """The heading offset (degrees) that removes a fitted compass bias δ (rad).
+
+    Maths: offset' = wrap(offset − δ), wrapped to (−180°, 180°] (module docstring: "the
+    correction to apply is heading_offset_deg −= δ_s"). Units: offset in degrees (the station
+    parameter ``kraken.heading_offset_deg``), δ in radians (compass sense, clockwise positive).
+    """
+    return math.degrees(wrap_angle_scalar(math.radians(float(offset_deg)) - float(bias)))
 
 
 def _nll_parts(theta, idx, r, x, S):
