@@ -38,7 +38,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from .core.conventions import quaternion_from_azel
+from .core.conventions import (bearing_covariance6, IDX_AZ_VAR, IDX_EL_VAR,  # noqa: F401
+                               NO_ELEVATION_VARIANCE, quaternion_from_azel)
 
 #: rosbag2 metadata version written (Jazzy, rosbag2 0.26.x, see module docstring).
 BAG_VERSION = 9
@@ -54,12 +55,11 @@ POSE_STAMPED = 'geometry_msgs/msg/PoseStamped'
 CLOCK = 'rosgraph_msgs/msg/Clock'
 CLOCK_TOPIC = '/clock'
 
-#: Layout of the bearing message covariance (DESIGN.md "The bearing message"); kept equal to
-#: ``ros_conversions.IDX_EL_VAR`` etc. by test_bag.py (this module must not import rclpy
-#: message packages just to write a bag).
-IDX_EL_VAR = 4 * 6 + 4
-IDX_AZ_VAR = 5 * 6 + 5
-NO_ELEVATION = -1.0
+#: Layout of the bearing message covariance (DESIGN.md "The bearing message"): IDX_EL_VAR,
+#: IDX_AZ_VAR and the packing come from core.conventions, shared with ros_conversions; the
+#: fix's rotational variance is kept equal to ros_conversions' by test_bag.py (this module
+#: must not import rclpy message packages just to write a bag).
+NO_ELEVATION = NO_ELEVATION_VARIANCE
 UNKNOWN_ROTATION_VARIANCE = 1.0e6
 NS_PER_S = 1_000_000_000
 
@@ -185,10 +185,8 @@ def bearing_message(bearing):
     """
     has_el = math.isfinite(bearing.elevation)
     q = quaternion_from_azel(bearing.azimuth, bearing.elevation if has_el else 0.0)
-    cov = np.zeros((6, 6))
-    cov[:3, :3] = np.asarray(bearing.position_covariance, dtype=float)
-    cov.flat[IDX_EL_VAR] = bearing.sigma_elevation ** 2 if has_el else NO_ELEVATION
-    cov.flat[IDX_AZ_VAR] = bearing.sigma_azimuth ** 2
+    cov = bearing_covariance6(bearing.position_covariance, bearing.sigma_azimuth,
+                              bearing.sigma_elevation if has_el else None)
     return _pose_cov_stamped(bearing.stamp_ns, bearing.frame_id, bearing.position, q, cov)
 
 

@@ -44,15 +44,14 @@ from visualization_msgs.msg import Marker, MarkerArray
 from .core import geodesy
 from .core.display import fix_markers
 from .core.bearings import Bearing, HALF_PI, SIGMA_MAX, SIGMA_MIN
-from .core.conventions import (azel_from_quaternion_scalar, quaternion_from_azel_scalar,
-                               wrap_angle_scalar)
+from .core.conventions import (azel_from_quaternion_scalar, bearing_covariance6,
+                               IDX_AZ_VAR, IDX_EL_VAR, NO_ELEVATION_VARIANCE,
+                               quaternion_from_azel_scalar, wrap_angle_scalar)
 from .core.station import pose_sample, raw_reading, ReadingError
 
-#: Index of σ_ψ² (pitch) and σ_θ² (yaw) in the row-major 6x6 pose covariance.
-IDX_EL_VAR = 4 * 6 + 4
-IDX_AZ_VAR = 5 * 6 + 5
-#: σ_ψ² value marking an azimuth-only (1D) bearing.
-NO_ELEVATION = -1.0
+#: σ_ψ² value marking an azimuth-only (1D) bearing (IDX_EL_VAR / IDX_AZ_VAR: the indices of
+#: σ_ψ² and σ_θ² in the 6x6 covariance, from core.conventions).
+NO_ELEVATION = NO_ELEVATION_VARIANCE
 #: Rotational variance (rad²) published on fixes, whose orientation is unknown.
 UNKNOWN_ROTATION_VARIANCE = 1.0e6
 #: Tolerances of the contract checks.
@@ -131,11 +130,8 @@ def bearing_to_msg(bearing):
     o = pose.pose.orientation
     o.x, o.y, o.z, o.w = quaternion_from_azel_scalar(bearing.azimuth,
                                                      bearing.elevation if has_el else 0.0)
-    cov = np.zeros(36)
-    cov[0:3], cov[6:9], cov[12:15] = pcov
-    cov[IDX_EL_VAR] = bearing.sigma_elevation ** 2 if has_el else NO_ELEVATION
-    cov[IDX_AZ_VAR] = bearing.sigma_azimuth ** 2
-    pose.covariance = cov
+    pose.covariance = bearing_covariance6(pcov, bearing.sigma_azimuth,
+                                          bearing.sigma_elevation if has_el else None)
     return msg
 
 

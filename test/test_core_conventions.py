@@ -250,3 +250,19 @@ def test_simulate_bearings_noise_free_is_exact():
     bs = simulate_bearings([500, 500, 100], pos, 0.01, has_elevation=[True, False])
     assert bs.azimuth[0, 0] == pytest.approx(np.pi / 4)
     assert np.isnan(bs.elevation[0, 1]) and np.isnan(bs.sigma_el[0, 1])
+
+
+def test_bearing_covariance6_layout():
+    from bearing_loc_ros.core.conventions import (bearing_covariance6, IDX_AZ_VAR, IDX_EL_VAR,
+                                                  NO_ELEVATION_VARIANCE)
+    pcov = np.array([[1.0, 0.1, 0.2], [0.1, 2.0, 0.3], [0.2, 0.3, 3.0]])
+    c = bearing_covariance6(pcov, 0.02, 0.05).reshape(6, 6)
+    np.testing.assert_array_equal(c[:3, :3], pcov)
+    assert c.flat[IDX_EL_VAR] == c[4, 4] == 0.05 ** 2
+    assert c.flat[IDX_AZ_VAR] == c[5, 5] == 0.02 ** 2
+    rest = c.copy()
+    rest[:3, :3] = 0.0
+    rest[4, 4] = rest[5, 5] = 0.0
+    assert not rest.any()
+    c1 = bearing_covariance6(pcov, 0.02)
+    assert c1[IDX_EL_VAR] == NO_ELEVATION_VARIANCE == -1.0 and c1.shape == (36,)

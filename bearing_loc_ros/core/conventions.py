@@ -28,6 +28,13 @@ import numpy as np
 
 TWO_PI = 2.0 * np.pi
 
+#: Layout of the bearing message's row-major 6x6 pose covariance (DESIGN.md "The bearing
+#: message"): index of σ_ψ² (pitch = −ψ) and of σ_θ² (yaw = θ).
+IDX_EL_VAR = 4 * 6 + 4
+IDX_AZ_VAR = 5 * 6 + 5
+#: σ_ψ² value marking an azimuth-only (1D) bearing.
+NO_ELEVATION_VARIANCE = -1.0
+
 
 def wrap_angle(angle):
     """Wrap angles to the half-open interval (−π, π].
@@ -192,3 +199,20 @@ def azel_from_quaternion_scalar(x, y, z, w):
     el = math.atan2(uz, math.hypot(ux, uy))
     roll = math.asin(min(max(yz, -1.0), 1.0))
     return az, el, roll
+
+
+def bearing_covariance6(position_covariance, sigma_az, sigma_el=None):
+    """Row-major 6x6 pose covariance (36,) of a bearing message (DESIGN.md bearing message).
+
+    Layout: rows/columns (x, y, z, roll, pitch, yaw). [0..2, 0..2] = the station position
+    covariance (m², ENU); [4, 4] (``IDX_EL_VAR``) = σ_ψ² (rad², elevation above horizontal,
+    carried by pitch = −ψ), or ``NO_ELEVATION_VARIANCE`` (−1) when ``sigma_el`` is None (an
+    azimuth-only bearing); [5, 5] (``IDX_AZ_VAR``) = σ_θ² (rad², ENU azimuth, carried by yaw).
+    Every other entry is 0. Returns a float64 numpy array of 36 values.
+    """
+    cov = np.zeros(36)
+    pcov = np.asarray(position_covariance, dtype=float)
+    cov[0:3], cov[6:9], cov[12:15] = pcov
+    cov[IDX_EL_VAR] = NO_ELEVATION_VARIANCE if sigma_el is None else sigma_el ** 2
+    cov[IDX_AZ_VAR] = sigma_az ** 2
+    return cov
