@@ -79,6 +79,7 @@ MUTATIONS = [
     (lambda b: b[1].pop('azimuth'), 'bearings[1].azimuth: missing'),
     (lambda b: b[1].update(colour='red'), 'bearings[1].colour: unknown field'),
     (lambda b: b[1].update(station=7), 'bearings[1].station: must be a string'),
+    (lambda b: b[2].update(station='s0'), "bearings[2].station: duplicate station id 's0'"),
     (lambda b: b.__setitem__(0, 5), 'bearings[0]: must be an object'),
     (lambda b: b.__delitem__(slice(1, None)), 'bearings: 1 bearing(s)'),
 ]
@@ -282,6 +283,37 @@ def test_table_error_names_line_problem_and_column(tmp_path, capsys, column, val
 def test_table_structure_errors(tmp_path, capsys, edit, message):
     h, rows = edit(header(), table_rows(valid_problems(6)))
     assert table_error(tmp_path, capsys, rows, h).startswith(message)
+
+
+def test_one_problem_with_a_station_twice_is_refused(tmp_path, capsys):
+    probs = make_problems(2)
+    probs[1]['bearings'][1]['station'] = 's0'
+    path = tmp_path / 'one.json'
+    path.write_text(json.dumps(probs[1]))
+    code, out, err = run(['locate', str(path)], capsys)
+    assert code == 2 and out == ''
+    assert err.splitlines() == ["bearing_loc locate: error: bearings[1].station: duplicate "
+                                "station id 's0'"]
+    # an unnamed bearing i is station_<i>: naming another one so is a duplicate too
+    bearings = make_problems(1)[0]['bearings']
+    bearings[1]['station'] = 'station_0'
+    with pytest.raises(InputError, match=r"bearings\[1\]\.station: duplicate station id"):
+        parse_request({'bearings': bearings})
+
+
+def test_table_station_named_twice_in_a_problem(tmp_path, capsys):
+    rows = table_rows(valid_problems(1500))
+    # the first row from 4000 on that follows a named row of its own problem
+    r = next(r for r in range(4000, len(rows))
+             if rows[r][-1] and rows[r - 1][0] == rows[r][0] and rows[r - 1][-1])
+    rows[r][-1] = rows[r - 1][-1]
+    err = table_error(tmp_path, capsys, rows)
+    assert err == (f'line {r + 2} (problem {rows[r][0]}): station: duplicate station id '
+                   f'{rows[r][-1]!r}'), err
+    # the same id in different problems, and empty cells, are fine
+    rows = table_rows(valid_problems(6))
+    write_csv(tmp_path / 'ok.csv', header(), rows)
+    assert main(['locate', str(tmp_path / 'ok.csv')]) == 0
 
 
 def test_npz_errors(tmp_path, capsys):

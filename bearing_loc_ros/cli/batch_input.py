@@ -22,7 +22,8 @@ the order of each id's first row. An empty or NaN elevation marks an azimuth-onl
 (its ``sigma_elevation`` is then ignored). Each angle column may be given in degrees instead
 (``azimuth_deg``, ``elevation_deg``, ``sigma_azimuth_deg``, ``sigma_elevation_deg``), not
 both. A CSV has a header line naming the columns (any order); an NPZ holds one 1-D array per
-column (``station`` a string array).
+column (``station`` a string array). A station id appears at most once per problem (empty
+station cells name no station).
 """
 
 from collections.abc import Sequence
@@ -177,6 +178,7 @@ def json_problems(problems, parse_problem):
     bad = ~np.array(shaped, dtype=bool)
     bad |= np.bincount(owner, weights=~good, minlength=len(problems)) > 0
     offsets = np.concatenate([[0], np.cumsum(counts)])
+    bad |= _duplicate_station_problems(station, offsets)
     columns = [coords.reshape(-1, 3), az, el, saz, sel]
     for k in np.flatnonzero(bad).tolist():
         bs = parse_problem(problems[k], k)      # raises, naming problems[k] and the field
@@ -186,6 +188,32 @@ def json_problems(problems, parse_problem):
             col[rows] = getattr(bs, attr)[0]
         station[rows] = bs.stations
     return grouped(columns, counts, station)
+
+
+def _duplicate_station_problems(station, offsets):
+    """(K,) bool: problems naming one station id twice (unnamed bearing i is station_<i>)."""
+    dup = np.zeros(len(offsets) - 1, dtype=bool)
+    if not any(type(s) is str for s in station):
+        return dup
+    for k in range(len(dup)):
+        names = [s if type(s) is str else f'station_{i}'
+                 for i, s in enumerate(station[offsets[k]:offsets[k + 1]])]
+        dup[k] = len(set(names)) != len(names)
+    return dup
+
+
+def _first_duplicate_row(problem, station):
+    """First row (input order) whose (problem, station) pair an earlier row already has.
+
+    An empty station cell names no station, so empty cells never count as duplicates.
+    """
+    names = np.asarray(station, dtype=str)
+    _, code = np.unique(names, return_inverse=True)
+    key = problem.astype(np.int64) * (int(code.max()) + 1) + code.ravel()
+    key = np.where(names == '', -1 - np.arange(len(key)), key)
+    order = np.argsort(key, kind='stable')
+    repeat = np.flatnonzero(key[order][1:] == key[order][:-1])
+    return int(order[repeat + 1].min()) if repeat.size else None
 
 
 def grouped(columns, counts, stations=None, ids=None):
@@ -399,6 +427,12 @@ def _table_problems(columns, row_name):
     rank = np.empty(len(uniq), dtype=np.int64)
     rank[np.argsort(first, kind='stable')] = np.arange(len(uniq))
     problem = rank[inverse.ravel()]
+    station = columns.get('station')
+    if station is not None:
+        r = _first_duplicate_row(problem, station)
+        if r is not None:
+            raise InputError(f'{row_name(r)} (problem {ids[r]}): station: duplicate station '
+                             f'id {station[r]!r}')
     order = np.argsort(problem, kind='stable')
     counts = np.bincount(problem, minlength=len(uniq))
     in_order = ids[np.sort(first)]
@@ -409,7 +443,6 @@ def _table_problems(columns, row_name):
                          'least two')
     sel = np.where(has_el, sel, np.nan)
     cols = [pos[order], az[order], el[order], saz[order], sel[order]]
-    station = columns.get('station')
     if station is not None:
         station = [station[r] for r in order.tolist()]
     return grouped(cols, counts, station, in_order.tolist())

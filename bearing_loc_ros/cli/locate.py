@@ -122,6 +122,8 @@ def parse_bearings(items, where='bearings'):
         station = b.get('station', f'station_{i}')
         if not isinstance(station, str):
             raise InputError(f'{f}.station: must be a string')
+        if station in names:
+            raise InputError(f'{f}.station: duplicate station id {station!r}')
         p = b['position']
         if not isinstance(p, list) or len(p) != 3:
             raise InputError(f'{f}.position: must be a list [x, y, z] of 3 numbers (m)')
