@@ -4,7 +4,7 @@ Input (a file argument, or stdin when the argument is ``-`` or absent), one prob
 
     {"estimator": "mle",                           # optional, default mle
      "options": {"max_iterations": 50},            # optional, estimator options
-     "bearings": [{"station": "s1",                # optional id
+     "bearings": [{"station": "s1",                # optional id, unique per problem
                    "position": [x, y, z],          # m, ENU world frame
                    "azimuth": 0.52,                # rad, ENU (CCW from East)
                    "elevation": 0.1,               # rad, or null/absent (azimuth-only)
