@@ -329,9 +329,17 @@ def test_npz_errors(tmp_path, capsys):
         np.savez(tmp_path / 'b.npz', **dict(base, **change))
         code, out, err = run(['locate', str(tmp_path / 'b.npz')], capsys)
         assert code == 2 and out == '' and message in err, (message, err)
-    (tmp_path / 'c.npz').write_bytes(b'not a zip')
-    code, _, err = run(['locate', str(tmp_path / 'c.npz')], capsys)
-    assert code == 2 and 'input: not a readable NPZ file' in err
+    # text, a single .npy array and a damaged zip: one line naming the problem, exit 2
+    np.save(tmp_path / 'one.npy', np.zeros(3))
+    for name, data in (('c.npz', b'not a zip'), ('d.npz', b''),
+                       ('e.npz', (tmp_path / 'one.npy').read_bytes()),
+                       ('f.npz', b'PK\x03\x04' + b'\0' * 40)):
+        (tmp_path / name).write_bytes(data)
+        code, out, err = run(['locate', str(tmp_path / name)], capsys)
+        assert code == 2 and out == '' and len(err.splitlines()) == 1, (name, err)
+        assert 'pickle' not in err, (name, err)
+        expect = 'not a readable NPZ file' if name == 'f.npz' else 'not an NPZ archive'
+        assert f'input: {expect}' in err, (name, err)
     np.savez(tmp_path / 'ok.npz', **base)
     code, out, err = run(['locate', str(tmp_path / 'ok.npz')], capsys)
     assert code == 0 and json.loads(out)['results'][0]['problem'] == 0

@@ -340,8 +340,16 @@ def _csv_integers(col, lines):
     raise AssertionError('unreachable')
 
 
+#: Leading bytes of a zip archive (local file header, or the end record of an empty one).
+ZIP_MAGIC = (b'PK\x03\x04', b'PK\x05\x06')
+
+
 def _read_npz(path):
     data = _read_source(path, binary=True)
+    # np.load would take any other bytes for a pickle (or a single .npy array) and report that
+    if not data.startswith(ZIP_MAGIC):
+        raise InputError('input: not an NPZ archive (expected a zip of .npy arrays, as '
+                         'numpy.savez writes)')
     try:
         with np.load(io.BytesIO(data), allow_pickle=False) as npz:
             names = list(npz.files)
