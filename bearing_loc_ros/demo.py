@@ -60,37 +60,6 @@ def child_env(domain_id):
     return env
 
 
-def track_statistics(stamps_ns, estimates, covariances, truth, stations):
-    """Per-fix error, predicted σ and CRLB along the true track (core/crlb.py).
-
-    error_k = |x̂_k − x_k| (m), predicted σ_k = sqrt(tr P_k) (m, the RMS 3D error the fix's
-    covariance predicts), crlb_k = sqrt(tr CRLB(x_k)) (m, Zong & Cui (2015) eqs. (6)-(8) at the
-    true position with the scenario's stations and σ). Returns a dict of arrays and the summary
-    RMSE = sqrt(mean error²), CRLB RMS = sqrt(mean tr CRLB) and their ratio.
-    """
-    from .core.crlb import crlb
-    x = np.asarray(truth, dtype=float)
-    e = np.linalg.norm(np.asarray(estimates) - x, axis=1)
-    pred = np.sqrt(np.trace(np.asarray(covariances), axis1=1, axis2=2))
-    pos = np.array([s.trajectory.position(0.0) for s in stations])
-    sel = [s.sigma_el if s.dims == 2 else math.nan for s in stations]
-    C = crlb(x, pos, [s.sigma_az for s in stations], sel)
-    tr = np.trace(C, axis1=1, axis2=2)
-    rmse = float(np.sqrt(np.mean(e ** 2)))
-    crlb_rms = float(np.sqrt(np.mean(tr)))
-    return {'error': e, 'predicted': pred, 'crlb': np.sqrt(tr), 'rmse': rmse,
-            'crlb_rms': crlb_rms, 'ratio': rmse / crlb_rms,
-            'mean_predicted': float(np.sqrt(np.mean(pred ** 2)))}
-
-
-def error_ellipse(cov2, n_sigma=1.0, k=64):
-    """Points (k, 2) of the n-σ ellipse of a 2×2 covariance (eigen-decomposition), m."""
-    lam, V = np.linalg.eigh(0.5 * (cov2 + cov2.T))
-    a = np.linspace(0.0, 2.0 * np.pi, k)
-    circle = np.stack([np.cos(a), np.sin(a)])
-    return (V @ (n_sigma * np.sqrt(np.clip(lam, 0.0, None))[:, None] * circle)).T
-
-
 def write_png(path, sc, fixes, truth_track, bearings, stats, x_true, t_fix):
     """Overview (km): stations, bearing rays, true track, fixes; target plot (m): each fix
     minus the truth at its time with its 1σ error ellipse; error vs time with the predicted
@@ -98,6 +67,7 @@ def write_png(path, sc, fixes, truth_track, bearings, stats, x_true, t_fix):
     import matplotlib
     matplotlib.use('Agg')
     import matplotlib.pyplot as plt
+    from .core.gis import ellipse_ring_enu, sigma_probability
 
     fig = plt.figure(figsize=(13, 7), dpi=100)
     grid = fig.add_gridspec(2, 2, width_ratios=(1.35, 1.0))
@@ -130,10 +100,14 @@ def write_png(path, sc, fixes, truth_track, bearings, stats, x_true, t_fix):
                  f'CRLB {stats["crlb_rms"]:.0f} m (ratio {stats["ratio"]:.2f})', fontsize=10)
 
     # Target plot: every fix relative to the truth at its time, with its 1σ ellipse.
+    one_sigma = sigma_probability(1.0)
     for k, (_, x, P) in enumerate(fixes):
         e = x[:2] - x_true[k][:2]
-        ell = e + error_ellipse(P[:2, :2])
-        zoom.plot(ell[:, 0], ell[:, 1], color='tab:blue', lw=0.6, alpha=0.6)
+        try:
+            ell = ellipse_ring_enu([e[0], e[1], 0.0], P, one_sigma, points=63)
+            zoom.plot(ell[:, 0], ell[:, 1], color='tab:blue', lw=0.6, alpha=0.6)
+        except ValueError:          # a fix without a usable horizontal covariance: no ellipse
+            pass
         zoom.plot(e[0], e[1], 'o', color='tab:blue', ms=3)
     zoom.plot(0.0, 0.0, 'kx', ms=9, label='truth')
     zoom.plot([], [], color='tab:blue', label='fix − truth, 1σ ellipse (E-N marginal)')
@@ -157,6 +131,7 @@ def write_png(path, sc, fixes, truth_track, bearings, stats, x_true, t_fix):
 
 def run(args):
     """Run the demo; return the exit code."""
+    from .core.evaluation import track_crlb_statistics
     from .core.simulation import load_scenario, simulate
     from .scenarios import resolve_scenario
 
@@ -266,8 +241,11 @@ def run(args):
 
         stamps = [t for t, _, _ in fixes]
         x_true = np.array([true_position(t) for t in stamps])
-        stats = track_statistics(stamps, [x for _, x, _ in fixes], [P for _, _, P in fixes],
-                                 x_true, sc.stations)
+        stats = track_crlb_statistics(
+            [x for _, x, _ in fixes], [P for _, _, P in fixes], x_true,
+            [s.trajectory.position(0.0) for s in sc.stations],
+            [s.sigma_az for s in sc.stations],
+            [s.sigma_el if s.dims == 2 else math.nan for s in sc.stations])
         n_epochs = len({b.stamp_ns for b in bearings})
         print(f'summary: {len(fixes)} fixes from {len(bearings)} bearings ({n_epochs} epochs); '
               f'RMSE {stats["rmse"]:.1f} m vs CRLB {stats["crlb_rms"]:.1f} m along the true '

@@ -267,3 +267,24 @@ def test_evaluate_cli_bad_input_names_the_field(capsys, tmp_path):
                      '--sigma-deg', '1', '--sweep', 'none']) == 0
     cap = capsys.readouterr()
     assert cap.err == '' and 'joint' in cap.out and 'RMSE/CRLB' in cap.out
+
+
+def test_track_crlb_statistics():
+    from bearing_loc_ros.core.crlb import crlb
+    rng = np.random.default_rng(3)
+    stations = np.array([[0.0, 0.0, 0.0], [5e3, 0.0, 10.0], [0.0, 5e3, 20.0]])
+    saz, sel = [2e-3, 2e-3, 3e-3], [2e-3, math.nan, 3e-3]
+    truth = np.array([10e3, 8e3, 500.0]) + rng.normal(0.0, 1e3, (20, 3))
+    C = crlb(truth, stations, saz, sel)
+    # estimates drawn from the bound itself: RMSE / CRLB near 1
+    est = truth + np.einsum('kij,kj->ki', np.linalg.cholesky(C), rng.normal(size=(20, 3)))
+    P = 4.0 * C
+    s = ev.track_crlb_statistics(est, P, truth, stations, saz, sel)
+    e = np.linalg.norm(est - truth, axis=1)
+    np.testing.assert_allclose(s['error'], e)
+    np.testing.assert_allclose(s['predicted'], 2.0 * np.sqrt(np.trace(C, axis1=1, axis2=2)))
+    np.testing.assert_allclose(s['crlb'], np.sqrt(np.trace(C, axis1=1, axis2=2)))
+    assert s['rmse'] == pytest.approx(math.sqrt(np.mean(e ** 2)))
+    assert s['crlb_rms'] == pytest.approx(math.sqrt(np.mean(np.trace(C, axis1=1, axis2=2))))
+    assert s['ratio'] == pytest.approx(s['rmse'] / s['crlb_rms'])
+    assert s['mean_predicted'] == pytest.approx(2.0 * s['crlb_rms'])

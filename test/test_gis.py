@@ -172,3 +172,20 @@ def test_live_picture_keeps_the_newest_and_draws_rays_past_the_fix():
     assert fc['features'][2]['properties']['fixes'] == 3
     ray = fc['features'][1]['properties']
     assert ray['length_m'] == pytest.approx(gis.RAY_OVERSHOOT * math.hypot(400.0, 3000.0))
+
+
+def test_sigma_probability_inverts_ellipse_scale():
+    for n in (0.5, 1.0, 2.0, 3.0):
+        p = gis.sigma_probability(n)
+        assert p == pytest.approx(chi2.cdf(n * n, 2), rel=1e-12)
+        assert gis.ellipse_scale(p) == pytest.approx(n, rel=1e-12)
+    for bad in (0.0, -1.0, math.nan, math.inf):
+        with pytest.raises(ValueError, match='n_sigma'):
+            gis.sigma_probability(bad)
+    # the 1σ ring: every point at Mahalanobis distance 1 from the centre
+    C = np.array([[400.0, 120.0, 0.0], [120.0, 100.0, 0.0], [0.0, 0.0, 9.0]])
+    ring = gis.ellipse_ring_enu([5.0, -3.0, 0.0], C, gis.sigma_probability(1.0), points=63)
+    d = ring[:, :2] - [5.0, -3.0]
+    m = np.einsum('ki,ij,kj->k', d, np.linalg.inv(C[:2, :2]), d)
+    np.testing.assert_allclose(m, 1.0, rtol=1e-9)
+    assert ring.shape == (64, 3)

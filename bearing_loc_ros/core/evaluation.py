@@ -529,3 +529,33 @@ def track_errors(truth, estimate, covariance=None):
             'median_error': float(np.median(d)), 'p95_error': float(np.percentile(d, 95)),
             'max_error': float(d.max()), 'bias': [float(v) for v in e.mean(axis=0)],
             'mean_nees': nees, 'nees_dof': dof}
+
+
+def track_crlb_statistics(estimates, covariances, truth, station_positions, sigma_az,
+                          sigma_el):
+    """Per-fix error, predicted σ and Cramér-Rao bound along a true track, and their summary.
+
+    Maths: error_k = |x̂_k − x_k| (m); predicted σ_k = sqrt(tr P_k) (m, the RMS 3D error the
+    fix's covariance predicts); crlb_k = sqrt(tr CRLB(x_k)) (m, Zong & Cui (2015) eqs. (6)-(8),
+    :func:`~.crlb.crlb`, at the true position with the stations and their σ). Summary:
+    RMSE = sqrt(mean error²), CRLB RMS = sqrt(mean tr CRLB), ratio = RMSE / CRLB RMS
+    (1 = efficient) and mean_predicted = sqrt(mean predicted σ²).
+
+    Args:
+        estimates, truth: (K, 3) ENU positions, m. covariances: (K, 3, 3) fix covariances, m².
+        station_positions: (N, 3) ENU, m. sigma_az: (N,) azimuth σ, rad; sigma_el: (N,)
+            elevation σ, rad, NaN for an azimuth-only station.
+
+    Returns a dict with arrays 'error', 'predicted', 'crlb' (K,) and floats 'rmse',
+    'crlb_rms', 'ratio', 'mean_predicted'.
+    """
+    x = np.asarray(truth, dtype=float)
+    e = np.linalg.norm(np.asarray(estimates, dtype=float) - x, axis=1)
+    pred = np.sqrt(np.trace(np.asarray(covariances, dtype=float), axis1=1, axis2=2))
+    C = crlb_matrix(x, np.asarray(station_positions, dtype=float), sigma_az, sigma_el)
+    tr = np.trace(C, axis1=1, axis2=2)
+    rmse = float(np.sqrt(np.mean(e ** 2)))
+    crlb_rms = float(np.sqrt(np.mean(tr)))
+    return {'error': e, 'predicted': pred, 'crlb': np.sqrt(tr), 'rmse': rmse,
+            'crlb_rms': crlb_rms, 'ratio': rmse / crlb_rms,
+            'mean_predicted': float(np.sqrt(np.mean(pred ** 2)))}

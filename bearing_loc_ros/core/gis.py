@@ -82,6 +82,18 @@ def ellipse_scale(probability=DEFAULT_PROBABILITY):
     return math.sqrt(-2.0 * math.log1p(-p))
 
 
+def sigma_probability(n_sigma):
+    """p with k = n_sigma in :func:`ellipse_scale`: p = 1 − exp(−n²/2) (2-dof chi-square).
+
+    The probability inside the n-σ ellipse of a 2D Gaussian (n = 1: 39.3 %), to draw a
+    "1σ ellipse" with :func:`ellipse_ring_enu`. ValueError unless n > 0 is finite.
+    """
+    n = float(n_sigma)
+    if not (math.isfinite(n) and n > 0.0):
+        raise ValueError(f'n_sigma: must be a finite number > 0, got {n_sigma!r}')
+    return -math.expm1(-0.5 * n * n)
+
+
 def horizontal_ellipse(covariance, probability=DEFAULT_PROBABILITY):
     """Semi-axes and orientation of the horizontal error ellipse of a (3, 3) covariance, m².
 
