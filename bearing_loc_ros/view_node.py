@@ -9,25 +9,16 @@ when the node runs with ``use_sim_time``). With ``geodetic_origin`` set it also 
 GeoJSON picture on ``/map_geojson`` and each station's position as NavSatFix on
 ``/<station>/navsat``.
 
-Parameters:
-  host (string, '127.0.0.1'): address to listen on. Anything but loopback exposes the
-      server (no authentication) to the network: an explicit choice.
-  port (int, 8765): TCP port (0 = any free port, logged).
-  topics (string[], []): forward exactly these topics; empty = the package's topics
-      (leaf names in foxglove_view.DEFAULT_LEAVES, plus /diagnostics and /clock).
-  discovery_period (double, 1.0 s): how often the ROS graph is scanned for new topics.
-  geodetic_origin (double[], []): [lat_deg, lon_deg, alt_m] of the ENU frame (WGS84).
-  geojson_period (double, 0.5 s): minimum interval between GeoJSON pictures.
-  ellipse_probability (double, 0.95): probability of the drawn error ellipse.
-  max_backlog (int, 512): messages queued per WebSocket client before the oldest is dropped.
+Parameters (all read-only; declared from the schema in core.parameters): print them with
+``python -m bearing_loc_ros.core.parameters --markdown view_node``.
 """
 
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
-from .foxglove_view import DEFAULT_BACKLOG, FoxgloveView, message_class, wanted_topic
-from .ros_common import declare, declare_array, main_for, ParameterError
+from .foxglove_view import FoxgloveView, message_class, wanted_topic
+from .ros_common import declare_schema, main_for, ParameterError
 
 
 def subscription_qos(publishers):
@@ -52,24 +43,11 @@ class ViewNode(Node):
 
     def __init__(self, **kwargs):
         super().__init__('view', **kwargs)
-        host = declare(self, 'host', '127.0.0.1', 'Address the WebSocket server listens on; '
-                       'anything but loopback exposes it to the network', read_only=True)
-        port = declare(self, 'port', 8765, 'TCP port (0 = any free port)', read_only=True,
-                       min_value=0, max_value=65535)
-        self.topics = declare_array(self, 'topics', [], 'Topics to forward (empty = the '
-                                    "package's topics)", kind=str, read_only=True)
-        period = declare(self, 'discovery_period', 1.0, 'Graph scan period, s',
-                         read_only=True, min_value=0.05, max_value=60.0)
-        origin = declare_array(self, 'geodetic_origin', [], '[lat_deg, lon_deg, alt_m] of the '
-                               'ENU frame (WGS84); enables /map_geojson and station NavSatFix',
-                               read_only=True)
-        geo_period = declare(self, 'geojson_period', 0.5, 'Minimum interval between GeoJSON '
-                             'pictures, s', read_only=True, min_value=0.0, max_value=3600.0)
-        prob = declare(self, 'ellipse_probability', 0.95, 'Probability of the drawn error '
-                       'ellipse', read_only=True, min_value=1e-6, max_value=1.0 - 1e-9)
-        backlog = declare(self, 'max_backlog', DEFAULT_BACKLOG, 'Messages queued per client '
-                          'before the oldest is dropped', read_only=True, min_value=1,
-                          max_value=1_000_000)
+        p = declare_schema(self, 'view_node')
+        host, port, self.topics = p['host'], p['port'], p['topics']
+        period, origin = p['discovery_period'], p['geodetic_origin']
+        geo_period, prob = p['geojson_period'], p['ellipse_probability']
+        backlog = p['max_backlog']
         if origin:
             from .core.gis import check_origin
             try:

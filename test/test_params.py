@@ -31,15 +31,17 @@ BUILTIN = {'use_sim_time', 'start_type_description_service'}
 SCENARIO = os.path.join(REPO, 'config', 'scenarios', 'seed000.yaml')
 #: Overrides a node needs to start (not compared with the defaults).
 REQUIRED = {'fusion_node': {}, 'station_node': {'position': [1.0, 2.0, 3.0]},
-            'simulator_node': {'scenario': SCENARIO, 'start_delay': 0.0}}
+            'simulator_node': {'scenario': SCENARIO, 'start_delay': 0.0},
+            'view_node': {'port': 0}}
 
 
 def make_node(ctx, node, **overrides):
     from bearing_loc_ros.fusion_node import FusionNode
     from bearing_loc_ros.simulator_node import SimulatorNode
     from bearing_loc_ros.station_node import StationNode
+    from bearing_loc_ros.view_node import ViewNode
     cls = {'fusion_node': FusionNode, 'station_node': StationNode,
-           'simulator_node': SimulatorNode}[node]
+           'simulator_node': SimulatorNode, 'view_node': ViewNode}[node]
     params = {k: v for k, v in dict(REQUIRED[node], **overrides).items() if v is not None}
     return cls(context=ctx, namespace='/params_test',
                parameter_overrides=[Parameter(k, value=v) for k, v in params.items()])
@@ -111,6 +113,11 @@ def test_docs_tables_are_generated_from_the_schema():
                 assert region == schema.markdown_table(node), \
                     f'{path}: python -m bearing_loc_ros.core.parameters --update-docs {path}'
     assert set(found) == set(schema.NODES), found
+
+
+def test_view_schema_backlog_default_is_the_servers():
+    from bearing_loc_ros.foxglove_view import DEFAULT_BACKLOG
+    assert schema.param('view_node', 'max_backlog').default == DEFAULT_BACKLOG
 
 
 def test_markdown_command_prints_the_table():

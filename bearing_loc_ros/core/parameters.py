@@ -337,18 +337,44 @@ def _simulator_schema():
     )
 
 
+#: Messages queued per Foxglove client by default (foxglove_view.DEFAULT_BACKLOG, checked
+#: equal by test_params.py; this module must not import the Foxglove SDK).
+VIEW_DEFAULT_BACKLOG = 512
+
+
+def _view_schema():
+    P = Param
+    return (
+        P('host', STRING, '127.0.0.1', 'Address the WebSocket server listens on; anything but '
+          'loopback exposes it (no authentication) to the network'),
+        P('port', INTEGER, 8765, 'TCP port (0 = any free port, logged)', '', 0, 65535),
+        P('topics', STRING_ARRAY, [], "Topics to forward (empty = the package's topics, plus "
+          '/diagnostics and /clock)'),
+        P('discovery_period', DOUBLE, 1.0, 'How often the ROS graph is scanned for new topics',
+          's', 0.05, 60.0),
+        P('geodetic_origin', DOUBLE_ARRAY, [], '[lat_deg, lon_deg, alt_m] of the ENU frame '
+          '(WGS84); enables /map_geojson and the station NavSatFix topics'),
+        P('geojson_period', DOUBLE, 0.5, 'Minimum interval between GeoJSON pictures', 's',
+          0.0, 3600.0),
+        P('ellipse_probability', DOUBLE, 0.95, 'Probability of the drawn error ellipse', '',
+          1e-6, 1.0 - 1e-9),
+        P('max_backlog', INTEGER, VIEW_DEFAULT_BACKLOG, 'Messages queued per WebSocket client '
+          'before the oldest is dropped', '', 1, 1_000_000),
+    )
+
+
 _BUILDERS = {'fusion_node': _fusion_schema, 'station_node': _station_schema,
-             'simulator_node': _simulator_schema}
+             'simulator_node': _simulator_schema, 'view_node': _view_schema}
 #: Node executable -> its shipped parameter file under config/ (None: none shipped).
 PARAMS_FILES = {'fusion_node': 'fusion.yaml', 'station_node': 'station.yaml',
-                'simulator_node': None}
+                'simulator_node': None, 'view_node': None}
 NODES = tuple(_BUILDERS)
 _CACHE = {}
 
 
 def schema(node):
     """The tuple of :class:`Param` of ``node`` ('fusion_node', 'station_node',
-    'simulator_node'); ValueError for another name."""
+    'simulator_node', 'view_node'); ValueError for another name."""
     if node not in _BUILDERS:
         raise ValueError(f'node: unknown node {node!r}; choose one of {list(NODES)}')
     if node not in _CACHE:
