@@ -245,7 +245,9 @@ def _scalar_fields_valid(b):
         x, y, z, az, el, saz, sel = (float(v) for v in values)
     except OverflowError:
         return False
-    if not (max(abs(x), abs(y), abs(z)) <= MAX_ABS_POSITION and abs(az) <= MAX_ABS_ANGLE
+    # Each value compared on its own: NaN fails every comparison (max() would skip it).
+    if not (abs(x) <= MAX_ABS_POSITION and abs(y) <= MAX_ABS_POSITION
+            and abs(z) <= MAX_ABS_POSITION and abs(az) <= MAX_ABS_ANGLE
             and SIGMA_MIN <= saz <= SIGMA_MAX):
         return False
     if math.isnan(el):
