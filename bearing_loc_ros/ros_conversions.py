@@ -43,7 +43,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from .core import geodesy
 from .core.display import fix_markers
-from .core.bearings import Bearing, HALF_PI, SIGMA_MAX, SIGMA_MIN
+from .core.bearings import Bearing, HALF_PI, MAX_ABS_POSITION, SIGMA_MAX, SIGMA_MIN
 from .core.conventions import (azel_from_quaternion_scalar, bearing_covariance6,
                                IDX_AZ_VAR, IDX_EL_VAR, NO_ELEVATION_VARIANCE,
                                quaternion_from_azel_scalar, wrap_angle_scalar)
@@ -139,9 +139,9 @@ def bearing_from_msg(msg, station, expected_frame=None):
     """PoseWithCovarianceStamped -> core :class:`Bearing`, or raise :class:`ConversionError`.
 
     Rejected (reason tag in parentheses): empty frame_id (``empty_frame_id``), frame_id not
-    equal to ``expected_frame`` when given (``wrong_frame``), non-finite position
-    (``bad_position``), NaN or non-unit quaternion (``bad_quaternion``), roll ≠ 0
-    (``nonzero_roll``: |sin φ cos ψ| or −cos φ cos ψ above 1e-6, so any roll of 1e-6/cos ψ or
+    equal to ``expected_frame`` when given (``wrong_frame``), non-finite position or a
+    coordinate beyond ±1e12 m (``bad_position``), NaN or non-unit quaternion
+    (``bad_quaternion``), roll ≠ 0 (``nonzero_roll``: |sin φ cos ψ| or −cos φ cos ψ above 1e-6, so any roll of 1e-6/cos ψ or
     more, including an upside-down φ = π), azimuth variance whose σ is not in the core's
     [SIGMA_MIN, SIGMA_MAX] = [1e-12, 1e3] rad, NaN and <= 0 included
     (``bad_azimuth_variance``), elevation variance neither −1 nor such a σ²
@@ -173,8 +173,10 @@ def bearing_from_msg(msg, station, expected_frame=None):
     pose = msg.pose
     p = pose.pose.position
     px, py, pz = float(p.x), float(p.y), float(p.z)
-    if not (math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
-        raise ConversionError('bad_position', 'non-finite station position')
+    if not (abs(px) <= MAX_ABS_POSITION and abs(py) <= MAX_ABS_POSITION
+            and abs(pz) <= MAX_ABS_POSITION):
+        raise ConversionError('bad_position', 'non-finite station position or |coordinate| '
+                              f'above {MAX_ABS_POSITION:g} m')
     o = pose.pose.orientation
     qx, qy, qz, qw = float(o.x), float(o.y), float(o.z), float(o.w)
     norm = math.sqrt(((qx * qx + qy * qy) + qz * qz) + qw * qw)
