@@ -141,8 +141,9 @@ def bearing_from_msg(msg, station, expected_frame=None):
     Rejected (reason tag in parentheses): empty frame_id (``empty_frame_id``), frame_id not
     equal to ``expected_frame`` when given (``wrong_frame``), non-finite position or a
     coordinate beyond ±1e12 m (``bad_position``), NaN or non-unit quaternion
-    (``bad_quaternion``), roll ≠ 0 (``nonzero_roll``: |sin φ cos ψ| or −cos φ cos ψ above 1e-6, so any roll of 1e-6/cos ψ or
-    more, including an upside-down φ = π), azimuth variance whose σ is not in the core's
+    (``bad_quaternion``), roll ≠ 0 (``nonzero_roll``: |sin φ cos ψ| or −cos φ cos ψ above
+    1e-6, so any roll of 1e-6/cos ψ or more, including an upside-down φ = π), azimuth
+    variance whose σ is not in the core's
     [SIGMA_MIN, SIGMA_MAX] = [1e-12, 1e3] rad, NaN and <= 0 included
     (``bad_azimuth_variance``), elevation variance neither −1 nor such a σ²
     (``bad_elevation_variance``), non-finite or negative-diagonal position covariance
