@@ -74,9 +74,15 @@ def test_trust_update_and_scale_match_the_definition():
                 assert b.station not in got
             else:
                 np.testing.assert_allclose(got[b.station], row[2], rtol=1e-9)
+    scaled = 0
     for station, h in trust._hist.items():
+        # Scaled only when the window's Σ d² exceeds its χ² quantile (module doc).
+        dof = sum(k for _, k, _, _ in h)
+        gate = sum(d for _, _, d, _ in h) > st._chi2.ppf(trust.probability, dof)
         expect = np.sqrt(max(1.0, float(np.median([e / k for e, k, _, _ in h]))))
-        assert trust.scale(station) == expect
+        assert trust.scale(station) == (expect if gate else 1.0)
+        scaled += gate and expect > 1.0
+    assert scaled > 0                    # the gated branch is exercised
 
 
 def test_station_leaving_two_angles_is_untestable_on_both_paths():

@@ -15,15 +15,19 @@ others' uncertainty explains estimates the station's own error variance,
     σ̂_k² = median over the window of mean_angles(δ_k² − [J_k P_(−k) J_kᵀ]_diag),
 
 (the median: an occasional outlier, which the robust fix excludes, does not inflate a
-station's σ; a consistent bias does), and the station's σ is used as
-σ_eff = max(σ_claim · s_k, σ_floor) with the scale s_k = sqrt(max(1, σ̂_k² / σ_claim²))
-(never below the claim). Until a station has
+station's σ; a consistent bias does). A station whose window statistic
+Σ d_k² (d_k² = δ_kᵀ (R_claim + J_k P_(−k) J_kᵀ)⁻¹ δ_k, with the *claimed* σ; χ² with Σ dof
+degrees of freedom when the claim holds) exceeds the χ² quantile of
+:data:`SUSPECT_PROBABILITY` is *suspect* and named in the diagnostics. Only a suspect
+station is scaled: its σ is used as σ_eff = max(σ_claim · s_k, σ_floor) with
+s_k = sqrt(max(1, σ̂_k² / σ_claim²)) (never below the claim); every other station has
+s_k = 1. The gate is needed because a single excess sample has the standard deviation
+√2 · J_k P_(−k) J_kᵀ / σ_claim² per angle, which is large when the others determine the
+fix poorly (three stations: up to ~100× the claim's variance), so the raw median of a few
+samples scales honest stations by several times. Until a station has
 :data:`MIN_SAMPLES` residuals its σ is also floored at the median σ its peers claim: an
-unverified claim better than the rest of the network is not believed. A station whose window
-statistic Σ d_k² (d_k² = δ_kᵀ (R_claim + J_k P_(−k) J_kᵀ)⁻¹ δ_k, with the *claimed* σ)
-exceeds the χ² quantile of
-:data:`SUSPECT_PROBABILITY` with Σ dof degrees of freedom is *suspect* and named in the
-diagnostics. Pure Python/numpy; the fusion keeps one :class:`StationTrust` per pipeline.
+unverified claim better than the rest of the network is not believed. Pure Python/numpy;
+the fusion keeps one :class:`StationTrust` per pipeline.
 Angles in rad, positions in m; ENU, azimuth CCW from East, elevation above the horizontal.
 """
 
@@ -67,12 +71,13 @@ class StationTrust:
         self.floors = {str(k): float(v) for k, v in (floors or {}).items()}
         self.probability = float(probability)
         self._hist = {}
+        self._quantiles = {}
 
     # ------------------------------------------------------------------ use
     def scale(self, station):
         """s_k ≥ 1 (module docstring); 1 until :data:`MIN_SAMPLES` fixes were seen."""
         h = self._hist.get(station)
-        if not h or len(h) < MIN_SAMPLES:
+        if not h or len(h) < MIN_SAMPLES or not self._significant(h):
             return 1.0
         # statistics.median: the value np.median gives (the middle one, or the mean of the
         # two), without its ~30 µs per call (one call per bearing per epoch).
@@ -109,15 +114,17 @@ class StationTrust:
 
     def suspects(self):
         """Stations whose windowed deletion χ² is inconsistent with their σ (sorted)."""
-        out = []
-        for st, h in self._hist.items():
-            if len(h) < MIN_SAMPLES:
-                continue
-            d2 = sum(x for _, _, x, _ in h)
-            dof = sum(n for _, n, _, _ in h)
-            if d2 > _chi2.ppf(self.probability, dof):
-                out.append(st)
-        return sorted(out)
+        return sorted(st for st, h in self._hist.items()
+                      if len(h) >= MIN_SAMPLES and self._significant(h))
+
+    def _significant(self, h):
+        """True when the window ``h``'s Σ d² exceeds the χ² quantile of its Σ dof."""
+        d2 = sum(x for _, _, x, _ in h)
+        dof = sum(n for _, n, _, _ in h)
+        q = self._quantiles.get(dof)
+        if q is None:
+            q = self._quantiles[dof] = float(_chi2.ppf(self.probability, dof))
+        return d2 > q
 
     def forget(self, station):
         """Drop the history of ``station``."""
