@@ -96,7 +96,7 @@ async def crowd(url, n=20, abort=10):
     await asyncio.gather(*(c.pump(3.0, lambda c: '/fix' in c.by_topic) for c in clients))
     for c in clients:
         await c.subscribe(['/fix', '/map_geojson'])
-    await asyncio.gather(*(c.pump(4.0, lambda c: len(c.messages.get('/fix', ())) >= 2)
+    await asyncio.gather(*(c.pump(5.0, lambda c: len(c.messages.get('/fix', ())) >= 2)
                            for c in clients))
     got = [len(c.messages.get('/fix', ())) for c in clients]
     for k, c in enumerate(clients):
@@ -123,6 +123,9 @@ async def session(url, sim):
                        '/view/fix_stats'])
     slow = await slow_client(url)
     sim.start()
+    # The crowd connects once fixes flow: a loaded machine may take seconds to start the
+    # simulator, and the crowd's own wait must not race that start-up.
+    await a.pump(30.0, lambda c: '/fix' in c.messages)
     crowd_task = asyncio.create_task(crowd(url))
     await a.pump(60.0, lambda c: sim.done())
     counts = await crowd_task
