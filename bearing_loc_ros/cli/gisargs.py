@@ -153,12 +153,12 @@ def export_locate(args, results, sets):
     ``results``: the output dicts of cli.locate.solve; ``sets``: the one-problem BearingSets.
     Problems without a finite position are skipped (and counted on stderr).
     """
+    if not wanted(args):
+        return []
     import sys
     from ..core import gis
     from ..core.bearings import Bearing
     from .. import gis_export as gx
-    if not wanted(args):
-        return []
     origin = origin_of(args)
     fixes, rays, stations, skipped = [], [], {}, 0
     for k, (res, bs) in enumerate(zip(results, sets)):
