@@ -404,3 +404,54 @@ def test_one_problem_path_hands_ieee_cases_to_the_batch_path():
             initial=[0.0, 0.0, 700.0])
         assert one.status[0] == two.status[0]
         np.testing.assert_array_equal(one.position[0], two.position[0])
+
+
+def _screen_by_definition(data, X, P, c2, probability, max_nu):
+    """The robust screen written out plainly: residuals, per-row χ² band, ν from eigvalsh."""
+    from bearing_loc_ros.core.robust_model import chi2_band, region_nonlinearity
+    ra, re, _, _, _, d, _ = data.evaluate(X)
+    qa, qe = ra * ra, re * re
+    chi2 = (qa + qe).sum(axis=-1)
+    lo, hi = chi2_band(data.az.shape[1] + data.has_el.sum(axis=-1) - 3, probability)
+    nu = region_nonlinearity(P, d, np.ones_like(d, dtype=bool))
+    with np.errstate(invalid='ignore'):
+        calm = ((qa.max(axis=-1) <= c2) & (qe.max(axis=-1) <= c2) & (chi2 >= lo)
+                & (chi2 <= hi) & (nu <= max_nu))
+    return ~calm
+
+
+@pytest.mark.parametrize('same_elevations', [True, False])
+def test_robust_screen_equals_its_definition(same_elevations):
+    # The batch screen (no eigenvalues, reductions through transposed copies) decides as the
+    # plain definition: residual outliers, χ² below and above its band, ν on either side of
+    # its bound, mixed elevation patterns, and non-finite fixes and covariances.
+    from bearing_loc_ros.core import robust
+    rng = np.random.default_rng(11)
+    M, N = 3000, 5
+    _, bs = random_problems(rng, M, N, noise=True, sigma=np.radians(1.0))
+    if same_elevations:
+        bs = BearingSet.from_arrays(bs.positions, bs.azimuth,
+                                    np.where(np.arange(N) % 2 == 0, bs.elevation, np.nan),
+                                    bs.sigma_az, bs.sigma_el)
+    # Claimed σ 0.3-3 × the true 1°: χ² above, inside and below its band.
+    bs.sigma_az[:] = bs.sigma_el[:] = np.radians(rng.uniform(0.3, 3.0, M))[:, None]
+    bs.sigma_el[~bs.has_elevation] = np.nan
+    # One azimuth 3-8 σ off in a fifth of the rows: single angles around the outlier bound.
+    rows = np.flatnonzero(rng.random(M) < 0.2)
+    bs.azimuth[rows, 1] += rng.uniform(3.0, 8.0, rows.size) * bs.sigma_az[rows, 1]
+    plain = locate('mle', bs, robust=False)
+    X, P = plain.position.copy(), plain.covariance.copy()
+    # Covariances scaled so that ν spreads on both sides of its bound 0.2.
+    P *= np.exp(rng.uniform(-2.0, 7.0, M))[:, None, None]
+    X[:5] = [np.nan, 0.0, 0.0]
+    X[5:10, 1] = np.inf
+    P[10:15, 2, 2] = np.inf
+    P[15:20, 0, 1] = P[15:20, 1, 0] = np.nan
+    data = robust.Data(bs)
+    fast = robust.screen(data, X, P)
+    plain_def = _screen_by_definition(data, X, P, robust.outlier_c2(),
+                                      robust.CONSISTENCY_PROBABILITY,
+                                      robust.MAX_REGION_NONLINEARITY)
+    np.testing.assert_array_equal(fast, plain_def)
+    assert fast[:20].all()
+    assert 0.1 < fast.mean() < 0.9              # both decisions are well represented

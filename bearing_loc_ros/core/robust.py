@@ -78,11 +78,12 @@ import numpy as np
 
 from .crlb import safe_inverse
 # Re-exported: the model and the consensus are part of this module's interface.
-from .robust_consensus import consensus_fit  # noqa: F401
+from .robust_consensus import consensus_fit, second_optimum  # noqa: F401
 from .robust_model import (chi2_band, chi2_upper, CONSISTENCY_PROBABILITY,  # noqa: F401
                            Data, DECISIVE_PROBABILITY, fisher, MAX_NONLINEARITY,
                            MAX_REGION_NONLINEARITY, MAX_REGION_NONLINEARITY_GROWN,
-                           max_nonlinearity, nonlinearity, OUTLIER_PROBABILITY, outlier_c2,
+                           max_nonlinearity, MULTIMODE_PROBABILITY, nonlinearity,
+                           OUTLIER_PROBABILITY, outlier_c2,
                            REFIT_ITERATIONS, REFIT_ROUNDS, region_nonlinearity,
                            TEST_INVERSION_Z, test_inversion_covariance, whitened_residuals)
 
@@ -94,10 +95,11 @@ def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY, max_nu=None):
     """Step 4 of the module docstring: (covariance (M, 3, 3), ok (M,), chi2, dof, ν).
 
     ``ok``: χ² ≤ the χ²_dof ``probability`` quantile, ν ≤ ``max_nu`` (default
-    :func:`max_nonlinearity`), at most ⌊(M_meas − 3)/2⌋ angles excluded, and every
+    :func:`max_nonlinearity`), at most ⌊(M_meas − 3)/2⌋ angles excluded, every
     excluded angle decisive (predictive residual r² / (1 + gᵀPg) above the χ²₁ quantile of
-    :data:`DECISIVE_PROBABILITY`). The covariance is (Σ w g gᵀ)⁻¹, m², for range-grown σ
-    widened by :func:`test_inversion_covariance`.
+    :data:`DECISIVE_PROBABILITY`) and no second optimum of the likelihood outside the
+    covariance (:func:`.robust_consensus.second_optimum`). The covariance is (Σ w g gᵀ)⁻¹,
+    m², for range-grown σ widened by :func:`test_inversion_covariance`.
     """
     grown = data.d_ref is not None
     max_nu = max_nonlinearity(grown) if max_nu is None else max_nu
@@ -122,21 +124,65 @@ def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY, max_nu=None):
     ok = ((chi2 <= chi2_upper(dof, probability)) & (nu <= max_nu)
           & (excluded <= np.floor((n_all - 3) / 2.0)) & ~marginal.any(axis=-1)
           & np.all(np.isfinite(P), axis=(-2, -1)))
+    idx = np.flatnonzero(ok)
+    if idx.size:
+        ok[idx] = ~second_optimum(data.take(idx), X[idx], wa[idx], we[idx], P[idx])
     return P, ok, chi2, dof, nu
 
 
 def screen(data, X, P, probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None):
-    """Step 1: (M,) True where the fix needs the consensus and refit (module docstring)."""
+    """Step 1: (M,) True where the fix needs the consensus and refit (module docstring).
+
+    ``data`` (:class:`Data`, M problems), X (M, 3) m, P (M, 3, 3) m². Calm (False) when every
+    whitened residual has r_j² ≤ ``c2``, the residual χ² lies inside the two-sided χ²_dof band
+    of ``probability`` (dof = M_meas − 3) and ν = sqrt(λ_max(P)) / min_k d_k ≤ ``max_nu``.
+    A few elementwise operations over (M, N) arrays, since at high SNR nearly every fix is
+    calm: the χ² band is looked up per distinct dof, and the ν test needs no eigenvalues,
+    λ_max(P) < t ⇔ tI − P positive definite ⇔ its three leading principal minors are
+    positive (Sylvester's criterion), t = (``max_nu`` min_k d_k)². A non-finite X or P
+    fails the screen. The same decisions as :func:`screen_one` (tested).
+    """
     c2 = outlier_c2() if c2 is None else c2
     max_nu = max_nonlinearity(data.d_ref is not None) if max_nu is None else max_nu
-    ra, re, _, _, _, d, _ = data.evaluate(X)
-    qa, qe = ra * ra, re * re
-    chi2 = (qa + qe).sum(axis=-1)
-    dof = data.az.shape[1] + data.has_el.sum(axis=-1) - 3
-    lo, hi = chi2_band(dof, probability)
-    nu = region_nonlinearity(P, d, np.ones_like(d, dtype=bool))
-    calm = ((qa.max(axis=-1) <= c2) & (qe.max(axis=-1) <= c2) & (chi2 >= lo) & (chi2 <= hi)
-            & (nu <= max_nu))
+    pos = data.pos
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        dx = X[:, 0:1] - pos[..., 0]
+        dy = X[:, 1:2] - pos[..., 1]
+        dz = X[:, 2:3] - pos[..., 2]
+        rho2 = dx * dx + dy * dy
+        r2 = rho2 + dz * dz
+        e_az = data.az - np.arctan2(dy, dx)
+        e_az -= 2.0 * np.pi * np.ceil((e_az - np.pi) / (2.0 * np.pi))
+        e_el = data.el - np.arctan2(dz, np.sqrt(rho2))
+        ia, ie = data.ia, data.ie
+        if data.d_ref is not None:
+            f = data.d_ref / np.sqrt(r2)
+            ia, ie = ia * f, ie * f
+        qa = ia * e_az
+        qa *= qa
+        qe = ie * e_el
+        qe *= qe
+        # Reductions over the few stations of a row: a matrix-vector product and reductions
+        # along the rows of transposed copies (numpy's reduction over a short last axis is
+        # ten times slower).
+        chi2 = (qa + qe) @ np.ones(qa.shape[1])
+        worst = np.ascontiguousarray(np.maximum(qa, qe).T).max(axis=0)
+        t = max_nu * max_nu * np.ascontiguousarray(r2.T).min(axis=0)
+        a = t - P[:, 0, 0]
+        b = t - P[:, 1, 1]
+        c = t - P[:, 2, 2]
+        p01, p02, p12 = P[:, 0, 1], P[:, 0, 2], P[:, 1, 2]
+        det = (a * (b * c - p12 * p12) - p01 * p01 * c - b * p02 * p02
+               - 2.0 * p01 * p12 * p02)
+        has = data.has_el
+        if (has == has[:1]).all():      # the same stations measure elevation in every row
+            lo, hi = _band_cached(has.shape[1] + int(np.count_nonzero(has[:1])) - 3,
+                                  probability)
+        else:
+            lo, hi = _band_table(has.shape[1] + np.count_nonzero(has, axis=1) - 3,
+                                 probability)
+        calm = ((worst <= c2) & (chi2 >= lo) & (chi2 <= hi) & (t < np.inf) & (a > 0.0)
+                & (a * b > p01 * p01) & (det > 0.0))
     return ~calm
 
 
@@ -217,6 +263,15 @@ def _band_cached(dof, probability):
     return _BANDS[key]
 
 
+def _band_table(dof, probability):
+    """(lo, hi) (M,) of :func:`chi2_band` for the integer dof (M,), one quantile per value."""
+    if dof.size == 0:
+        return np.zeros((2, 0))
+    d0 = int(dof.min())
+    table = np.array([_band_cached(k, probability) for k in range(d0, int(dof.max()) + 1)])
+    return table[dof - d0].T
+
+
 def confident_result(result, bearings, d_ref=None):
     """The estimator's FixResult after screen, consensus, refit and assessment (module doc).
 
@@ -229,7 +284,7 @@ def confident_result(result, bearings, d_ref=None):
     estimator's own position, covariance and status.
     """
     from .fix import (FixResult, STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_LOW_CONFIDENCE,
-                      STATUS_MAX_ITERATIONS, STATUS_OK)
+                      STATUS_MAX_ITERATIONS, STATUS_OK, STATUSES)
     M, N = bearings.M, bearings.N
     if M == 1 and d_ref is None and str(result.status[0]) == STATUS_OK:
         # One calm fix (the fusion's and locate's usual case): screened on Python floats and
@@ -242,51 +297,65 @@ def confident_result(result, bearings, d_ref=None):
                              result.converged, result.status, result.method,
                              excluded=np.zeros((1, N, 2), dtype=bool),
                              nonlinearity=np.full(1, np.nan))
-    pos = np.array(result.position, dtype=float)
-    cov = np.array(result.covariance, dtype=float)
-    status = np.array(result.status, dtype=object)
-    conv = np.array(result.converged, dtype=bool)
-    excluded = np.zeros((M, N, 2), dtype=bool)
-    nu = np.full(M, np.nan)
-    usable = np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(cov), axis=(1, 2))
+    status = np.asarray(result.status)
+    is_ok = status == STATUS_OK
+    data = Data(bearings, d_ref)
     if d_ref is not None:
         # Range-grown σ: the paper's cost has its attractor at infinite range, so every fix
         # is refitted on the full likelihood (the screen would keep the paper's estimate).
         trigger = np.ones(M, dtype=bool)
-    elif M == 1 and usable[0] and status[0] == STATUS_OK:
-        trigger = np.array([screen_one(bearings, pos[0].tolist(), d_ref, cov[0])])
+    elif M == 1:
+        trigger = np.array([not (np.all(np.isfinite(result.position))
+                                 and np.all(np.isfinite(result.covariance)))
+                            or screen_one(bearings, result.position[0].tolist(), d_ref,
+                                          result.covariance[0])])
     else:
-        data = Data(bearings, d_ref)
-        trigger = np.ones(M, dtype=bool)
-        calm_idx = np.flatnonzero(usable & (status == STATUS_OK))
-        if calm_idx.size:
-            sub = data.take(calm_idx)
-            trigger[calm_idx] = screen(sub, pos[calm_idx], cov[calm_idx])
+        # Every row is screened (a row's decision depends on that row alone; a non-finite
+        # fix fails it).
+        trigger = screen(data, result.position, result.covariance)
     # A fix the estimator did not converge on (max_iterations, diverged: typically a run-away
     # in range) always goes to the consensus, with its own position as one candidate when
-    # finite; degenerate geometry stays as it is.
-    trigger = np.where(status == STATUS_OK, trigger & usable,
-                       (status == STATUS_MAX_ITERATIONS) | (status == STATUS_DIVERGED))
+    # finite; degenerate geometry stays as it is, and so does an ok fix without a finite
+    # position and covariance.
+    if not is_ok.all():
+        trigger = np.where(is_ok, trigger, (status == STATUS_MAX_ITERATIONS)
+                           | (status == STATUS_DIVERGED))
     idx = np.flatnonzero(trigger)
-    if idx.size:
-        data = Data(bearings, d_ref).take(idx)
-        start = np.where(np.all(np.isfinite(pos[idx]), axis=1)[:, None], pos[idx], np.nan)
-        X, wa, we = consensus_fit(data, start)
-        P, ok, _, _, nux = assess(data, X, wa, we)
-        finite = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
-        # No finite refit (e.g. a target far beyond the baseline): the estimator's own
-        # finite fix is kept, as low_confidence, without exclusions.
-        own = ~finite & usable[idx]
-        keep = finite | own
-        pos[idx] = np.where(finite[:, None], X, np.where(own[:, None], pos[idx], np.nan))
-        cov[idx] = np.where(finite[:, None, None], P,
-                            np.where(own[:, None, None], cov[idx], np.inf))
-        ok &= finite
-        status[idx] = np.where(keep, np.where(ok, STATUS_OK, STATUS_LOW_CONFIDENCE),
-                               STATUS_DEGENERATE)
-        conv[idx] = ok
-        excluded[idx, :, 0] = finite[:, None] & (wa == 0)
-        excluded[idx, :, 1] = finite[:, None] & data.has_el & (we == 0)
-        nu[idx] = np.where(finite, nux, np.nan)
-    return FixResult(pos, cov, result.iterations, conv, status.astype(str), result.method,
+    usable = (np.all(np.isfinite(result.position[idx]), axis=1)
+              & np.all(np.isfinite(result.covariance[idx]), axis=(1, 2)))
+    keep = usable | ~is_ok[idx]
+    if not keep.all():
+        idx, usable = idx[keep], usable[keep]
+    if not idx.size:
+        # Every fix passed the screen (the usual case at high SNR): the estimator's result.
+        return FixResult(result.position, result.covariance, result.iterations,
+                         result.converged, result.status, result.method,
+                         excluded=np.zeros((M, N, 2), dtype=bool),
+                         nonlinearity=np.full(M, np.nan))
+    pos = np.array(result.position, dtype=float)
+    cov = np.array(result.covariance, dtype=float)
+    status = status.astype(f'<U{max(map(len, STATUSES))}')     # room for every status
+    conv = np.array(result.converged, dtype=bool)
+    excluded = np.zeros((M, N, 2), dtype=bool)
+    nu = np.full(M, np.nan)
+    data = data.take(idx)
+    start = np.where(np.all(np.isfinite(pos[idx]), axis=1)[:, None], pos[idx], np.nan)
+    X, wa, we = consensus_fit(data, start)
+    P, ok, _, _, nux = assess(data, X, wa, we)
+    finite = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
+    # No finite refit (e.g. a target far beyond the baseline): the estimator's own
+    # finite fix is kept, as low_confidence, without exclusions.
+    own = ~finite & usable
+    keep = finite | own
+    pos[idx] = np.where(finite[:, None], X, np.where(own[:, None], pos[idx], np.nan))
+    cov[idx] = np.where(finite[:, None, None], P,
+                        np.where(own[:, None, None], cov[idx], np.inf))
+    ok &= finite
+    status[idx] = np.where(keep, np.where(ok, STATUS_OK, STATUS_LOW_CONFIDENCE),
+                           STATUS_DEGENERATE)
+    conv[idx] = ok
+    excluded[idx, :, 0] = finite[:, None] & (wa == 0)
+    excluded[idx, :, 1] = finite[:, None] & data.has_el & (we == 0)
+    nu[idx] = np.where(finite, nux, np.nan)
+    return FixResult(pos, cov, result.iterations, conv, status, result.method,
                      excluded=excluded, nonlinearity=nu)
