@@ -12,7 +12,7 @@ from scipy import stats
 
 from bearing_loc_ros.core import evaluation as ev
 from bearing_loc_ros.core import robust
-from bearing_loc_ros.core.bearings import Bearing
+from bearing_loc_ros.core.bearings import Bearing, BearingSet
 from bearing_loc_ros.core.conventions import azimuth_elevation
 from bearing_loc_ros.core.estimators import locate
 from bearing_loc_ros.core.fusion import FusionConfig
@@ -278,3 +278,37 @@ def test_an_honest_three_station_network_is_never_scaled():
     lo, hi = stats.chi2.ppf([0.005, 0.995], 3 * n) / n
     assert lo < np.mean(nees_values) < hi
     assert trust.suspects() == []
+
+
+def test_a_second_likelihood_optimum_makes_the_fix_low_confidence():
+    # Zong & Cui 2015 geometry, σ_ref 5° (σ ≈ 30° at the target's range): the consensus
+    # fits a point 0.85 km from the first station, 5.7 km short of the target at 6.2 km,
+    # with a stated σ of 70 m (NEES 1e4). Refitted from the all-station ls fix, the full
+    # likelihood has a second optimum near the target within the χ²₃ 0.9999 level, so
+    # the likelihood-ratio region is not one ellipsoid: the fix is low_confidence.
+    st = [[x, 0.0, 0.0] for x in (-3000.0, -1800.0, -600.0, 600.0, 1800.0, 3000.0)]
+    az = [0.7026255418992083, 2.425751758640569, 2.4261049246351116, 3.043947805226523,
+          2.2796326108613902, 2.874134103930627]
+    el = [0.16608491878698725, 0.4565480201255526, 0.28166733688361356,
+          -0.1725605113899137, 0.36163124914715694, -0.8687525105998355]
+    s = math.radians(5.0)
+    bs = BearingSet.from_arrays(st, az, el, s, s)
+    res = locate('wmle', bs, robust=True, reference_range=1000.0)
+    assert res.status[0] == 'low_confidence'
+    data = robust.Data(bs, 1000.0)
+    X = res.position
+    wa = (~res.excluded[:, :, 0]).astype(float)
+    we = ((~res.excluded[:, :, 1]) & bs.has_elevation).astype(float)
+    assert robust.second_optimum(data, X, wa, we, res.covariance)[0]
+
+
+def test_second_optimum_check_is_silent_at_moderate_snr():
+    # Six stations, constant σ 2°: the likelihood has one optimum over the region, so the
+    # check (level 1e-4 per fix) flags none of 300 fixes (expected count ≤ 0.03).
+    tr = trials('config/scenarios/six_station_const.yaml', 300)
+    b = noisy(tr, math.radians(2.0), 21)
+    res = locate('mle', b, robust=False)
+    data = robust.Data(b)
+    wa = np.ones_like(b.azimuth)
+    we = b.has_elevation.astype(float)
+    assert not robust.second_optimum(data, res.position, wa, we, res.covariance).any()

@@ -11,7 +11,8 @@ from itertools import combinations
 import numpy as np
 
 from .crlb import safe_inverse
-from .robust_model import chi2_upper, fisher, outlier_c2, REFIT_ITERATIONS, REFIT_ROUNDS
+from .robust_model import (chi2_upper, fisher, MULTIMODE_PROBABILITY, outlier_c2,
+                           REFIT_ITERATIONS, REFIT_ROUNDS)
 
 
 def _ls_candidates(data, masks):
@@ -212,3 +213,42 @@ def _prefer_all_bearings(data, X, wa, we, X_ml, X_ls):
         wa[k] = 1.0
         we[k] = has[k].astype(float)
     return X, wa, we
+
+
+def second_optimum(data, X, wa, we, P, probability=MULTIMODE_PROBABILITY):
+    """(M,) True where the likelihood has a second optimum the fix's covariance does not cover.
+
+    Step 4 (e) of the :mod:`.robust` docstring. The pseudo-linear ``ls`` fix of all stations
+    (Wang, Zhang & Wu eq. (4)) is the start: where it lies outside the fix's ellipsoid
+    (Mahalanobis distance² (X_ls − X̂)ᵀ P⁻¹ (X_ls − X̂) above q = the χ²₃ quantile of
+    ``probability``), the full likelihood L of the fix's inliers (``wa``, ``we``) is
+    refitted from it. A refit X₂ that stays outside the ellipsoid (distance² > q) with
+    L(X₂) − L(X̂) < q lies inside the likelihood-ratio confidence region of that level (Wilks
+    1938; the region is {X: L(X) − L(X̂) ≤ χ²₃ quantile}): the region has a second component
+    that no single ellipsoid describes, and a consumer trusting P could be wrong by the
+    distance to X₂. ``X`` (M, 3) m, ``P`` (M, 3, 3) m²; False where P is not finite.
+    """
+    M, N = data.az.shape
+    q = float(chi2_upper(3, probability))
+    finite = np.all(np.isfinite(P), axis=(-2, -1)) & np.all(np.isfinite(X), axis=-1)
+    Pi = safe_inverse(np.where(finite[:, None, None], P, np.eye(3)))
+    ls = _ls_candidates(data, np.ones((1, N)))[:, 0]
+
+    def dist2(Y):
+        dY = Y - X
+        with np.errstate(invalid='ignore', over='ignore'):
+            return np.einsum('mi,mij,mj->m', dY, Pi, dY)
+
+    idx = np.flatnonzero(finite & np.all(np.isfinite(ls), axis=-1) & (dist2(ls) > q))
+    out = np.zeros(M, dtype=bool)
+    if not idx.size:
+        return out
+    sub = data.take(idx)
+    a, e = wa[idx], we[idx]
+    X2 = _refit(sub, ls[idx], a, e)
+    dY = X2 - X[idx]
+    with np.errstate(invalid='ignore', over='ignore'):
+        far = np.einsum('mi,mij,mj->m', dY, Pi[idx], dY) > q
+    close = _cost(sub, X2, a, e) - _cost(sub, X[idx], a, e) < q
+    out[idx] = far & close
+    return out

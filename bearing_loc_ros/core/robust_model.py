@@ -27,6 +27,9 @@ MAX_REGION_NONLINEARITY_GROWN = 0.1
 #: An excluded angle must be an outlier also given the fix's uncertainty: its predictive
 #: residual r² / (1 + gᵀPg) must exceed the χ²₁ quantile of this probability (4.9 σ).
 DECISIVE_PROBABILITY = 1.0 - 1e-6
+#: Level of the likelihood-ratio region that must not hold a second optimum of an ``ok``
+#: fix (χ²₃ quantile 21.1: the level of a confidently wrong fix).
+MULTIMODE_PROBABILITY = 0.9999
 #: Level z of the test-inversion covariance along the range axis (range-grown σ).
 TEST_INVERSION_Z = 2.0
 #: Rounds of inlier recomputation and refit.
