@@ -192,13 +192,29 @@ def json_problems(problems, parse_problem):
 
 def _duplicate_station_problems(station, offsets):
     """(K,) bool: problems naming one station id twice (unnamed bearing i is station_<i>)."""
-    dup = np.zeros(len(offsets) - 1, dtype=bool)
+    count = len(offsets) - 1
     if not any(type(s) is str for s in station):
-        return dup
-    for k in range(len(dup)):
-        names = [s if type(s) is str else f'station_{i}'
-                 for i, s in enumerate(station[offsets[k]:offsets[k + 1]])]
-        dup[k] = len(set(names)) != len(names)
+        return np.zeros(count, dtype=bool)
+    counts = np.diff(offsets)
+    if not all(type(s) is str for s in station):
+        within = (np.arange(len(station)) - np.repeat(offsets[:-1], counts)).tolist()
+        station = [s if type(s) is str else f'station_{i}' for s, i in zip(station, within)]
+    owner = np.repeat(np.arange(count), counts)
+    return _repeated(owner, _codes(station), count)
+
+
+def _codes(names):
+    """(R,) int64: the same code for equal names (first-seen order)."""
+    codes = {name: k for k, name in enumerate(dict.fromkeys(names))}
+    return np.fromiter(map(codes.__getitem__, names), dtype=np.int64, count=len(names))
+
+
+def _repeated(owner, code, count):
+    """(count,) bool: owners holding one code twice (sort-based, no np.unique)."""
+    span = int(code.max(initial=0)) + 1
+    key = np.sort(owner * span + code)
+    dup = np.zeros(count, dtype=bool)
+    dup[key[1:][key[1:] == key[:-1]] // span] = True
     return dup
 
 
@@ -207,20 +223,35 @@ def _first_duplicate_row(problem, station):
 
     An empty station cell names no station, so empty cells never count as duplicates.
     """
-    names = np.asarray(station, dtype=str)
-    _, code = np.unique(names, return_inverse=True)
-    key = problem.astype(np.int64) * (int(code.max()) + 1) + code.ravel()
-    key = np.where(names == '', -1 - np.arange(len(key)), key)
+    code = _codes(station)
+    key = problem.astype(np.int64) * (int(code.max()) + 1) + code
+    key = np.where(np.array([s == '' for s in station], dtype=bool),
+                   -1 - np.arange(len(key)), key)
     order = np.argsort(key, kind='stable')
     repeat = np.flatnonzero(key[order][1:] == key[order][:-1])
     return int(order[repeat + 1].min()) if repeat.size else None
+
+
+def unique_first(values):
+    """``np.unique(values, return_index=True, return_inverse=True)`` of a 1-D array.
+
+    By a stable sort: np.unique would import numpy.ma (20 ms) on a command's first call.
+    """
+    order = np.argsort(values, kind='stable')
+    ordered = values[order]
+    new = np.empty(len(values), dtype=bool)
+    new[:1] = True
+    np.not_equal(ordered[1:], ordered[:-1], out=new[1:])
+    inverse = np.empty(len(values), dtype=np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    return ordered[new], order[new], inverse
 
 
 def grouped(columns, counts, stations=None, ids=None):
     """Flat per-bearing columns (problems contiguous, ``counts`` rows each) -> Problems."""
     offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
     groups = []
-    for n in np.unique(counts).tolist():
+    for n in np.flatnonzero(np.bincount(counts)).tolist():      # np.unique imports numpy.ma
         idx = np.flatnonzero(counts == n)
         rows = (offsets[idx][:, None] + np.arange(n)).ravel()
         arrays = [c[rows].reshape((len(idx), n) + c.shape[1:]) for c in columns]
@@ -431,7 +462,7 @@ def _table_problems(columns, row_name):
         r = int(np.argmax(bad))
         message = next(m for mask, m in checks if mask[r])
         raise InputError(f'{row_name(r)} (problem {ids[r]}): {message}')
-    uniq, first, inverse = np.unique(ids, return_index=True, return_inverse=True)
+    uniq, first, inverse = unique_first(ids)
     rank = np.empty(len(uniq), dtype=np.int64)
     rank[np.argsort(first, kind='stable')] = np.arange(len(uniq))
     problem = rank[inverse.ravel()]

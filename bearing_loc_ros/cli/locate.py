@@ -34,6 +34,7 @@ Problems with the same number of bearings are checked and solved in one vectoris
 
 import json
 import math
+import sys
 
 import numpy as np
 
@@ -42,8 +43,8 @@ from ..core import registry
 from . import InputError
 from . import batch_input
 from .deprecation import DeprecatedOption
-from .jsonio import (add_io_arguments, check_object, finite_rows, number, read_json,
-                     request_header, write_results)
+from .jsonio import (add_io_arguments, check_object, finite_or_none, finite_rows, number,
+                     read_json, request_header, write_results)
 
 BEARING_FIELDS = ('station', 'position', 'azimuth', 'elevation', 'sigma_azimuth',
                   'sigma_elevation')
@@ -187,30 +188,106 @@ def solve(method, options, sets):
     ``sets``: a :class:`batch_input.Problems` or a list of one-problem BearingSets.
     Returns one output dict per problem, in order (see module docstring).
     """
+    return solve_groups(method, options, sets).dicts()
+
+
+def solve_groups(method, options, sets):
+    """Solve as :func:`solve` does; return the per-group arrays as :class:`Solved`."""
     if not isinstance(sets, batch_input.Problems):
         sets = batch_input.Problems.from_sets(sets)
-    out = [None] * len(sets)
+    groups = []
     for idx, batch in sets.groups:
         try:
             res = registry.solve(method, batch, **options)
         except ValueError as exc:
             raise InputError(_name_problem(str(exc), idx, batch, sets.ids)) from None
         bound = registry.noise_crlb(method, res.position, batch, solve=res.solve, **options)
-        solved = res.solve.tolist() if res.solve is not None else ['3d'] * len(idx)
-        for j, (k, pos, cov, crlb, conv, it, status) in enumerate(zip(
-                idx.tolist(), finite_rows(res.position), finite_rows(res.covariance),
-                finite_rows(bound), res.converged.tolist(), res.iterations.tolist(),
-                res.status.tolist())):
-            out[k] = {'estimator': method, 'method': method, 'position': pos,
-                      'covariance': cov, 'crlb': crlb, 'converged': bool(conv),
-                      'iterations': int(it), 'status': str(status), 'solve': solved[j]}
-            if solved[j] == 'horizontal':
-                out[k]['target_altitude'] = float(res.target_altitude[j])
-                out[k]['target_altitude_sigma'] = float(res.target_altitude_sigma[j])
-    if sets.ids is not None:
-        for r, problem in zip(out, sets.ids):
-            r['problem'] = problem
-    return out
+        groups.append((idx, res, bound))
+    return Solved(method, groups, len(sets), sets.ids)
+
+
+class Solved:
+    """The fixes of one request, group by group: (indices, FixResult, CRLB) per bearing count.
+
+    :meth:`dicts` gives the output objects of :func:`solve`; :meth:`json` the compact JSON
+    text ``json.dumps`` writes for them (byte for byte), formatted group by group without
+    building an object per problem.
+    """
+
+    def __init__(self, method, groups, count, ids=None):
+        self.method = method
+        self.groups = groups
+        self.count = count
+        self.ids = ids
+
+    def dicts(self):
+        """One output dict per problem, in order (module docstring)."""
+        method = self.method
+        out = [None] * self.count
+        for idx, res, bound in self.groups:
+            solved = res.solve.tolist() if res.solve is not None else ['3d'] * len(idx)
+            for j, (k, pos, cov, crlb, conv, it, status) in enumerate(zip(
+                    idx.tolist(), finite_rows(res.position), finite_rows(res.covariance),
+                    finite_rows(bound), res.converged.tolist(), res.iterations.tolist(),
+                    res.status.tolist())):
+                out[k] = {'estimator': method, 'method': method, 'position': pos,
+                          'covariance': cov, 'crlb': crlb, 'converged': bool(conv),
+                          'iterations': int(it), 'status': str(status), 'solve': solved[j]}
+                if solved[j] == 'horizontal':
+                    out[k]['target_altitude'] = float(res.target_altitude[j])
+                    out[k]['target_altitude_sigma'] = float(res.target_altitude_sigma[j])
+        if self.ids is not None:
+            for r, problem in zip(out, self.ids):
+                r['problem'] = problem
+        return out
+
+    def json(self, batch):
+        """``json.dumps({"results": dicts})`` (``dicts()[0]`` unless ``batch``), allow_nan off.
+
+        Each array is written by one ``json.dumps`` call and cut into its rows (rows holding
+        NaN/inf are written again with ``null``), then every problem's object is one string
+        format: no dict per problem, and the same bytes.
+        """
+        head = '{"estimator": %s, "method": %s, "position": ' % ((json.dumps(self.method),) * 2)
+        body = (head + '%s, "covariance": %s, "crlb": %s, "converged": %s, "iterations": %d, '
+                '"status": %s, "solve": %s')
+        out = [None] * self.count
+        for idx, res, bound in self.groups:
+            solved = res.solve.tolist() if res.solve is not None else ['3d'] * len(idx)
+            status = res.status.tolist()
+            quoted = {text: json.dumps(str(text)) for text in set(status) | set(solved)}
+            rows = zip(_json_rows(res.position), _json_rows(res.covariance), _json_rows(bound),
+                       map(_JSON_BOOL.get, res.converged.tolist()), res.iterations.tolist(),
+                       map(quoted.get, status), map(quoted.get, solved))
+            for k, row in zip(idx.tolist(), rows):
+                out[k] = body % row
+            for j in np.flatnonzero(np.array(solved) == 'horizontal').tolist():
+                out[idx[j]] += ', "target_altitude": %s, "target_altitude_sigma": %s' % (
+                    json.dumps(float(res.target_altitude[j]), allow_nan=False),
+                    json.dumps(float(res.target_altitude_sigma[j]), allow_nan=False))
+        if self.ids is not None:
+            out = ['%s, "problem": %s}' % (r, json.dumps(problem))
+                   for r, problem in zip(out, self.ids)]
+        else:
+            out = [r + '}' for r in out]
+        return '{"results": [%s]}' % ', '.join(out) if batch else out[0]
+
+
+_JSON_BOOL = {True: 'true', False: 'false'}
+
+
+def _json_rows(array):
+    """The JSON text of each row (first axis) of a float array, as ``json.dumps`` writes it
+    (floats by ``repr``), NaN/inf as ``null``."""
+    depth = array.ndim - 1          # brackets around a row
+    cut = '%s, %s' % (']' * depth, '[' * depth)
+    text = json.dumps(array.tolist())[depth + 1:-depth - 1]
+    rows = [('[' * depth) + r + (']' * depth) for r in text.split(cut)] if depth else \
+        text.split(', ')
+    flat = array.reshape(len(array), -1)
+    for j in np.flatnonzero(~np.isfinite(flat).all(axis=1)).tolist():
+        rows[j] = json.dumps(finite_or_none(array[j].tolist()))
+    return rows
 
 
 def _name_problem(message, idx, batch, ids):
@@ -255,6 +332,10 @@ def run(args):
     from . import gisargs
     gisargs.check(args)
     method, options, sets, batch = read_request(args)
-    results = solve(method, dimension_options(args, options), sets)
+    solved = solve_groups(method, dimension_options(args, options), sets)
+    if args.indent is None and not gisargs.wanted(args):
+        sys.stdout.write(solved.json(batch) + '\n')
+        return 0
+    results = solved.dicts()
     gisargs.export_locate(args, results, sets)
     return write_results(results, batch, args.indent)
