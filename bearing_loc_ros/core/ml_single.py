@@ -24,7 +24,7 @@ import numpy as np
 
 from .crlb import safe_inverse
 from .fix import FixResult, iterative_result, STATUS_DIVERGED, STATUS_MAX_ITERATIONS, STATUS_OK
-from .single_floats import normal_equations, pseudo_linear_rows, solve3
+from .single_floats import inverse3, normal_equations, pseudo_linear_rows, solve3
 from .solvers import CHI2_STEP_TOL, COST_RTOL
 
 _PI = math.pi
@@ -178,8 +178,14 @@ def solve_one(method, bearings, d_ref, opts):
     except (ArithmeticError, ValueError):      # division by zero, overflow, ceil(NaN)
         return None
     a00, a01, a02, a11, a12, a22 = Q[:6]
-    info = np.array([[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]])
     x = np.array([X], dtype=float)
+    status = STATUS_OK if conv else STATUS_DIVERGED if div else STATUS_MAX_ITERATIONS
+    cov = inverse3(*Q[:6]) if math.isfinite(sum(Q[:6])) else None
+    if cov is not None and all(math.isfinite(v) for v in X):
+        # Well conditioned (the usual case): the cofactor inverse, within ~1e-11 of LAPACK's.
+        return FixResult(x, np.array([cov]), np.array([it]), np.array([conv]),
+                         np.array([status]), method)
+    info = np.array([[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]])
     # crlb.safe_inverse for one matrix (the same LAPACK calls, without its batch masks).
     w = np.linalg.eigvalsh(info) if math.isfinite(sum(Q[:6])) else None
     if w is None or not (w[0] > 1e-12 * abs(w[2]) and w[2] > 0) \
@@ -187,5 +193,4 @@ def solve_one(method, bearings, d_ref, opts):
         return iterative_result(method, x, safe_inverse(info[None]), np.array([it]),
                                 np.array([conv]), np.array([div]))
     cov = np.linalg.inv(info)[None]
-    status = STATUS_OK if conv else STATUS_DIVERGED if div else STATUS_MAX_ITERATIONS
     return FixResult(x, cov, np.array([it]), np.array([conv]), np.array([status]), method)

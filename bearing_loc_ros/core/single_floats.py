@@ -52,3 +52,33 @@ def normal_equations(rows):
         b1 += h01 * y0 + h11 * y1
         b2 += h12 * y1
     return (a00, a01, a02, a11, a12, a22), (b0, b1, b2)
+
+
+#: Largest tr(A) tr(A⁻¹) (a bound on the condition number) for which :func:`inverse3` answers.
+INVERSE3_MAX_CONDITION = 1e5
+
+
+def inverse3(a00, a01, a02, a11, a12, a22):
+    """Inverse of a symmetric positive definite 3 × 3 A by cofactors (nested lists), or None.
+
+    A = [[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]] with finite entries, any units;
+    A⁻¹ = adj(A) / det(A). None unless the leading principal minors are positive (A positive
+    definite, Sylvester's criterion) and tr(A) tr(A⁻¹) ≤ :data:`INVERSE3_MAX_CONDITION`:
+    that product bounds λ_max/λ_min, so the result agrees with LAPACK's inverse
+    (crlb.safe_inverse, which such a matrix always passes) to about 1e5 machine epsilons,
+    relative to its largest entry; otherwise the caller takes the LAPACK path.
+    """
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    if not (a00 > 0.0 and c22 > 0.0 and 0.0 < det < math.inf):
+        return None
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    if not (a00 + a11 + a22) * (c00 + c11 + c22) <= INVERSE3_MAX_CONDITION * det:
+        return None
+    i = 1.0 / det
+    return [[c00 * i, c01 * i, c02 * i], [c01 * i, c11 * i, c12 * i],
+            [c02 * i, c12 * i, c22 * i]]
