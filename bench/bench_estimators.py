@@ -7,11 +7,16 @@ as ``mle`` ((measured − predicted)/σ, azimuth wrapped), started from ``ls``, 
 call. Everything is measured in this one run, so the ratios compare like with like.
 
 * One fix: ``locate(name, bearings)`` with a one-problem BearingSet (validation included, as
-  the fusion node and ``bearing_loc locate`` call it), for N = 3, 4, 6, 10 bearings: median
+  the fusion node and ``bearing_loc locate`` call it), for N = 3, 4, 6, 10 bearings, for every
+  estimator and the variants ``mle plain`` (``robust=False``), ``wmle robust`` and the
+  horizontal solve (known target altitude, σ_z = 10 m) of ``mle`` without and with ``robust``:
+  median
   and 90th percentile per call over ``--problems`` problems (each call timed alone, best of 3
   calls in a row; the estimators take turns problem by problem, so load changes hit all
   alike), and the ratio scipy / estimator (above 1: faster than scipy) and estimator / mle.
-* Batch: one call with M = 10,000 problems of N = 3 (and N = 10): fixes per second.
+* Batch: one call with M = 10,000 problems of N = 3 (and N = 10): fixes per second (the
+  estimators take turns, best of 3), and the ratio of the robust default ``mle`` to
+  ``mle plain``.
 * ``--large``: batch throughput also at N = 100 and 1000 (M = 100,000 / N).
 
 Single-threaded (OMP/BLAS threads pinned to 1 before numpy is imported). The median
@@ -42,6 +47,16 @@ from bearing_loc_ros.core.crlb import angle_jacobians  # noqa: E402
 
 ITERATIVE = ('mle', 'wmle', 'ctls_am', 'ctls')
 METHODS = ('mle', 'wmle', 'ctls_am', 'ctls', 'ls', 'tls')
+#: Rows besides METHODS: label -> (estimator, options, horizontal solve). ``mle`` is robust by
+#: default (core.robust); ``mle plain`` is the paper's estimator alone.
+VARIANTS = {
+    'mle plain': ('mle', {'robust': False}, False),
+    'wmle robust': ('wmle', {'robust': True}, False),
+    'mle horizontal': ('mle', {}, True),
+    'mle horizontal robust': ('mle', {'robust': True}, True),
+}
+#: Rows of the batch table (the robust ``wmle`` refits every fix: one-fix table only).
+BATCH = ('mle', 'mle plain', 'wmle', 'ctls_am', 'ctls', 'ls', 'tls', 'mle horizontal')
 
 
 def problems(N, M, rng):
@@ -81,6 +96,19 @@ def scipy_problem(one):
     return fun, jac
 
 
+def runner(label, targets):
+    """fn(bearings, rows) running row label (a METHODS name or a VARIANTS label).
+
+    ``targets`` (M, 3): a horizontal solve is given the true target altitudes of ``rows``
+    (σ_z = 10 m), as a known-altitude deployment would state them.
+    """
+    from bearing_loc_ros.core.horizontal import locate_horizontal
+    name, opts, horizontal = VARIANTS.get(label, (label, {}, False))
+    if horizontal:
+        return lambda b, rows: locate_horizontal(name, b, targets[rows, 2], 10.0, **opts)
+    return lambda b, rows: est.locate(name, b, **opts)
+
+
 def interleaved(fns, items, repeat=3):
     """{name: seconds per call (best of ``repeat`` calls in a row) for every item}, outputs.
 
@@ -104,11 +132,12 @@ def single_fix_table(sizes, n_problems, rng):
     """Rows (N, name, median ms, p90 ms, scipy/this, this/mle) and scipy agreement."""
     rows, agree = [], []
     for N in sizes:
-        _, bs = problems(N, n_problems, rng)
+        tgt, bs = problems(N, n_problems, rng)
         ones = split(bs)
         x0 = [est.ls(b).position[0] for b in ones]
         setups = [scipy_problem(b) for b in ones]
-        fns = {name: (lambda k, name=name: est.locate(name, ones[k])) for name in METHODS}
+        fns = {label: (lambda k, run=runner(label, tgt): run(ones[k], slice(k, k + 1)))
+               for label in METHODS + tuple(VARIANTS)}
         fns['scipy lm'] = lambda k: least_squares(setups[k][0], x0[k], jac=setups[k][1],
                                                   method='lm', xtol=1e-10)
         t, out = interleaved(fns, range(len(ones)))
@@ -127,14 +156,19 @@ def batch_table(sizes, M_of, rng, repeat=3):
     rows = []
     for N in sizes:
         M = M_of(N)
-        _, bs = problems(N, M, rng)
-        for name in METHODS:
-            best = np.inf
-            for _ in range(repeat if M * N <= 100000 else 1):
+        tgt, bs = problems(N, M, rng)
+        best = dict.fromkeys(BATCH, np.inf)
+        res = {}
+        # The estimators take turns (best of ``repeat``), so load changes hit all alike.
+        for _ in range(repeat if M * N <= 100000 else 1):
+            for label in BATCH:
+                run = runner(label, tgt)
                 t0 = time.perf_counter()
-                res = est.locate(name, bs)
-                best = min(best, time.perf_counter() - t0)
-            rows.append((N, name, M, M / best, res.iterations.mean(), res.converged.mean()))
+                res[label] = run(bs, slice(None))
+                best[label] = min(best[label], time.perf_counter() - t0)
+        for label in BATCH:
+            rows.append((N, label, M, M / best[label], res[label].iterations.mean(),
+                         res[label].converged.mean()))
         ms = min(M, 200)
         ones = split(BearingSet(bs.positions[:ms], bs.azimuth[:ms], bs.elevation[:ms],
                                 bs.sigma_az[:ms], bs.sigma_el[:ms]))
@@ -195,6 +229,10 @@ def main(argv=None):
     for N, name, M, thr, it, conv in batch:
         it_s = f'{it:.1f}' + (' (nfev)' if name.startswith('scipy') else '')
         print(f'| {N} | {name} | {M} | {thr:,.0f} | {it_s} | {conv:.3f} |')
+    thr = {(N, name): t for N, name, _, t, _, _ in batch}
+    print('\nBatch mle (robust, the default) / mle plain, same run: '
+          + ', '.join(f'N={N}: {thr[N, "mle"] / thr[N, "mle plain"]:.2f}'
+                      for N in batch_sizes))
     return 0
 
 
