@@ -455,3 +455,32 @@ def test_robust_screen_equals_its_definition(same_elevations):
     np.testing.assert_array_equal(fast, plain_def)
     assert fast[:20].all()
     assert 0.1 < fast.mean() < 0.9              # both decisions are well represented
+
+
+def test_float_inverse_of_the_one_fix_paths_matches_lapack_or_declines():
+    # single_floats.inverse3 (one-fix covariance) answers only for positive definite
+    # matrices with tr(A) tr(A⁻¹) ≤ 1e3, and then agrees with numpy's inverse; otherwise None
+    # (the LAPACK path of crlb.safe_inverse).
+    from bearing_loc_ros.core.single_floats import INVERSE3_MAX_CONDITION, inverse3
+    rng = np.random.default_rng(5)
+    answered = 0
+    for _ in range(2000):
+        Q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+        w = 10.0 ** rng.uniform(-8, 8) * 10.0 ** rng.uniform(0, 4, 3)
+        if rng.random() < 0.1:
+            w[0] = -w[0] if rng.random() < 0.5 else 0.0
+        A = (Q * w) @ Q.T
+        A = 0.5 * (A + A.T)
+        got = inverse3(A[0, 0], A[0, 1], A[0, 2], A[1, 1], A[1, 2], A[2, 2])
+        bound = np.trace(A) * np.sum(1.0 / w) if np.all(w > 0) else np.inf
+        if got is None:
+            assert not bound < 0.5 * INVERSE3_MAX_CONDITION
+            continue
+        answered += 1
+        assert np.all(w > 0) and bound < 2.0 * INVERSE3_MAX_CONDITION
+        ref = np.linalg.inv(A)
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-11 * np.max(np.abs(ref)))
+    assert 300 < answered < 1900
+    for bad in (np.nan, np.inf):
+        assert inverse3(bad, 0.0, 0.0, 1.0, 0.0, 1.0) is None
+        assert inverse3(1.0, 0.0, 0.0, 1.0, 0.0, bad) is None

@@ -244,7 +244,7 @@ def _covariance(stations, X):
     finite = all(math.isfinite(v) for row in A for v in row)
     Ainv = inverse3(a00, a01, a02, a11, a12, a22) if finite else None
     if Ainv is not None:
-        # Well conditioned (the usual case): A⁻¹AA⁻¹ = A⁻¹ by cofactors, within ~1e-11 of
+        # Well conditioned (the usual case): A⁻¹AA⁻¹ = A⁻¹ by cofactors, within 1e-11 of
         # the LAPACK products below.
         return np.array([Ainv])
     if not (finite and _safe_test(A)):

@@ -182,7 +182,7 @@ def solve_one(method, bearings, d_ref, opts):
     status = STATUS_OK if conv else STATUS_DIVERGED if div else STATUS_MAX_ITERATIONS
     cov = inverse3(*Q[:6]) if math.isfinite(sum(Q[:6])) else None
     if cov is not None and all(math.isfinite(v) for v in X):
-        # Well conditioned (the usual case): the cofactor inverse, within ~1e-11 of LAPACK's.
+        # Well conditioned (the usual case): the cofactor inverse, within 1e-11 of LAPACK's.
         return FixResult(x, np.array([cov]), np.array([it]), np.array([conv]),
                          np.array([status]), method)
     info = np.array([[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]])
