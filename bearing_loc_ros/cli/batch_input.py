@@ -27,12 +27,11 @@ station cells name no station).
 """
 
 from collections.abc import Sequence
-import csv
 import io
 import itertools
 import math
+from operator import itemgetter
 import sys
-import zipfile
 
 import numpy as np
 
@@ -43,6 +42,7 @@ BEARING_FIELDS = frozenset(('station', 'position', 'azimuth', 'elevation', 'sigm
                             'sigma_elevation'))
 _NUMBER_TYPES = frozenset((float, int))
 _MISSING = object()
+_STATION_TYPES = frozenset((str, object))
 _NAN3 = [math.nan] * 3
 
 #: Columnar input: quantity -> (column in rad/m, column in degrees or None, required).
@@ -149,28 +149,42 @@ def json_problems(problems, parse_problem):
              for p in problems]
     shaped = [type(it) is list and len(it) >= 2 for it in items]
     counts = np.array([len(it) if ok else 0 for it, ok in zip(items, shaped)], dtype=np.int64)
-    flat = [b for it, ok in zip(items, shaped) if ok for b in it]
-    good = np.array([type(b) is dict and b.keys() <= BEARING_FIELDS and 'position' in b
-                     and 'azimuth' in b and 'sigma_azimuth' in b for b in flat], dtype=bool)
-    if not good.all():
-        flat = [b if g else {} for b, g in zip(flat, good.tolist())]
+    flat = list(itertools.chain.from_iterable(itertools.compress(items, shaped)))
+    # Whole-column passes in C first (map, set); per-bearing checks only when one fails.
+    if set(map(type, flat)) == {dict} and all(map(BEARING_FIELDS.issuperset, flat)):
+        good = np.ones(len(flat), dtype=bool)
+        try:
+            pos, az, saz = (list(map(itemgetter(key), flat))
+                            for key in ('position', 'azimuth', 'sigma_azimuth'))
+        except KeyError:
+            good = None
+    else:
+        good = None
+    if good is None:
+        good = np.array([type(b) is dict and b.keys() <= BEARING_FIELDS and 'position' in b
+                         and 'azimuth' in b and 'sigma_azimuth' in b for b in flat],
+                        dtype=bool)
+        if not good.all():
+            flat = [b if g else {} for b, g in zip(flat, good.tolist())]
+        pos, az, saz = ([b.get(key) for b in flat]
+                        for key in ('position', 'azimuth', 'sigma_azimuth'))
     station = [b.get('station', _MISSING) for b in flat]
-    good &= np.array([s is _MISSING or type(s) is str for s in station], dtype=bool)
-    pos = [b.get('position') for b in flat]
-    shape_ok = [type(p) is list and len(p) == 3 for p in pos]
-    if not all(shape_ok):
-        pos = [p if ok else _NAN3 for p, ok in zip(pos, shape_ok)]
+    if not set(map(type, station)) <= _STATION_TYPES:
+        good &= np.array([s is _MISSING or type(s) is str for s in station], dtype=bool)
+    if not (set(map(type, pos)) == {list} and set(map(len, pos)) == {3}):
+        pos = [p if type(p) is list and len(p) == 3 else _NAN3 for p in pos]
     coords, c_ok = number_columns(list(itertools.chain.from_iterable(pos)))
     good &= c_ok.reshape(-1, 3).all(axis=1)
-    az, ok = number_columns([b.get('azimuth') for b in flat])
+    az, ok = number_columns(az)
     good &= ok
-    saz, ok = number_columns([b.get('sigma_azimuth') for b in flat])
+    saz, ok = number_columns(saz)
     good &= sigma_ok(saz)
     el_raw = [b.get('elevation') for b in flat]
     has_el = np.array([e is not None for e in el_raw], dtype=bool)
     el, el_ok = number_columns([0.0 if e is None else e for e in el_raw])
-    sel, _ = number_columns([b.get('sigma_elevation') if e is not None else 1.0
-                             for b, e in zip(flat, el_raw)])
+    sel_raw = [b.get('sigma_elevation') for b in flat]
+    sel, _ = number_columns(sel_raw if has_el.all() else
+                            [v if e is not None else 1.0 for v, e in zip(sel_raw, el_raw)])
     good &= ~has_el | (el_ok & (np.abs(el) < HALF_PI) & sigma_ok(sel))
     el[~has_el] = np.nan
     sel[~has_el] = np.nan
@@ -193,10 +207,11 @@ def json_problems(problems, parse_problem):
 def _duplicate_station_problems(station, offsets):
     """(K,) bool: problems naming one station id twice (unnamed bearing i is station_<i>)."""
     count = len(offsets) - 1
-    if not any(type(s) is str for s in station):
+    types = set(map(type, station))
+    if str not in types:
         return np.zeros(count, dtype=bool)
     counts = np.diff(offsets)
-    if not all(type(s) is str for s in station):
+    if types != {str}:
         within = (np.arange(len(station)) - np.repeat(offsets[:-1], counts)).tolist()
         station = [s if type(s) is str else f'station_{i}' for s, i in zip(station, within)]
     owner = np.repeat(np.arange(count), counts)
@@ -311,6 +326,7 @@ def _check_header(names):
 
 
 def _read_csv(path):
+    import csv
     text = _read_source(path, binary=False)
     try:
         reader = csv.reader(io.StringIO(text))
@@ -376,6 +392,7 @@ ZIP_MAGIC = (b'PK\x03\x04', b'PK\x05\x06')
 
 
 def _read_npz(path):
+    import zipfile      # here: a JSON request does not need it
     data = _read_source(path, binary=True)
     # np.load would take any other bytes for a pickle (or a single .npy array) and report that
     if not data.startswith(ZIP_MAGIC):
