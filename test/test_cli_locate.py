@@ -191,3 +191,18 @@ def test_subprocess_stdin_and_exit_codes():
     assert p.returncode == 2 and p.stdout == ''
     assert p.stderr.splitlines() == ['bearing_loc locate: error: bearings[1].sigma_azimuth: '
                                      'must be > 0']
+
+
+def test_locate_imports_no_optional_heavy_modules(tmp_path):
+    # The locate path needs numpy only: scipy.special alone costs ~0.2 s of start-up.
+    path = tmp_path / 'in.json'
+    path.write_text(json.dumps({'problems': [{'bearings': bearings_json()}] * 3}))
+    code = ('import sys\nfrom bearing_loc_ros.cli import main\n'
+            f'assert main(["locate", {str(path)!r}]) == 0\n'
+            'heavy = {"scipy", "yaml", "matplotlib", "rosbags", "rclpy", "pymap3d"}\n'
+            'print(sorted(m for m in sys.modules if m.split(".")[0] in heavy\n'
+            '             or m == "numpy.ma"), file=sys.stderr)\n')
+    out = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                         env=dict(os.environ, AMENT_PREFIX_PATH=sys.prefix))
+    assert out.returncode == 0, out.stderr
+    assert out.stderr.strip() == '[]'

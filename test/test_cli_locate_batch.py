@@ -351,3 +351,30 @@ def test_json_batch_and_export_see_the_same_problems(tmp_path):
     names = [bs.stations for bs in fast]
     assert names[0] == ['station_0', 'station_1', 'station_2']     # no ids given
     assert names[1] == ['s0', 's1', 's2', 's3']
+
+
+def _mixed_solved(ids=None):
+    """Solved groups with finite, degenerate (NaN / inf) and horizontal fixes."""
+    from bearing_loc_ros.cli.locate import solve_groups
+    probs = make_problems(40, seed=7)
+    # two degenerate problems: the target on the baseline of two stations (no fix: NaN/inf)
+    for k in (5, 12):
+        probs[k]['bearings'] = [
+            {'position': [x, 0.0, 0.0], 'azimuth': 0.0, 'elevation': 0.0,
+             'sigma_azimuth': SIGMA, 'sigma_elevation': SIGMA} for x in (0.0, 1000.0)]
+    _, _, problems, _ = parse_request({'problems': probs})
+    if ids is not None:
+        problems.ids = ids
+    options = {'target_altitude': 5000.0, 'target_altitude_sigma': 10.0}
+    return solve_groups('mle', options, problems)
+
+
+@pytest.mark.parametrize('ids', [None, list(range(100, 140))])
+def test_json_output_is_json_dumps_of_the_result_dicts(ids):
+    solved = _mixed_solved(ids)
+    dicts = solved.dicts()
+    assert {r['solve'] for r in dicts} == {'3d', 'horizontal'}
+    assert any(r['position'] is None or None in r['position'] for r in dicts)
+    assert any(None in sum(r['covariance'], []) for r in dicts)
+    assert solved.json(True) == json.dumps({'results': dicts}, allow_nan=False)
+    assert solved.json(False) == json.dumps(dicts[0], allow_nan=False)
