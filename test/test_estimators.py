@@ -457,30 +457,44 @@ def test_robust_screen_equals_its_definition(same_elevations):
     assert 0.1 < fast.mean() < 0.9              # both decisions are well represented
 
 
-def test_float_inverse_of_the_one_fix_paths_matches_lapack_or_declines():
-    # single_floats.inverse3 (one-fix covariance) answers only for positive definite
-    # matrices with tr(A) tr(A⁻¹) ≤ 1e3, and then agrees with numpy's inverse; otherwise None
-    # (the LAPACK path of crlb.safe_inverse).
-    from bearing_loc_ros.core.single_floats import INVERSE3_MAX_CONDITION, inverse3
+def test_cofactor_inverses_match_lapack_or_decline():
+    # The covariance of mle/wmle: solvers.spd_inverse3 (batch) and single_floats.inverse3
+    # (one fix) use cofactors only for positive definite matrices with tr(A) tr(A⁻¹) ≤ 1e3
+    # and then agree with numpy's inverse and with each other bit for bit; the float path
+    # declines (None) the others, the batch path hands them to crlb.safe_inverse.
+    from bearing_loc_ros.core.crlb import safe_inverse
+    from bearing_loc_ros.core.single_floats import inverse3
+    from bearing_loc_ros.core.solvers import INVERSE3_MAX_CONDITION, spd_inverse3
     rng = np.random.default_rng(5)
+    M = 3000
+    Q, _ = np.linalg.qr(rng.standard_normal((M, 3, 3)))
+    w = 10.0 ** rng.uniform(-8, 8, (M, 1)) * 10.0 ** rng.uniform(0, 4, (M, 3))
+    w[:200, 0] = -w[:200, 0]                        # indefinite
+    w[200:300, 0] = 0.0                             # singular
+    w[300:310] = [1e-15, 1.0, 1.0]                  # beyond safe_inverse's 1e-12 as well
+    A = np.einsum('mij,mj,mkj->mik', Q, w, Q)
+    A = 0.5 * (A + np.swapaxes(A, 1, 2))
+    A[310:315, 0, 0] = np.nan
+    A[315:320, 1, 2] = A[315:320, 2, 1] = np.inf
+    batch = spd_inverse3(A)
+    with np.errstate(divide='ignore'):
+        bound = np.trace(A, axis1=1, axis2=2) * np.sum(1.0 / w, axis=1)
+    bound[:320] = np.inf                           # no bound: not positive definite or finite
     answered = 0
-    for _ in range(2000):
-        Q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
-        w = 10.0 ** rng.uniform(-8, 8) * 10.0 ** rng.uniform(0, 4, 3)
-        if rng.random() < 0.1:
-            w[0] = -w[0] if rng.random() < 0.5 else 0.0
-        A = (Q * w) @ Q.T
-        A = 0.5 * (A + A.T)
-        got = inverse3(A[0, 0], A[0, 1], A[0, 2], A[1, 1], A[1, 2], A[2, 2])
-        bound = np.trace(A) * np.sum(1.0 / w) if np.all(w > 0) else np.inf
+    for m in range(M):
+        (a00, a01, a02), (_, a11, a12), (_, _, a22) = A[m].tolist()
+        got = inverse3(a00, a01, a02, a11, a12, a22)
         if got is None:
-            assert not bound < 0.5 * INVERSE3_MAX_CONDITION
+            assert not bound[m] < 0.5 * INVERSE3_MAX_CONDITION
+            lapack = safe_inverse(A[m:m + 1])[0]
+            np.testing.assert_array_equal(np.isinf(batch[m]), np.isinf(lapack))
+            np.testing.assert_allclose(batch[m][np.isfinite(lapack)],
+                                       lapack[np.isfinite(lapack)], rtol=1e-12)
             continue
         answered += 1
-        assert np.all(w > 0) and bound < 2.0 * INVERSE3_MAX_CONDITION
-        ref = np.linalg.inv(A)
+        assert bound[m] < 2.0 * INVERSE3_MAX_CONDITION
+        np.testing.assert_array_equal(batch[m], got)
+        ref = np.linalg.inv(A[m])
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-11 * np.max(np.abs(ref)))
-    assert 300 < answered < 1900
-    for bad in (np.nan, np.inf):
-        assert inverse3(bad, 0.0, 0.0, 1.0, 0.0, 1.0) is None
-        assert inverse3(1.0, 0.0, 0.0, 1.0, 0.0, bad) is None
+    assert 300 < answered < 2500
+    assert np.all(np.isinf(batch[200:320]))

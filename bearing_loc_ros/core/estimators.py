@@ -43,7 +43,7 @@ position.
 import numpy as np
 
 from .constrained_tls import ctls, ctls_am
-from .crlb import crlb, safe_inverse
+from .crlb import crlb
 from .estimator_spec import (BEARING_SIGMA, DEFAULT_REFERENCE_RANGE, declare, ITERATIVE_OPTIONS,
                              MULTISTATION, RANGE_GROWN_SIGMA, range_scaled_sigmas,
                              REFERENCE_RANGE, ROBUST, ROBUST_ON)
@@ -52,7 +52,7 @@ from .fix import (FixResult, iterative_result, STATUS_DEGENERATE, STATUS_DIVERGE
                   STATUS_MAX_ITERATIONS, STATUS_OK, STATUSES)
 from .pseudo_linear import ls, pseudo_linear_system, start, tls
 from .robust import confident_result
-from .solvers import CHI2_STEP_TOL, COST_RTOL, solve3_packed
+from .solvers import CHI2_STEP_TOL, COST_RTOL, solve3_packed, spd_inverse3
 
 __all__ = ['DEFAULT_ESTIMATOR', 'DEFAULT_REFERENCE_RANGE', 'ESTIMATORS', 'FixResult', 'STATUSES',
            'STATUS_DEGENERATE', 'STATUS_DIVERGED', 'STATUS_MAX_ITERATIONS', 'STATUS_OK', 'ctls',
@@ -342,7 +342,7 @@ def mle(bearings, **options):
                          validated=True)
         x, info, it, conv, div = _levenberg_marquardt(problem, x0, opts['max_iterations'],
                                                       opts['tolerance'])
-        res = iterative_result('mle', x, safe_inverse(info), it, conv, div)
+        res = iterative_result('mle', x, spd_inverse3(info), it, conv, div)
     return confident_result(res, bearings) if opts['robust'] else res
 
 
@@ -377,7 +377,7 @@ def wmle(bearings, **options):
                          validated=True)
         x, info, it, conv, div = _levenberg_marquardt(problem, x0, opts['max_iterations'],
                                                       opts['tolerance'])
-        res = iterative_result('wmle', x, safe_inverse(info), it, conv, div)
+        res = iterative_result('wmle', x, spd_inverse3(info), it, conv, div)
     return confident_result(res, bearings, d_ref) if opts['robust'] else res
 
 

@@ -6,6 +6,8 @@ same order, so the one-problem paths reproduce the batch paths to rounding.
 
 import math
 
+from .solvers import INVERSE3_MAX_CONDITION
+
 
 def solve3(a00, a01, a02, a11, a12, a22, b0, b1, b2):
     """solvers.solve3_packed on floats: A x = b for symmetric A by cofactors; NaN where det ≤ 0.
@@ -54,18 +56,12 @@ def normal_equations(rows):
     return (a00, a01, a02, a11, a12, a22), (b0, b1, b2)
 
 
-#: Largest tr(A) tr(A⁻¹) (a bound on the condition number) for which :func:`inverse3` answers.
-#: The cofactor inverse's error grows as κ² ε (measured: up to 4e-10 relative at κ = 1e4,
-#: 3e-12 at κ ≤ 1e3), against κ ε for LAPACK's.
-INVERSE3_MAX_CONDITION = 1e3
-
-
 def inverse3(a00, a01, a02, a11, a12, a22):
-    """Inverse of a symmetric positive definite 3 × 3 A by cofactors (nested lists), or None.
+    """solvers.spd_inverse3 on floats: A⁻¹ by cofactors (nested lists), or None.
 
     A = [[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]] with finite entries, any units;
     A⁻¹ = adj(A) / det(A). None unless the leading principal minors are positive (A positive
-    definite, Sylvester's criterion) and tr(A) tr(A⁻¹) ≤ :data:`INVERSE3_MAX_CONDITION`:
+    definite, Sylvester's criterion) and tr(A) tr(A⁻¹) ≤ solvers.INVERSE3_MAX_CONDITION:
     that product bounds κ = λ_max/λ_min, so the result agrees with LAPACK's inverse
     (crlb.safe_inverse, which such a matrix always passes) to about κ² machine epsilons
     (≤ 1e-11 relative to its largest entry); otherwise the caller takes the LAPACK path.
