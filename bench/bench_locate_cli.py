@@ -7,8 +7,10 @@ table, then times, in one run and interleaved so machine load hits every row ali
 * ``bearing_loc locate --help``: interpreter start-up and imports, the floor of any call;
 * ``bearing_loc locate`` on each input (subprocess wall clock and CPU time, output to a
   file; on a shared machine the CPU time is the steadier figure);
-* in-process: reading + checking the JSON request, the solve alone (``registry.solve`` and
-  ``registry.noise_crlb`` on the grouped batch) and the JSON output.
+* ``python -c pass``: the interpreter and its site start-up alone (in this virtualenv
+  that includes the ROS wheels' re-exec of the interpreter and the editable-install finder);
+* in-process: reading the JSON request (``json.loads``), checking it, the solve
+  (``registry.solve`` and ``registry.noise_crlb`` per bearing count) and the JSON output.
 
 Each figure is the median of ``--repeat`` runs with its min-max spread. The three inputs must
 give the same fixes (checked and printed).
@@ -18,7 +20,6 @@ Run: ``.venv/bin/python bench/bench_locate_cli.py [--problems 10000] [--repeat 5
 
 import argparse
 import csv
-import io
 import json
 import os
 import resource
@@ -89,26 +90,19 @@ def timed(cmd, out_path, env):
 
 
 def in_process(path):
-    """Seconds of (read + check, solve, output) of the JSON request in this process."""
+    """Seconds of (read, check, solve, output) of the JSON request in this process."""
     from bearing_loc_ros.cli import jsonio, locate
-    from bearing_loc_ros.core import registry
     t0 = time.perf_counter()
-    method, options, problems, _ = locate.parse_request(jsonio.read_json(path))
+    doc = jsonio.read_json(path)
     t1 = time.perf_counter()
-    for _, batch in problems.groups:
-        res = registry.solve(method, batch, **options)
-        registry.noise_crlb(method, res.position, batch, **options)
+    method, options, problems, _ = locate.parse_request(doc)
     t2 = time.perf_counter()
-    results = locate.solve(method, options, problems)
+    solved = locate.solve_groups(method, options, problems)
     t3 = time.perf_counter()
-    buf, stdout = io.StringIO(), sys.stdout
-    sys.stdout = buf
-    try:
-        jsonio.write_results(results, True)
-    finally:
-        sys.stdout = stdout
+    text = solved.json(True)
     t4 = time.perf_counter()
-    return t1 - t0, t2 - t1, (t3 - t2) - (t2 - t1) + (t4 - t3)
+    assert text.startswith('{"results": [')
+    return t1 - t0, t2 - t1, t3 - t2, t4 - t3
 
 
 def fmt(values):
@@ -122,13 +116,15 @@ def main():
     ap.add_argument('--repeat', type=int, default=5)
     args = ap.parse_args()
     exe = os.path.join(os.path.dirname(sys.executable), 'bearing_loc')
-    base = [exe] if os.path.exists(exe) else [sys.executable, '-m', 'bearing_loc_ros.cli']
+    base = [exe] if os.path.exists(exe) else [
+        sys.executable, '-c', 'import sys; from bearing_loc_ros.cli import main; sys.exit(main())']
     env = dict(os.environ, AMENT_PREFIX_PATH=os.environ.get('AMENT_PREFIX_PATH',
                                                             sys.prefix))
     with tempfile.TemporaryDirectory() as tmp:
         paths = write_inputs(tmp, args.problems)
         sizes = {k: os.path.getsize(p) / 1e6 for k, p in paths.items()}
-        runs = {'startup (locate --help)': base + ['locate', '--help']}
+        runs = {'interpreter alone (python -c pass)': [sys.executable, '-c', 'pass'],
+                'startup (locate --help)': base + ['locate', '--help']}
         runs.update({f'locate {k} ({sizes[k]:.1f} MB)': base + ['locate', p]
                      for k, p in paths.items()})
         times = {k: [] for k in runs}
@@ -151,8 +147,8 @@ def main():
         t = np.array(t)
         print(f'| {name} | {fmt(t[:, 0])} | {fmt(t[:, 1])} |')
     parts = np.array(parts)
-    for j, name in enumerate(('in-process: read + check JSON', 'in-process: solve + CRLB',
-                              'in-process: result dicts + JSON output')):
+    for j, name in enumerate(('in-process: read JSON (json.loads)', 'in-process: check',
+                              'in-process: solve + CRLB', 'in-process: JSON output')):
         print(f'| {name} | {fmt(parts[:, j])} | |')
     print(f'JSON, CSV and NPZ fixes identical: {same}')
 

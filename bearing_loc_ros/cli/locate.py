@@ -43,8 +43,8 @@ from ..core import registry
 from . import InputError
 from . import batch_input
 from .deprecation import DeprecatedOption
-from .jsonio import (add_io_arguments, check_object, finite_or_none, finite_rows, number,
-                     read_json, request_header, write_results)
+from .jsonio import (add_io_arguments, check_object, finite_rows, number, read_json,
+                     request_header, write_results)
 
 BEARING_FIELDS = ('station', 'position', 'azimuth', 'elevation', 'sigma_azimuth',
                   'sigma_elevation')
@@ -244,23 +244,30 @@ class Solved:
     def json(self, batch):
         """``json.dumps({"results": dicts})`` (``dicts()[0]`` unless ``batch``), allow_nan off.
 
-        Each array is written by one ``json.dumps`` call and cut into its rows (rows holding
-        NaN/inf are written again with ``null``), then every problem's object is one string
-        format: no dict per problem, and the same bytes.
+        Per group, the 21 numbers of every fix (position, covariance, CRLB) are written by one
+        ``json.dumps`` call (floats by ``repr``, as ``json`` does; NaN/inf then become
+        ``null``) and each problem's object is one ``str.format``: no dict per problem, and
+        the same bytes.
         """
-        head = '{"estimator": %s, "method": %s, "position": ' % ((json.dumps(self.method),) * 2)
-        body = (head + '%s, "covariance": %s, "crlb": %s, "converged": %s, "iterations": %d, '
-                '"status": %s, "solve": %s')
+        name = json.dumps(self.method).replace('{', '{{').replace('}', '}}')
         out = [None] * self.count
         for idx, res, bound in self.groups:
-            solved = res.solve.tolist() if res.solve is not None else ['3d'] * len(idx)
+            m = len(idx)
+            values = np.concatenate([np.reshape(res.position, (m, 3)),
+                                     np.reshape(res.covariance, (m, 9)),
+                                     np.reshape(bound, (m, 9))], axis=1).ravel()
+            tokens = json.dumps(values.tolist())[1:-1].split(', ')
+            for j in np.flatnonzero(~np.isfinite(values)).tolist():
+                tokens[j] = 'null'
+            solved = res.solve.tolist() if res.solve is not None else ['3d'] * m
             status = res.status.tolist()
             quoted = {text: json.dumps(str(text)) for text in set(status) | set(solved)}
-            rows = zip(_json_rows(res.position), _json_rows(res.covariance), _json_rows(bound),
-                       map(_JSON_BOOL.get, res.converged.tolist()), res.iterations.tolist(),
-                       map(quoted.get, status), map(quoted.get, solved))
-            for k, row in zip(idx.tolist(), rows):
-                out[k] = body % row
+            fields = zip(idx.tolist(), map(_JSON_BOOL.get, res.converged.tolist()),
+                         res.iterations.tolist(), map(quoted.get, status),
+                         map(quoted.get, solved))
+            fmt = _FIX_TEMPLATE.replace('NAME', name).format
+            for r, (k, conv, it, st, how) in enumerate(fields):
+                out[k] = fmt(*tokens[21 * r:21 * r + 21], conv, int(it), st, how)
             for j in np.flatnonzero(np.array(solved) == 'horizontal').tolist():
                 out[idx[j]] += ', "target_altitude": %s, "target_altitude_sigma": %s' % (
                     json.dumps(float(res.target_altitude[j]), allow_nan=False),
@@ -274,20 +281,11 @@ class Solved:
 
 
 _JSON_BOOL = {True: 'true', False: 'false'}
-
-
-def _json_rows(array):
-    """The JSON text of each row (first axis) of a float array, as ``json.dumps`` writes it
-    (floats by ``repr``), NaN/inf as ``null``."""
-    depth = array.ndim - 1          # brackets around a row
-    cut = '%s, %s' % (']' * depth, '[' * depth)
-    text = json.dumps(array.tolist())[depth + 1:-depth - 1]
-    rows = [('[' * depth) + r + (']' * depth) for r in text.split(cut)] if depth else \
-        text.split(', ')
-    flat = array.reshape(len(array), -1)
-    for j in np.flatnonzero(~np.isfinite(flat).all(axis=1)).tolist():
-        rows[j] = json.dumps(finite_or_none(array[j].tolist()))
-    return rows
+#: One fix's output object without its closing brace (str.format; NAME: the estimator).
+_FIX_TEMPLATE = ('{{"estimator": NAME, "method": NAME, "position": [{}, {}, {}], '
+                 '"covariance": [[{}, {}, {}], [{}, {}, {}], [{}, {}, {}]], '
+                 '"crlb": [[{}, {}, {}], [{}, {}, {}], [{}, {}, {}]], "converged": {}, '
+                 '"iterations": {}, "status": {}, "solve": {}')
 
 
 def _name_problem(message, idx, batch, ids):
