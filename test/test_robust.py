@@ -312,3 +312,21 @@ def test_second_optimum_check_is_silent_at_moderate_snr():
     wa = np.ones_like(b.azimuth)
     we = b.has_elevation.astype(float)
     assert not robust.second_optimum(data, res.position, wa, we, res.covariance).any()
+
+
+@pytest.mark.parametrize('scenario,estimator,sigma_deg,seed', [
+    ('config/scenarios/six_station_const.yaml', 'mle', 4.0, 31),
+    ('config/scenarios/seed003.yaml', 'wmle', 1.0, 32)])
+def test_confidently_wrong_ok_fixes_are_rarer_than_a_tenth_of_a_percent(scenario, estimator,
+                                                                        sigma_deg, seed):
+    # Acceptance criterion of the robust fixes: among ok fixes, NEES above the χ²₃ 0.9999
+    # quantile below 0.1 %. 2000 trials: the count of such fixes must not be significantly
+    # above what a rate of 1e-3 gives (Poisson, one-sided 1 %); the measured rate is 4e-4.
+    tr = trials(scenario, 2000, seed)
+    b = noisy(tr, math.radians(sigma_deg), seed)
+    opts = {'reference_range': 1000.0} if estimator == 'wmle' else {}
+    res = locate(estimator, b, robust=True, **opts)
+    ok = res.status == 'ok'
+    assert ok.sum() > 200
+    k = int(np.count_nonzero(nees(res, tr.targets, ok) > Q9999))
+    assert stats.poisson.sf(k - 1, 1e-3 * ok.sum()) > 0.01, (k, ok.sum())
