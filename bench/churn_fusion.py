@@ -1,0 +1,161 @@
+"""Publisher churn under discovery: fix continuity and the fusion node's RSS.
+
+    .venv/bin/python bench/churn_fusion.py [--rounds 3] [--ghosts 200] [--stations 4]
+
+Starts a fusion node (``python -m bearing_loc_ros.fusion_node``, ``discover:=true``, default
+QoS and trigger, estimator ls) in namespace /soak, fed by ``--stations`` stations at 10 Hz
+(the publisher of ``soak_fusion.py``), all on loopback with their own ROS_DOMAIN_ID. After a
+warm-up, each round starts a process holding ``--ghosts`` empty publishers on
+``/soak/ghost_<k>/bearing``, waits until the node has discovered all of them (its
+/diagnostics ``discovered_stations``), holds them for ``--hold`` s, ends the process and
+waits until the node has dropped them again and ``--settle`` s more. Prints the node's RSS
+(/proc/<pid>/status VmRSS) before the churn, with the ghosts and after each round, and the
+fixes: the largest gap between consecutive fix stamps (one epoch period = no outage) and the
+fixes per observation cycle while the ghosts came and went. ``--node-log PATH`` keeps the node's
+output, with its debug messages (the heap trims of ``bearing_loc_ros.memory``).
+
+``--env NAME=VALUE`` (repeatable) sets an environment variable of the fusion node only, for
+example ``--env MALLOC_ARENA_MAX=2``.
+"""
+import argparse
+import os
+import subprocess
+import sys
+import time
+
+GHOSTS = '''
+import sys, rclpy
+from geometry_msgs.msg import PoseWithCovarianceStamped
+rclpy.init()
+node = rclpy.create_node('churn', namespace='/soak')
+pubs = [node.create_publisher(PoseWithCovarianceStamped, f'ghost_{k}/bearing', 10)
+        for k in range(int(sys.argv[1]))]
+print('ready', flush=True)
+sys.stdin.readline()
+node.destroy_node()
+rclpy.try_shutdown()
+'''
+
+
+def rss_kb(pid):
+    with open(f'/proc/{pid}/status') as f:
+        for line in f:
+            if line.startswith('VmRSS:'):
+                return int(line.split()[1])
+    return None
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument('--stations', type=int, default=4)
+    ap.add_argument('--rate', type=float, default=10.0)
+    ap.add_argument('--ghosts', type=int, default=200)
+    ap.add_argument('--rounds', type=int, default=3)
+    ap.add_argument('--hold', type=float, default=5.0, help='seconds with the ghosts present')
+    ap.add_argument('--settle', type=float, default=5.0, help='seconds after they left')
+    ap.add_argument('--warm-up', type=float, default=15.0)
+    ap.add_argument('--env', action='append', default=[], help='NAME=VALUE for the node')
+    ap.add_argument('--node-log', help='file for the fusion node output (debug level)')
+    a = ap.parse_args(argv)
+    here = os.path.dirname(os.path.abspath(__file__))
+    repo = os.path.dirname(here)
+    env = dict(os.environ, ROS_DOMAIN_ID=str(160 + os.getpid() % 40),
+               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1',
+               AMENT_PREFIX_PATH=os.environ.get('AMENT_PREFIX_PATH', sys.prefix))
+    node_env = dict(env, **dict(kv.split('=', 1) for kv in a.env))
+    names = [f's{k + 1}' for k in range(a.stations)]
+    fusion = subprocess.Popen(
+        [sys.executable, '-m', 'bearing_loc_ros.fusion_node', '--ros-args', '-r', '__ns:=/soak',
+         '-p', f'stations:=[{",".join(names)}]', '-p', 'estimator:=ls',
+         '-p', 'discover:=true', '-p', 'accuracy_map.enabled:=false',
+         '-p', 'diagnostics_period:=0.5']
+        + (['--log-level', 'soak.fusion:=debug'] if a.node_log else []),
+        cwd=repo, env=node_env, stderr=subprocess.STDOUT,
+        stdout=open(a.node_log, 'w') if a.node_log else subprocess.DEVNULL)
+    total = a.warm_up + a.rounds * (a.hold + a.settle + 60) + 30
+    pub = subprocess.Popen([sys.executable, os.path.join(here, 'soak_fusion.py'), '--role',
+                            'publisher', '--stations', str(a.stations), '--rate', str(a.rate),
+                            '--duration', str(total)], cwd=repo, env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    os.environ.update(ROS_DOMAIN_ID=env['ROS_DOMAIN_ID'],
+                      ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    import rclpy
+    from diagnostic_msgs.msg import DiagnosticArray
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+
+    from bearing_loc_ros.processes import interrupt
+    rclpy.init()
+    node = rclpy.create_node('churn_probe')
+    diag, stamps = {}, []
+
+    def on_diag(msg):
+        for s in msg.status:
+            if s.name.endswith(': fusion'):
+                diag.update({kv.key: kv.value for kv in s.values})
+
+    def on_fix(msg):
+        stamps.append(msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9)
+    node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
+    node.create_subscription(PoseWithCovarianceStamped, '/soak/fix', on_fix, 100)
+
+    def spin(seconds, until=None):
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            rclpy.spin_once(node, timeout_sec=0.05)
+            if until is not None and until():
+                return True
+        return until is None
+
+    def discovered():
+        return int(diag.get('discovered_stations', -1))
+
+    ghosts = []
+    try:
+        spin(a.warm_up)
+        r0 = rss_kb(fusion.pid)
+        print(f'warm-up done: RSS {r0 / 1024:.1f} MiB, fixes {diag.get("fixes")}, '
+              f'discovered {discovered()}', flush=True)
+        k0 = len(stamps)
+        t0 = time.monotonic()
+        for r in range(a.rounds):
+            g = subprocess.Popen([sys.executable, '-c', GHOSTS, str(a.ghosts)], cwd=repo,
+                                 env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                 text=True)
+            ghosts.append(g)
+            assert g.stdout.readline().strip() == 'ready'
+            found = spin(120, lambda: discovered() >= a.ghosts)
+            spin(a.hold)
+            r_with = rss_kb(fusion.pid)
+            g.stdin.close()
+            g.wait(timeout=30)
+            left = spin(120, lambda: discovered() == 0)
+            spin(a.settle)
+            r_after = rss_kb(fusion.pid)
+            print(f'round {r + 1}: {a.ghosts} ghosts {"discovered" if found else "NOT all"} '
+                  f'{"and dropped" if left else "NOT dropped"}; RSS with them '
+                  f'{r_with / 1024:.1f} MiB ({100 * (r_with - r0) / r0:+.2f} %), after '
+                  f'{r_after / 1024:.1f} MiB ({100 * (r_after - r0) / r0:+.2f} %)', flush=True)
+        t1 = time.monotonic()
+        s = sorted(set(stamps[k0:]))
+        gaps = [b - c for b, c in zip(s[1:], s)]
+        cycles = (t1 - t0) * a.rate
+        print(f'fixes during the churn: {len(s)} of {cycles:.0f} observation cycles '
+              f'({100 * len(s) / cycles:.2f} %); largest gap between fix stamps '
+              f'{max(gaps, default=float("nan")):.3f} s (epoch period {1 / a.rate:.3f} s); '
+              f'gaps > 1.5 periods: {sum(x > 1.5 / a.rate for x in gaps)}')
+        print(f'RSS {r0 / 1024:.1f} -> {r_after / 1024:.1f} MiB after the last round: '
+              f'{100 * (r_after - r0) / r0:+.2f} %')
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+        for g in ghosts:
+            if g.poll() is None:
+                g.kill()
+                g.wait()
+        for p in (pub, fusion):
+            if p.poll() is None:
+                interrupt(p, 10)
+
+
+if __name__ == '__main__':
+    main()
