@@ -5,6 +5,8 @@ station in every fourth problem) as a JSON request, a CSV bearing table and an N
 table, then times, in one run and interleaved so machine load hits every row alike:
 
 * ``bearing_loc locate --help``: interpreter start-up and imports, the floor of any call;
+  the commands run with a bytecode cache (in the temporary folder), as an installed package
+  does, unless ``--no-bytecode-cache``;
 * ``bearing_loc locate`` on each input (subprocess wall clock and CPU time, output to a
   file; on a shared machine the CPU time is the steadier figure);
 * ``python -c pass``: the interpreter and its site start-up alone (in this virtualenv
@@ -114,6 +116,9 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.split('\n')[0])
     ap.add_argument('--problems', type=int, default=10000)
     ap.add_argument('--repeat', type=int, default=5)
+    ap.add_argument('--no-bytecode-cache', action='store_true',
+                    help='run the commands in this environment as it is (with '
+                         'PYTHONDONTWRITEBYTECODE set, every run compiles the package again)')
     args = ap.parse_args()
     exe = os.path.join(os.path.dirname(sys.executable), 'bearing_loc')
     base = [exe] if os.path.exists(exe) else [
@@ -121,6 +126,11 @@ def main():
     env = dict(os.environ, AMENT_PREFIX_PATH=os.environ.get('AMENT_PREFIX_PATH',
                                                             sys.prefix))
     with tempfile.TemporaryDirectory() as tmp:
+        if not args.no_bytecode_cache:
+            # As an installed package runs: compiled once (here into tmp, not the tree).
+            env.pop('PYTHONDONTWRITEBYTECODE', None)
+            env['PYTHONPYCACHEPREFIX'] = os.path.join(tmp, 'pycache')
+            subprocess.run(base + ['locate', '--help'], env=env, capture_output=True)
         paths = write_inputs(tmp, args.problems)
         sizes = {k: os.path.getsize(p) / 1e6 for k, p in paths.items()}
         runs = {'interpreter alone (python -c pass)': [sys.executable, '-c', 'pass'],
@@ -140,7 +150,8 @@ def main():
                 outs.append([r['position'] for r in json.load(f)['results']])
     same = outs[0] == outs[1] == outs[2]
     print(f'bearing_loc locate, {args.problems} three-station problems (mle), median of '
-          f'{args.repeat} runs [min-max], wall clock')
+          f'{args.repeat} runs [min-max]; bytecode '
+          f'{"as the environment has it" if args.no_bytecode_cache else "cached"}')
     print('| run | wall clock | CPU (user + sys) |')
     print('|---|---|---|')
     for name, t in times.items():

@@ -31,6 +31,7 @@ import io
 import itertools
 import math
 from operator import itemgetter
+import re
 import sys
 
 import numpy as np
@@ -334,28 +335,53 @@ def _read_csv(path):
         if not header:
             raise InputError('input: empty CSV (expected a header line naming the columns)')
         _check_header(header)
-        rows, lines = [], []
-        for row in reader:
-            if not row:
-                continue
-            if len(row) != len(header):
-                raise InputError(f'line {reader.line_num}: {len(row)} fields, the header has '
-                                 f'{len(header)}')
-            rows.append(row)
-            lines.append(reader.line_num)
+        fast = False
+        try:
+            rows = list(reader)
+            fast = set(map(len, rows)) == {len(header)} and reader.line_num == len(rows) + 1
+        except csv.Error:
+            pass
+        if fast:
+            lines = range(2, len(rows) + 2)     # one line per row, none blank or wrong
+        else:       # row by row, so that the first problem met is the one reported
+            rows, lines = _csv_rows(csv.reader(io.StringIO(text)), len(header))
     except csv.Error as exc:
         raise InputError(f'input: invalid CSV ({exc})') from None
     if not rows:
         raise InputError('input: no bearing rows')
-    columns = {'problem': _csv_integers([r[header.index('problem')].strip() for r in rows],
-                                        lines)}
-    for j, name in enumerate(header):
-        col = [r[j].strip() for r in rows]
+    columns_text = list(zip(*rows))
+    if fast and not _CSV_SPACE.search(text):    # no field has anything to strip
+        columns_text = [list(col) for col in columns_text]
+    else:
+        columns_text = [[v.strip() for v in col] for col in columns_text]
+    columns = {'problem': _csv_integers(columns_text[header.index('problem')], lines)}
+    for name, col in zip(header, columns_text):
         if name == 'station':
             columns[name] = col
         elif name != 'problem':
             columns[name] = _csv_floats(col, name, lines, columns['problem'])
     return columns, lambda r: f'line {lines[r]}'
+
+
+#: What str.strip() would remove from a field of a one-line-per-row CSV: any whitespace but
+#: the line ends (\n or \r\n).
+_CSV_SPACE = re.compile(r'[^\S\r\n]|\r(?!\n)')
+
+
+def _csv_rows(reader, width):
+    """The non-blank rows of ``reader`` and their line numbers; InputError at a row that has
+    not ``width`` fields."""
+    rows, lines = [], []
+    next(reader, None)
+    for row in reader:
+        if not row:
+            continue
+        if len(row) != width:
+            raise InputError(f'line {reader.line_num}: {len(row)} fields, the header has '
+                             f'{width}')
+        rows.append(row)
+        lines.append(reader.line_num)
+    return rows, lines
 
 
 def _csv_floats(col, name, lines, ids):
