@@ -31,7 +31,6 @@ import io
 import itertools
 import math
 from operator import itemgetter
-import re
 import sys
 
 import numpy as np
@@ -350,7 +349,7 @@ def _read_csv(path):
     if not rows:
         raise InputError('input: no bearing rows')
     columns_text = list(zip(*rows))
-    if fast and not _CSV_SPACE.search(text):    # no field has anything to strip
+    if fast and not _inner_space(text):     # no field has anything to strip
         columns_text = [list(col) for col in columns_text]
     else:
         columns_text = [[v.strip() for v in col] for col in columns_text]
@@ -363,9 +362,12 @@ def _read_csv(path):
     return columns, lambda r: f'line {lines[r]}'
 
 
-#: What str.strip() would remove from a field of a one-line-per-row CSV: any whitespace but
-#: the line ends (\n or \r\n).
-_CSV_SPACE = re.compile(r'[^\S\r\n]|\r(?!\n)')
+def _inner_space(text):
+    """Whether a one-line-per-row CSV may hold what str.strip() removes from a field: any
+    whitespace but the line ends (\\n, \\r\\n); non-ASCII text is assumed to."""
+    if not text.isascii() or any(c in text for c in ' \t\x0b\x0c\x1c\x1d\x1e\x1f'):
+        return True
+    return text.count('\r') != text.count('\r\n')
 
 
 def _csv_rows(reader, width):
