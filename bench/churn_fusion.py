@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/churn_fusion.py [--rounds 3] [--ghosts 200] [--stations 4]
 
-Starts a fusion node (``python -m bearing_loc_ros.fusion_node``, ``discover:=true``, default
+Starts a fusion node (``bearing_loc_ros.fusion_node``, ``discover:=true``, default
 QoS and trigger, estimator ls) in namespace /soak, fed by ``--stations`` stations at 10 Hz
 (the publisher of ``soak_fusion.py``), all on loopback with their own ROS_DOMAIN_ID. After a
 warm-up, each round starts a process holding ``--ghosts`` empty publishers on
@@ -15,7 +15,7 @@ fixes per observation cycle while the ghosts came and went. ``--node-log PATH`` 
 output, with its debug messages (the heap trims of ``bearing_loc_ros.memory``).
 
 ``--env NAME=VALUE`` (repeatable) sets an environment variable of the fusion node only, for
-example ``--env MALLOC_ARENA_MAX=2``.
+example ``--env MALLOC_ARENA_MAX=2``; ``--no-trim`` runs the node without its heap trim.
 """
 import argparse
 import os
@@ -35,6 +35,9 @@ sys.stdin.readline()
 node.destroy_node()
 rclpy.try_shutdown()
 '''
+
+RUN = 'from bearing_loc_ros.fusion_node import main; main()'
+NO_TRIM = 'import bearing_loc_ros.memory as m; m.HEAP.trim = None; ' + RUN
 
 
 def rss_kb(pid):
@@ -56,6 +59,8 @@ def main(argv=None):
     ap.add_argument('--warm-up', type=float, default=15.0)
     ap.add_argument('--env', action='append', default=[], help='NAME=VALUE for the node')
     ap.add_argument('--node-log', help='file for the fusion node output (debug level)')
+    ap.add_argument('--no-trim', action='store_true',
+                    help='the node without its heap trim (bearing_loc_ros.memory), to compare')
     a = ap.parse_args(argv)
     here = os.path.dirname(os.path.abspath(__file__))
     repo = os.path.dirname(here)
@@ -65,7 +70,7 @@ def main(argv=None):
     node_env = dict(env, **dict(kv.split('=', 1) for kv in a.env))
     names = [f's{k + 1}' for k in range(a.stations)]
     fusion = subprocess.Popen(
-        [sys.executable, '-m', 'bearing_loc_ros.fusion_node', '--ros-args', '-r', '__ns:=/soak',
+        [sys.executable, '-c', NO_TRIM if a.no_trim else RUN, '--ros-args', '-r', '__ns:=/soak',
          '-p', f'stations:=[{",".join(names)}]', '-p', 'estimator:=ls',
          '-p', 'discover:=true', '-p', 'accuracy_map.enabled:=false',
          '-p', 'diagnostics_period:=0.5']
