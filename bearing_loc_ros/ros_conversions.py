@@ -27,16 +27,20 @@ and ``nav_msgs/Odometry`` platform poses (:func:`pose_from_odometry`).
 
 Every ``*_from_msg`` function either returns a valid core object or raises
 :class:`ConversionError` (a ``ValueError``) whose ``reason`` tag is counted by the nodes;
-a message that breaks the contract is never converted.
+a message that breaks the contract is never converted. :func:`bearing_from_cdr` is
+:func:`bearing_from_msg` on the serialized bytes of a raw subscription (the fusion node's
+per-message path), with the same results and rejections.
 """
 
 import math
+import struct
 
 from builtin_interfaces.msg import Duration, Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
 import numpy as np
+from rclpy.serialization import deserialize_message
 from sensor_msgs.msg import NavSatFix, NavSatStatus
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
@@ -167,19 +171,30 @@ def bearing_from_msg(msg, station, expected_frame=None):
     # math module throughout; the angle maths are the scalar twins in core.conventions.
     header = msg.header
     frame = header.frame_id
+    _check_frame(frame, expected_frame)
+    p = msg.pose.pose.position
+    o = msg.pose.pose.orientation
+    stamp = header.stamp
+    return _bearing_from_fields(station, frame, stamp.sec, stamp.nanosec,
+                                float(p.x), float(p.y), float(p.z),
+                                float(o.x), float(o.y), float(o.z), float(o.w),
+                                msg.pose.covariance)
+
+
+def _check_frame(frame, expected_frame):
     if not frame:
         raise ConversionError('empty_frame_id', 'header.frame_id is empty')
     if expected_frame is not None and frame != expected_frame:
         raise ConversionError('wrong_frame', f'frame_id {frame!r} != {expected_frame!r}')
-    pose = msg.pose
-    p = pose.pose.position
-    px, py, pz = float(p.x), float(p.y), float(p.z)
+
+
+def _bearing_from_fields(station, frame, sec, nanosec, px, py, pz, qx, qy, qz, qw, cov):
+    """The contract checks and maths of :func:`bearing_from_msg` after the frame check, on
+    the message's fields (Python floats; ``cov``: the 36 covariance values, row-major)."""
     if not (abs(px) <= MAX_ABS_POSITION and abs(py) <= MAX_ABS_POSITION
             and abs(pz) <= MAX_ABS_POSITION):
         raise ConversionError('bad_position', 'non-finite station position or |coordinate| '
                               f'above {MAX_ABS_POSITION:g} m')
-    o = pose.pose.orientation
-    qx, qy, qz, qw = float(o.x), float(o.y), float(o.z), float(o.w)
     norm = math.sqrt(((qx * qx + qy * qy) + qz * qz) + qw * qw)
     if not math.isfinite(norm) or abs(norm - 1.0) > QUATERNION_NORM_TOL:
         raise ConversionError('bad_quaternion', f'quaternion norm {norm:.6g} is not 1')
@@ -195,11 +210,13 @@ def bearing_from_msg(msg, station, expected_frame=None):
     if abs(roll) > ROLL_TOL or zz < -ROLL_TOL:
         phi = math.atan2(math.sin(roll), zz)
         raise ConversionError('nonzero_roll', f'roll about {phi:.3g} rad; a bearing has none')
-    cov = pose.covariance
-    if type(cov) is not np.ndarray or cov.shape != (36,):
-        # An in-process message may hold a list or a (6, 6) array (rclpy checks no shape).
-        cov = np.asarray(cov, dtype=float).reshape(36)
-    c = cov.tolist()
+    if type(cov) is list:
+        c = cov
+    else:
+        if type(cov) is not np.ndarray or cov.shape != (36,):
+            # An in-process message may hold a list or a (6, 6) array (rclpy checks no shape).
+            cov = np.asarray(cov, dtype=float).reshape(36)
+        c = cov.tolist()
     var_az = c[IDX_AZ_VAR]
     if not (var_az > 0.0 and SIGMA_MIN <= math.sqrt(var_az) <= SIGMA_MAX):
         raise ConversionError('bad_azimuth_variance', f'azimuth variance {var_az}')
@@ -215,10 +232,62 @@ def bearing_from_msg(msg, station, expected_frame=None):
     if (not all(map(math.isfinite, rows[0] + rows[1] + rows[2]))
             or c[0] < 0.0 or c[7] < 0.0 or c[14] < 0.0):
         raise ConversionError('bad_position_covariance', 'non-finite or negative variance')
-    return Bearing(station=station, stamp_ns=time_to_ns(header.stamp),
+    sec, nanosec = int(sec), int(nanosec)
+    if sec < 0 or not 0 <= nanosec < NS_PER_S:
+        raise ConversionError('bad_stamp', f'stamp sec={sec} nanosec={nanosec} is not '
+                              'normalised (need sec >= 0 and 0 <= nanosec < 1e9)')
+    return Bearing(station=station, stamp_ns=sec * NS_PER_S + nanosec,
                    position=np.array((px, py, pz)), azimuth=az, elevation=elevation,
                    sigma_azimuth=math.sqrt(var_az), sigma_elevation=sigma_el, frame_id=frame,
                    position_covariance=np.array(rows))
+
+
+#: CDR of PoseWithCovarianceStamped after the 4-byte encapsulation header: stamp sec
+#: (int32), nanosec (uint32), the frame_id length (uint32, with its NUL), the frame_id
+#: bytes; then, 8-aligned, position (3 float64), orientation (4) and covariance (36).
+_CDR_HEAD = {1: struct.Struct('<iII'), 0: struct.Struct('>iII')}
+_CDR_POSE = {1: struct.Struct('<43d'), 0: struct.Struct('>43d')}
+
+
+def bearing_from_cdr(raw, station, expected_frame=None):
+    """Serialized PoseWithCovarianceStamped (CDR bytes, as a ``raw=True`` subscription or a
+    bag delivers them) -> core :class:`Bearing`, or raise :class:`ConversionError`.
+
+    The same result as ``bearing_from_msg(deserialize_message(raw), ...)``, the same
+    rejections in the same order, without building the rclpy message (~25 µs of Python
+    per bearing saved). The fields are read with ``struct`` from the plain XCDR1 layout
+    (encapsulation CDR_LE or CDR_BE, a NUL-terminated UTF-8 frame_id); any other form
+    (another encapsulation, a frame_id without its NUL or with an inner NUL, invalid UTF-8,
+    a short buffer) is handed to rclpy's deserializer, so its reading of such bytes is kept
+    exactly. Bytes that rclpy cannot deserialize raise ``malformed_cdr``.
+    """
+    fields = _cdr_fields(raw)
+    if fields is None:
+        try:
+            msg = deserialize_message(raw, PoseWithCovarianceStamped)
+        except (RuntimeError, TypeError, ValueError) as exc:
+            raise ConversionError('malformed_cdr', f'{len(raw)} bytes: {exc}'[:200]) from None
+        return bearing_from_msg(msg, station, expected_frame)
+    frame, sec, nanosec, v = fields
+    _check_frame(frame, expected_frame)
+    return _bearing_from_fields(station, frame, sec, nanosec, *v[:7], list(v[7:]))
+
+
+def _cdr_fields(raw):
+    """(frame_id, sec, nanosec, 43 floats) of the plain CDR layout, or None for any other."""
+    if len(raw) < 16 or raw[0] != 0 or raw[1] > 1:
+        return None
+    little = raw[1]
+    sec, nanosec, n = _CDR_HEAD[little].unpack_from(raw, 4)
+    end = 16 + n                  # one past the NUL of the frame_id
+    start = 4 + ((12 + n + 7) & ~7)
+    if n == 0 or start + 344 > len(raw) or raw.find(0, 16, end) != end - 1:
+        return None
+    try:
+        frame = raw[16:end - 1].decode()
+    except UnicodeDecodeError:
+        return None
+    return frame, sec, nanosec, _CDR_POSE[little].unpack_from(raw, start)
 
 
 def fix_to_msg(position, covariance, stamp_ns, frame_id):

@@ -1,22 +1,26 @@
 """Fuzzing the message conversions the nodes run on every received message.
 
-bearing_from_msg (fusion node, bag process), raw_reading_from_msg and pose_from_odometry
-(station node) get messages with arbitrary field values: NaN, ±inf, ±1e308, subnormals,
-negative variances, non-normalised stamps (nanosec ≥ 1e9), empty or foreign frames.
-Property: each call returns a core object that passes the core's own validation, or raises
-ConversionError with a documented reason; nothing else escapes, and an accepted message's
-stamp is the one it carries (sec · 1e9 + nanosec, normalised).
+bearing_from_msg (bag process), bearing_from_cdr (fusion node), raw_reading_from_msg and
+pose_from_odometry (station node) get messages with arbitrary field values: NaN, ±inf,
+±1e308, subnormals, negative variances, non-normalised stamps (nanosec ≥ 1e9), empty or
+foreign frames. Property: each call returns a core object that passes the core's own
+validation, or raises ConversionError with a documented reason; nothing else escapes, and an
+accepted message's stamp is the one it carries (sec · 1e9 + nanosec, normalised).
+bearing_from_cdr gives exactly what rclpy's deserialiser and bearing_from_msg give, on
+serialised fuzzed messages and on malformed bytes.
 
 Hypothesis runs derandomised with no example database and a fixed budget (a few seconds).
 """
 
 import math
+import struct
 
-from geometry_msgs.msg import Vector3Stamped
+from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
 from hypothesis import example, given, HealthCheck, settings, strategies as st
 from nav_msgs.msg import Odometry
 import numpy as np
 import pytest
+from rclpy.serialization import deserialize_message, serialize_message
 
 from bearing_loc_ros import ros_conversions as rc
 from bearing_loc_ros.core.bearings import Bearing
@@ -146,6 +150,91 @@ def test_variances_the_core_would_refuse_are_conversion_rejections(index, value,
     with pytest.raises(rc.ConversionError) as info:
         rc.bearing_from_msg(msg, 's')
     assert info.value.reason == reason
+
+
+# ------------------------------------------------------------------ bearing_from_cdr
+
+def _outcome(convert):
+    """('bearing', the Bearing's fields as reprs) or ('rejected', reason, text)."""
+    try:
+        b = convert()
+    except rc.ConversionError as exc:
+        return ('rejected', exc.reason, str(exc))
+    return ('bearing', {k: repr(getattr(b, k)) for k in b.__dataclass_fields__})
+
+
+def _plain(raw, expected_frame):
+    """The plain path: rclpy deserialises, bearing_from_msg converts; bytes rclpy cannot
+    deserialise are the reason malformed_cdr."""
+    try:
+        msg = deserialize_message(raw, PoseWithCovarianceStamped)
+    except RuntimeError:
+        return ('rejected', 'malformed_cdr')
+    return _outcome(lambda: rc.bearing_from_msg(msg, 'station_1', expected_frame))
+
+
+def _assert_same(raw, expected_frame):
+    fast = _outcome(lambda: rc.bearing_from_cdr(raw, 'station_1', expected_frame))
+    plain = _plain(raw, expected_frame)
+    assert fast[:len(plain)] == plain, (raw, fast, plain)
+    return fast
+
+
+@FUZZ
+@given(bearing_msgs(), st.sampled_from([None, 'map']), st.sampled_from(['', 'map', 'μ', 'a' * 9]))
+def test_bearing_from_cdr_equals_the_plain_path(msg, expected_frame, frame):
+    """The raw subscription's decoder gives exactly what rclpy's message plus
+    bearing_from_msg give: the same Bearing bit for bit, or the same rejection."""
+    if frame != 'map':
+        msg.header.frame_id = frame      # frame lengths change the 8-byte padding
+    _assert_same(serialize_message(msg), expected_frame)
+
+
+@FUZZ
+@given(st.data())
+def test_bearing_from_cdr_on_malformed_bytes(data):
+    """Truncated, extended, overwritten or random CDR: the same outcome as rclpy's
+    deserialiser followed by bearing_from_msg (malformed_cdr where rclpy fails)."""
+    raw = bytearray(serialize_message(_valid_bearing_msg()))
+    for _ in range(data.draw(st.integers(1, 3))):
+        kind = data.draw(st.sampled_from(['truncate', 'append', 'byte', 'length', 'random']))
+        if kind == 'truncate':
+            del raw[data.draw(st.integers(0, len(raw))):]
+        elif kind == 'append':
+            raw += data.draw(st.binary(max_size=16))
+        elif kind == 'byte' and raw:
+            raw[data.draw(st.integers(0, min(len(raw), 24) - 1))] = data.draw(
+                st.integers(0, 255))
+        elif kind == 'length' and len(raw) >= 16:
+            raw[12:16] = data.draw(st.sampled_from([0, 1, 3, 4, 5, 8, 9, 400, 2 ** 31,
+                                                    UINT32_MAX])).to_bytes(4, 'little')
+        elif kind == 'random':
+            raw = bytearray(data.draw(st.binary(max_size=400)))
+    _assert_same(bytes(raw), data.draw(st.sampled_from([None, 'map'])))
+
+
+def test_bearing_from_cdr_edge_layouts():
+    """The forms the struct reader leaves to rclpy: big-endian CDR, a frame_id without
+    its NUL, with an inner NUL, not UTF-8, empty; and bytes rclpy refuses."""
+    raw = serialize_message(_valid_bearing_msg())
+    assert raw[:2] == b'\x00\x01' and raw[12:20] == b'\x04\x00\x00\x00map\x00'
+    sec, nanosec = struct.unpack_from('<iI', raw, 4)
+    values = struct.unpack_from('<43d', raw, 20)
+    big = b'\x00\x00\x00\x00' + struct.pack('>iII', sec, nanosec, 4) + b'map\x00' \
+        + struct.pack('>43d', *values)
+    assert _assert_same(big, 'map') == _outcome(
+        lambda: rc.bearing_from_cdr(raw, 'station_1', 'map'))
+    assert _assert_same(big, 'map')[0] == 'bearing'
+    for frame_bytes, reason in ((b'mapx', 'wrong_frame'), (b'm\x00p\x00', 'wrong_frame'),
+                                (b'\xffap\x00', 'wrong_frame'), (b'\x00\x00\x00\x00', None)):
+        edited = raw[:16] + frame_bytes + raw[20:]
+        out = _assert_same(edited, 'map')
+        assert out[1] == (reason or 'empty_frame_id'), out
+    empty = raw[:12] + (0).to_bytes(4, 'little') + raw[16:]
+    assert _assert_same(empty, None)[:2] == ('rejected', 'empty_frame_id')
+    for bad in (b'', raw[:3], raw[:-1], raw[:12] + b'\xff' * 4 + raw[16:],
+                b'\x01' + raw[1:]):
+        assert _assert_same(bad, 'map')[:2] == ('rejected', 'malformed_cdr'), bad
 
 
 # ------------------------------------------------------------------ station inputs
