@@ -72,15 +72,27 @@ class StationTrust:
         self.probability = float(probability)
         self._hist = {}
         self._quantiles = {}
+        self._scales = {}      # station -> s_k of its current window (dropped on change)
+        self._deferred = []    # update() arguments not applied yet (defer_update)
 
     # ------------------------------------------------------------------ use
     def scale(self, station):
-        """s_k ≥ 1 (module docstring); 1 until :data:`MIN_SAMPLES` fixes were seen."""
-        h = self._hist.get(station)
+        """s_k ≥ 1 (module docstring); 1 until :data:`MIN_SAMPLES` fixes were seen.
+
+        Kept per station until its window changes (it is read for every bearing of every
+        epoch; the window changes once per fix)."""
+        if self._deferred:
+            self.settle()
+        s = self._scales.get(station)
+        if s is None:
+            s = self._scales[station] = self._window_scale(self._hist.get(station))
+        return s
+
+    def _window_scale(self, h):
         if not h or len(h) < MIN_SAMPLES or not self._significant(h):
             return 1.0
         # statistics.median: the value np.median gives (the middle one, or the mean of the
-        # two), without its ~30 µs per call (one call per bearing per epoch).
+        # two), without its ~30 µs per call.
         excess = float(statistics.median([x / n for x, n, _, _ in h]))
         return math.sqrt(max(1.0, excess))
 
@@ -90,6 +102,8 @@ class StationTrust:
 
     def verified(self, station):
         """True once ``station`` has :data:`MIN_SAMPLES` leave-one-out residuals."""
+        if self._deferred:
+            self.settle()
         h = self._hist.get(station)
         return bool(h) and len(h) >= MIN_SAMPLES
 
@@ -114,6 +128,8 @@ class StationTrust:
 
     def suspects(self):
         """Stations whose windowed deletion χ² is inconsistent with their σ (sorted)."""
+        if self._deferred:
+            self.settle()
         return sorted(st for st, h in self._hist.items()
                       if len(h) >= MIN_SAMPLES and self._significant(h))
 
@@ -128,13 +144,32 @@ class StationTrust:
 
     def forget(self, station):
         """Drop the history of ``station``."""
+        self.settle()
         self._hist.pop(station, None)
+        self._scales.pop(station, None)
 
     def reset(self):
         """Drop every history (a time jump)."""
+        self._deferred.clear()
         self._hist.clear()
+        self._scales.clear()
 
     # ------------------------------------------------------------------ update
+    def defer_update(self, bearings, claims, position, covariance, outside=()):
+        """:meth:`update` later: at :meth:`settle` or before the trust is next read.
+
+        The fusion defers the deletion residuals of a fix (~0.4 ms at 10 stations) until
+        the fix is published; they only matter for the next epoch, and every reader settles
+        first, so the results are those of calling :meth:`update` at once."""
+        self._deferred.append((bearings, claims, np.array(position, dtype=float),
+                               np.array(covariance, dtype=float), outside))
+
+    def settle(self):
+        """Apply the deferred updates, in order."""
+        deferred, self._deferred = self._deferred, []
+        for args in deferred:
+            self._update(*args)
+
     def update(self, bearings, claims, position, covariance, outside=()):
         """Record the deletion residuals of a fix.
 
@@ -146,6 +181,11 @@ class StationTrust:
         Returns {station: d_k²} of the stations that could be tested (a station whose
         removal leaves the fix undetermined is not testable).
         """
+        if self._deferred:
+            self.settle()
+        return self._update(bearings, claims, position, covariance, outside)
+
+    def _update(self, bearings, claims, position, covariance, outside):
         x = np.asarray(position, dtype=float)
         P = np.asarray(covariance, dtype=float)
         try:
@@ -161,6 +201,7 @@ class StationTrust:
             excess, k, d2 = row
             h = self._hist.setdefault(b.station, deque(maxlen=self.window))
             h.append((excess, k, d2, k))
+            self._scales.pop(b.station, None)
             out[b.station] = d2
         return out
 

@@ -14,6 +14,7 @@ eq. (1)).
 
 from functools import lru_cache
 import math
+import statistics
 
 import numpy as np
 
@@ -166,14 +167,16 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     ``low_confidence`` becomes an Epoch of reason ``low_confidence`` that carries position
     and covariance. With ``trust``
     (a :class:`~bearing_loc_ros.core.station_trust.StationTrust`) every bearing is used with
-    its σ_eff and the deletion residuals of the final solve update the trust.
+    its σ_eff and the deletion residuals of the final solve update the trust (deferred:
+    applied by ``trust.settle()`` once the fix is out, or before the trust is next read).
     """
     options = dict(options or {})
     used = list(bearings)
     claims = {}
     if trust is not None:
         claims = {b.station: (b.sigma_azimuth, b.sigma_elevation) for b in used}
-        peer = float(np.median([b.sigma_azimuth for b in used])) if used else 0.0
+        # statistics.median: np.median's value (the middle one or the mean of the two).
+        peer = float(statistics.median([b.sigma_azimuth for b in used])) if used else 0.0
         used = [trust.effective(b, peer) for b in used]
     rejected = []
     kwargs = _registry.scoped_options(estimator, options)
@@ -225,7 +228,7 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
                 continue
         if status == STATUS_LOW_CONFIDENCE:
             if trust is not None:
-                trust.update(used, claims, pos, cov, rejected)
+                trust.defer_update(used, claims, pos, cov, rejected)
             return Epoch(LOW_CONFIDENCE, position=pos, covariance=0.5 * (cov + cov.T),
                          detail='failed the consistency checks (core.robust)', **common)
         if status != _estimators.STATUS_OK or not bool(res.converged[0]):
@@ -256,7 +259,7 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
                          detail=f'{used[worst].station} d2={d2[worst]:.3g} but too few '
                                 f'stations left to drop it', **common)
         if trust is not None:
-            trust.update(used, claims, pos, cov, rejected)
+            trust.defer_update(used, claims, pos, cov, rejected)
         residuals = {b.station: float(v) for b, v in zip(used, d2)}
         solved = getattr(res, 'solve', None)
         n_free = 2 if solved is not None and str(solved[0]) == 'horizontal' else 3

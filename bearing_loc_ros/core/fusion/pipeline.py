@@ -42,6 +42,7 @@ class FusionCore:
         core = make_core(FusionConfig(...), stations=['station_1', 'station_2'])
         epochs = core.add_bearing(bearing, now_ns)   # on every accepted message
         epochs += core.tick(now_ns)                 # every core.tick_period_ns
+        core.settle()                               # after publishing epochs (optional)
         core.count_bad_message(station, reason, now_ns)   # messages that failed conversion
         core.drain_events()                         # [(level, text)] to log
         core.diagnostics(now_ns)                    # [DiagnosticEntry] to publish
@@ -186,6 +187,15 @@ class FusionCore:
         now = int(now_ns)
         self.registry.advance(now)
         return self._record(self.strategy.on_tick(now), now)
+
+    def settle(self):
+        """Finish the work deferred past the epochs just returned (the station trust's update
+        from the last fix, core.station_trust). The node calls it once the fix is published,
+        off the latency path; without the call it happens before the trust is next read, so
+        the results are the same either way (offline replay does not call it)."""
+        trust = getattr(self.strategy, 'trust', None)
+        if trust is not None:
+            trust.settle()
 
     @property
     def has_events(self):
