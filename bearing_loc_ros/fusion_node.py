@@ -38,7 +38,7 @@ from .core.fusion.config import check_station_ids
 from .fusion_wiring import BearingInputs, FusionOutputs
 from .ros_common import core_parameter_error, declare_schema, keep_last_qos, log_events, \
     main_for, ParameterError
-from .ros_conversions import bearing_from_msg, ConversionError
+from .ros_conversions import bearing_from_cdr, bearing_from_msg, ConversionError
 
 #: Run-time parameters that change only the display (the others change the core).
 RUNTIME_DISPLAY = ('marker_ray_length', 'ellipsoid_sigma')
@@ -173,11 +173,15 @@ class FusionNode(Node):
 
     def _on_bearing(self, station, msg, info):
         # Per-message path (N calls per epoch): the fix is published before anything else.
+        # ``msg``: the CDR bytes of the raw subscription (or a message object);
         # ``info``: rclpy's message info (two-argument callback), for the sequence numbers.
         now = self.now_ns()
         self.inputs.count_sequence(station, info)
         try:
-            bearing = bearing_from_msg(msg, station, expected_frame=self.frame_id)
+            if type(msg) is bytes:
+                bearing = bearing_from_cdr(msg, station, expected_frame=self.frame_id)
+            else:
+                bearing = bearing_from_msg(msg, station, expected_frame=self.frame_id)
         except ConversionError as exc:
             self.core.count_bad_message(station, exc.reason, now)
             # Throttled per station and reason on the node clock, suppressed ones counted.
@@ -190,6 +194,7 @@ class FusionNode(Node):
         epochs = self.core.add_bearing(bearing, now if now is not None else bearing.stamp_ns)
         if epochs:
             self._publish_epochs(epochs)
+            self.core.settle()
         if self.core.has_events:
             self._log_events()
 
@@ -200,6 +205,7 @@ class FusionNode(Node):
         epochs = self.core.tick(now)
         if epochs:
             self._publish_epochs(epochs)
+            self.core.settle()
         if self.core.has_events:
             self._log_events()
         if self.map_pub is not None and self.core.geometry_version != self._geometry_seen:
@@ -217,11 +223,14 @@ class FusionNode(Node):
         """Destroy the channel nodes this node hosts (if any), then the node."""
         if self.channel_host is not None:
             self.channel_host.destroy()
+        if getattr(self, 'inputs', None) is not None:
+            self.inputs.destroy_events()
         return super().destroy_node()
 
     # ------------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self):
         now = self.now_ns() or 0
+        self.inputs.poll_events()
         self.inputs.count_publishers()
         entries = self.core.diagnostics(now)
         entries[0].values.update(fixes_published=self.fixes_published, mode=self.mode,

@@ -14,7 +14,8 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
-from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.event_handler import EventHandler, QoSSubscriptionEventType, \
+    SubscriptionEventCallbacks
 from sensor_msgs.msg import NavSatFix
 from visualization_msgs.msg import MarkerArray
 
@@ -30,16 +31,42 @@ BEARING_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 #: New subscriptions made per discovery scan at most (the executor stays responsive when
 #: many publishers appear at once; the rest are taken on the next scans).
 MAX_NEW_PER_SCAN = 16
+#: The bearing subscriptions' middleware events, read by :meth:`BearingInputs.poll_events`.
+INCOMPATIBLE_QOS = QoSSubscriptionEventType.RCL_SUBSCRIPTION_REQUESTED_INCOMPATIBLE_QOS
+MESSAGE_LOST = QoSSubscriptionEventType.RCL_SUBSCRIPTION_MESSAGE_LOST
+INCOMPATIBLE_TYPE = QoSSubscriptionEventType.RCL_SUBSCRIPTION_INCOMPATIBLE_TYPE
+
+
+class PolledEvent(EventHandler):
+    """A subscription's middleware event, read by :meth:`poll` instead of the wait set.
+
+    rclpy puts every event handler of a subscription into the executor's wait set, whose
+    Python bookkeeping is rebuilt on every wake-up: three handlers per station cost more than
+    the bearing subscriptions themselves (at 50 stations they were about a third of the
+    rclpy floor). The counts are cumulative in the middleware, so polling them once per
+    diagnostics period loses nothing; ``callback(info)`` runs when the count changed.
+    """
+
+    def poll(self):
+        """Take the event's status; call the callback when its total count changed."""
+        self._ready_to_take_data = True    # take_data reads only after a wait set said so
+        info = self.take_data()
+        if info is not None and info.total_count_change > 0:
+            self.callback(info)
 
 
 class BearingInputs:
     """The bearing subscriptions of a fusion node and their loss bookkeeping.
 
-    ``on_bearing(station, msg, info)`` receives each message with rclpy's message info.
+    ``on_bearing(station, raw, info)`` receives each message as its CDR bytes (a raw
+    subscription: ``ros_conversions.bearing_from_cdr`` reads them without building the rclpy
+    message) with rclpy's message info.
     ``subs``: station -> Subscription; ``discovered``: stations found by discovery (not in
     the parameter); ``seq``: station -> last publication sequence number;
     ``single_publisher``: station -> exactly one publisher (sequence gaps valid);
-    ``incompatible_qos``: station -> incompatible publishers seen (QoS events).
+    ``incompatible_qos``: station -> incompatible publishers seen (QoS events). The
+    middleware events (incompatible QoS or type, messages lost) are not in the executor's
+    wait set: :meth:`poll_events` reads them (the node calls it before each diagnostics).
     """
 
     def __init__(self, node, core, qos, on_bearing):
@@ -49,6 +76,7 @@ class BearingInputs:
         self.discovered = set()
         self.seq = {}
         self.single_publisher = {}
+        self.events = {}
 
     def subscribe(self, station, wait=True):
         """Subscribe to ``<station>/bearing``; ``wait=False`` (discovered): the station is
@@ -56,16 +84,23 @@ class BearingInputs:
         if station in self.subs:
             return
         self.core.add_station(station, wait=wait)
-        events = SubscriptionEventCallbacks(
-            incompatible_qos=partial(self._on_incompatible_qos, station),
-            message_lost=partial(self._on_message_lost, station))
-        self.subs[station] = self.node.create_subscription(
-            PoseWithCovarianceStamped, f'{station}/bearing', partial(self.on_bearing, station),
-            self.qos, event_callbacks=events)
+        topic = f'{station}/bearing'
+        sub = self.subs[station] = self.node.create_subscription(
+            PoseWithCovarianceStamped, topic, partial(self.on_bearing, station), self.qos,
+            event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False), raw=True)
+        group = self.node.default_callback_group
+        self.events[station] = [
+            PolledEvent(callback_group=group, callback=partial(callback, station),
+                        event_type=kind, parent_impl=sub.handle)
+            for kind, callback in ((INCOMPATIBLE_QOS, self._on_incompatible_qos),
+                                   (MESSAGE_LOST, self._on_message_lost),
+                                   (INCOMPATIBLE_TYPE, self._on_incompatible_type))]
         self.single_publisher[station] = False
 
     def unsubscribe(self, station):
         """Drop ``station``: its subscription, bookkeeping and core state."""
+        for event in self.events.pop(station, ()):
+            event.destroy()
         sub = self.subs.pop(station, None)
         if sub is not None:
             self.node.destroy_subscription(sub)
@@ -74,6 +109,19 @@ class BearingInputs:
         self.single_publisher.pop(station, None)
         self.incompatible_qos.pop(station, None)
         self.core.remove_station(station)
+
+    def poll_events(self):
+        """Read every subscription's middleware events (:class:`PolledEvent`)."""
+        for events in self.events.values():
+            for event in events:
+                event.poll()
+
+    def destroy_events(self):
+        """Release the event handles (before the node and its subscriptions go)."""
+        for events in self.events.values():
+            for event in events:
+                event.destroy()
+        self.events.clear()
 
     def set_stations(self, stations, previous):
         """The ``stations`` parameter changed from ``previous`` to ``stations``."""
@@ -136,6 +184,13 @@ class BearingInputs:
             f'{station}/bearing: {info.total_count} publisher(s) with incompatible QoS (policy '
             f'{info.last_policy_kind}); a best-effort publisher needs qos_reliability:='
             'best_effort here, or a reliable publisher', throttle_duration_sec=10.0)
+
+    def _on_incompatible_type(self, station, info):
+        """A publisher on <station>/bearing has another message type."""
+        self.node.get_logger().warning(
+            f'{station}/bearing: a publisher with another message type than '
+            f'{BEARING_TYPE}; no messages will be received from it',
+            throttle_duration_sec=10.0)
 
 
 class FusionOutputs:
