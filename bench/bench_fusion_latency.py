@@ -12,16 +12,20 @@ Reported per N:
 * the fusion node's CPU use over the measurement window, from /proc/<pid>/stat
   (utime + stime), in % of one core;
 * the core alone: time of FusionCore.add_bearing for the epoch-completing bearing (alignment,
-  estimator and outlier gate; no ROS), median and p99.
+  estimator and outlier gate; no ROS; the station-trust update that the node runs after
+  publishing, FusionCore.settle, not included), median and p99.
 
-Each run is paired with a run of the same harness against a trivial rclpy node that
-subscribes to the N topics and republishes the epoch-completing bearing on /fix: the
-rclpy + DDS floor that any Python node pays. The pair runs back to back and its ratio
-(fusion e2e median / echo e2e median) is printed; ``--repeat`` pairs per N give the spread
-on a shared machine. ``--baseline`` runs the echo node only.
+Each run measures, in the same harness, a trivial rclpy node that subscribes to the N
+topics (typed messages, rclpy's default subscription) and republishes the epoch-completing
+bearing on its fix topic: the rclpy + DDS floor that a Python node pays. Both nodes run
+at once (namespaces /echo and /fusion) and the epochs go to one of them at a time, in
+alternating blocks of ``--block`` seconds, so a change of the shared machine's load hits
+both alike; the ratio (fusion e2e median / echo e2e median) is printed per run, and
+``--repeat`` runs per N give its spread. ``--seconds`` is the measurement time per node.
+``--baseline`` runs the echo node only.
 
 Run: ``.venv/bin/python bench/bench_fusion_latency.py [--seconds 10] [--estimator mle]
-[--stations 10,50] [--repeat 3] [--baseline]``.
+[--stations 10,50] [--repeat 3] [--block 1] [--baseline]``.
 """
 
 import argparse
@@ -99,12 +103,36 @@ def core_only(n, estimator, epochs=200):
         t0 = time.perf_counter()
         out = core.add_bearing(bs[-1], t)
         times.append(time.perf_counter() - t0)
+        core.settle()      # as the node does once the fix is published
         assert out and out[0].ok, out
     ms = np.array(times[20:]) * 1e3
     return float(np.median(ms)), float(np.percentile(ms, 99))
 
 
-def over_dds(n, seconds, estimator, baseline=False):
+def start_node(kind, n, estimator):
+    """Start the ``kind`` node ('echo' or 'fusion') in namespace /<kind>."""
+    stations = '[' + ','.join(f'"s{i}"' for i in range(n)) + ']'
+    args = ['--ros-args', '-r', f'__ns:=/{kind}', '-p', f'stations:={stations}']
+    if kind == 'echo':
+        cmd = [sys.executable, '-c', ECHO_NODE] + args
+    else:
+        cmd = [sys.executable, '-m', 'bearing_loc_ros.fusion_node'] + args + [
+            '-p', f'estimator:={estimator}', '-p', 'publish_markers:=false',
+            '--log-level', 'warn']
+    return subprocess.Popen(cmd, env=dict(os.environ, PYTHONUNBUFFERED='1'),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
+                            start_new_session=True)
+
+
+def over_dds(n, seconds, estimator, kinds=('echo', 'fusion'), block=1.0):
+    """Latencies (ms) and CPU (fraction of a core) of each node in ``kinds``, run at once.
+
+    Every node runs during the whole measurement, in its own namespace; the epochs go to
+    one node at a time, in alternating blocks of ``block`` seconds, so a change of the
+    machine's load hits every node alike (back-to-back runs of several seconds each differed
+    by up to 2x on a shared machine). A node's CPU is counted over its own blocks only.
+    Returns {kind: (latencies ms (array), epochs sent, cpu)}.
+    """
     import rclpy
     from geometry_msgs.msg import PoseWithCovarianceStamped
     from rclpy.executors import SingleThreadedExecutor
@@ -113,58 +141,61 @@ def over_dds(n, seconds, estimator, baseline=False):
     from bearing_loc_ros.ros_conversions import bearing_to_msg, fix_from_msg
 
     qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
-    stations = '[' + ','.join(f'"s{i}"' for i in range(n)) + ']'
-    env = dict(os.environ, PYTHONUNBUFFERED='1')
-    if baseline:
-        cmd = [sys.executable, '-c', ECHO_NODE, '--ros-args', '-p', f'stations:={stations}']
-    else:
-        cmd = [sys.executable, '-m', 'bearing_loc_ros.fusion_node', '--ros-args',
-               '-p', f'stations:={stations}', '-p', f'estimator:={estimator}',
-               '-p', 'publish_markers:=false', '--log-level', 'warn']
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
-                            start_new_session=True)
+    procs = {kind: start_node(kind, n, estimator) for kind in kinds}
     ctx = rclpy.Context()
     rclpy.init(context=ctx, args=[])
     node = rclpy.create_node('bench_fusion', context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
-    received = {}
-    node.create_subscription(PoseWithCovarianceStamped, '/fix',
-                             lambda m: received.setdefault(fix_from_msg(m)[0],
-                                                           time.perf_counter()), qos)
-    pubs = [node.create_publisher(PoseWithCovarianceStamped, f'/s{i}/bearing', qos)
-            for i in range(n)]
+    received = {kind: {} for kind in kinds}
+    for kind in kinds:
+        node.create_subscription(
+            PoseWithCovarianceStamped, f'/{kind}/fix',
+            lambda m, got=received[kind]: got.setdefault(fix_from_msg(m)[0],
+                                                         time.perf_counter()), qos)
+    pubs = {kind: [node.create_publisher(PoseWithCovarianceStamped, f'/{kind}/s{i}/bearing',
+                                         qos) for i in range(n)] for kind in kinds}
     rng = np.random.default_rng(0)
+    sent = {kind: {} for kind in kinds}
+    cpu = dict.fromkeys(kinds, 0.0)
+    active = dict.fromkeys(kinds, 0.0)
     try:
         deadline = time.monotonic() + 30.0
-        while time.monotonic() < deadline and not (
-                node.count_publishers('/fix') > 0
-                and all(p.get_subscription_count() > 0 for p in pubs)):
+        while time.monotonic() < deadline and not all(
+                node.count_publishers(f'/{kind}/fix') > 0
+                and all(p.get_subscription_count() > 0 for p in pubs[kind])
+                for kind in kinds):
             ex.spin_once(timeout_sec=0.05)
-        warmup, total = 2.0, 2.0 + seconds
-        sent = {}
         period = 1.0 / RATE
+        per_block = max(1, int(round(block * RATE)))
+        warmup = 2 * per_block                       # one block per node, not counted
+        total = warmup + len(kinds) * per_block * max(1, int(round(seconds / block)))
         t_start = time.monotonic()
-        k = 0
-        cpu0 = wall0 = None
-        while True:
+        mark = None
+        for k in range(total + 1):
             due = t_start + k * period
             while time.monotonic() < due:
                 ex.spin_once(timeout_sec=max(0.0, min(0.005, due - time.monotonic())))
-            if k * period >= total:
-                break
-            if cpu0 is None and k * period >= warmup:
-                cpu0, wall0 = cpu_seconds(proc.pid), time.monotonic()
+            if k % per_block == 0:               # block boundary: CPU of the last block
+                if mark is not None:
+                    kind, c0, w0 = mark
+                    cpu[kind] += cpu_seconds(procs[kind].pid) - c0
+                    active[kind] += time.monotonic() - w0
+                    mark = None
+                if k >= total:
+                    break
+                kind = kinds[(k // per_block) % len(kinds)]
+                if k >= warmup:
+                    mark = (kind, cpu_seconds(procs[kind].pid), time.monotonic())
+            kind = kinds[(k // per_block) % len(kinds)]
             stamp = time.time_ns()
             msgs = [bearing_to_msg(b) for b in make_bearings(n, stamp, rng)]
-            for p, m in zip(pubs[:-1], msgs[:-1]):
+            for p, m in zip(pubs[kind][:-1], msgs[:-1]):
                 p.publish(m)
             t_last = time.perf_counter()
-            pubs[-1].publish(msgs[-1])
-            if k * period >= warmup:
-                sent[stamp] = t_last
-            k += 1
-        cpu = (cpu_seconds(proc.pid) - cpu0) / (time.monotonic() - wall0)
+            pubs[kind][-1].publish(msgs[-1])
+            if k >= warmup:
+                sent[kind][stamp] = t_last
         end = time.monotonic() + 1.0
         while time.monotonic() < end:
             ex.spin_once(timeout_sec=0.02)
@@ -172,9 +203,15 @@ def over_dds(n, seconds, estimator, baseline=False):
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
-        interrupt(proc, 5)
-    lat = np.array([received[s] - t for s, t in sent.items() if s in received]) * 1e3
-    return lat, len(sent), cpu
+        for proc in procs.values():
+            interrupt(proc, 5)
+    out = {}
+    for kind in kinds:
+        got = received[kind]
+        lat = np.array([got[s] - t for s, t in sent[kind].items() if s in got]) * 1e3
+        out[kind] = (lat, len(sent[kind]), cpu[kind] / active[kind] if active[kind] else
+                     float('nan'))
+    return out
 
 
 def main():
@@ -183,7 +220,9 @@ def main():
     ap.add_argument('--estimator', default='mle')
     ap.add_argument('--stations', default='3,10,50')
     ap.add_argument('--repeat', type=int, default=1,
-                    help='echo/fusion pairs per N (interleaved; the ratio is per pair)')
+                    help='echo/fusion runs per N (the ratio is per run)')
+    ap.add_argument('--block', type=float, default=1.0,
+                    help='seconds of epochs sent to one node before switching to the other')
     ap.add_argument('--baseline', action='store_true',
                     help='only the trivial echo node (the floor), no fusion_node')
     args = ap.parse_args()
@@ -200,16 +239,15 @@ def main():
           '| core median (ms) | core p99 (ms) |')
     print('|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
     nan = float('nan')
+    kinds = ('echo',) if args.baseline else ('echo', 'fusion')
     for n in (int(s) for s in args.stations.split(',')):
         c_med, c_p99 = (nan, nan) if args.baseline else core_only(n, args.estimator)
         ratios = []
         for r in range(args.repeat):
-            e_lat, _, e_cpu = over_dds(n, args.seconds, args.estimator, baseline=True)
+            res = over_dds(n, args.seconds, args.estimator, kinds, args.block)
+            e_lat, e_sent, e_cpu = res['echo']
             e_med = np.median(e_lat) if len(e_lat) else nan
-            if args.baseline:
-                lat, sent, cpu = e_lat, len(e_lat), nan
-            else:
-                lat, sent, cpu = over_dds(n, args.seconds, args.estimator)
+            lat, sent, cpu = res.get('fusion', (e_lat, e_sent, nan))
             med = np.median(lat) if len(lat) else nan
             p99 = np.percentile(lat, 99) if len(lat) else nan
             ratios.append(med / e_med)
