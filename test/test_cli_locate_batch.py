@@ -378,3 +378,16 @@ def test_json_output_is_json_dumps_of_the_result_dicts(ids):
     assert any(None in sum(r['covariance'], []) for r in dicts)
     assert solved.json(True) == json.dumps({'results': dicts}, allow_nan=False)
     assert solved.json(False) == json.dumps(dicts[0], allow_nan=False)
+
+
+def test_number_tokens_share_text_only_for_identical_floats():
+    from bearing_loc_ros.cli.locate import _number_tokens
+    rng = np.random.default_rng(2)
+    values = rng.normal(size=(50, 21)) * 10.0 ** rng.integers(-8, 8, (50, 21))
+    values[:, 6] = values[:, 4]                 # symmetric covariance entry
+    values[:, 12:21] = values[:, 3:12]          # CRLB equal to the covariance
+    values[:10, 4], values[:10, 6] = 0.0, -0.0  # equal, but written differently
+    values[10:20, 13] = np.nan
+    values[20, 3:12] = np.inf
+    expect = [json.dumps(v if np.isfinite(v) else None) for v in values.ravel().tolist()]
+    assert _number_tokens(values) == expect

@@ -245,20 +245,16 @@ class Solved:
         """``json.dumps({"results": dicts})`` (``dicts()[0]`` unless ``batch``), allow_nan off.
 
         Per group, the 21 numbers of every fix (position, covariance, CRLB) are written by one
-        ``json.dumps`` call (floats by ``repr``, as ``json`` does; NaN/inf then become
-        ``null``) and each problem's object is one ``str.format``: no dict per problem, and
-        the same bytes.
+        ``json.dumps`` call (:func:`_number_tokens`) and each problem's object is one
+        ``str.format``: no dict per problem, and the same bytes.
         """
         name = json.dumps(self.method).replace('{', '{{').replace('}', '}}')
         out = [None] * self.count
         for idx, res, bound in self.groups:
             m = len(idx)
-            values = np.concatenate([np.reshape(res.position, (m, 3)),
-                                     np.reshape(res.covariance, (m, 9)),
-                                     np.reshape(bound, (m, 9))], axis=1).ravel()
-            tokens = json.dumps(values.tolist())[1:-1].split(', ')
-            for j in np.flatnonzero(~np.isfinite(values)).tolist():
-                tokens[j] = 'null'
+            tokens = _number_tokens(np.concatenate([np.reshape(res.position, (m, 3)),
+                                                    np.reshape(res.covariance, (m, 9)),
+                                                    np.reshape(bound, (m, 9))], axis=1))
             solved = res.solve.tolist() if res.solve is not None else ['3d'] * m
             status = res.status.tolist()
             quoted = {text: json.dumps(str(text)) for text in set(status) | set(solved)}
@@ -281,6 +277,33 @@ class Solved:
 
 
 _JSON_BOOL = {True: 'true', False: 'false'}
+#: For each of the 21 numbers of a fix (position, covariance, CRLB; matrices row by row),
+#: earlier numbers that are often the same float: the mirror entry of a symmetric matrix,
+#: the covariance entry of a CRLB entry.
+_SAME_AS = [[]] * 3 + [[3 + 3 * (k % 3) + k // 3] if k % 3 < k // 3 else [] for k in range(9)] \
+    + [([12 + 3 * (k % 3) + k // 3] if k % 3 < k // 3 else []) + [3 + k] for k in range(9)]
+
+
+def _number_tokens(values):
+    """The JSON text of every number of the (M, 21) fixes, row by row: ``repr`` as ``json``
+    writes floats, ``null`` for NaN/inf. Each distinct float (by its bits) among the entries
+    :data:`_SAME_AS` pairs is written once (float repr is most of the output time)."""
+    bits = values.view(np.int64)
+    index = np.arange(values.size).reshape(values.shape)
+    source = index.copy()       # the entry whose text each entry takes
+    for j, earlier in enumerate(_SAME_AS):
+        for i in earlier:
+            same = (bits[:, j] == bits[:, i]) & (source[:, j] == index[:, j])
+            source[same, j] = source[same, i]
+    own = (source == index).ravel()
+    written = values.ravel()[own]
+    tokens = json.dumps(written.tolist())[1:-1].split(', ')
+    for j in np.flatnonzero(~np.isfinite(written)).tolist():
+        tokens[j] = 'null'
+    rank = np.cumsum(own) - 1
+    return np.array(tokens, dtype=object)[rank[source.ravel()]].tolist()
+
+
 #: One fix's output object without its closing brace (str.format; NAME: the estimator).
 _FIX_TEMPLATE = ('{{"estimator": NAME, "method": NAME, "position": [{}, {}, {}], '
                  '"covariance": [[{}, {}, {}], [{}, {}, {}], [{}, {}, {}]], '
