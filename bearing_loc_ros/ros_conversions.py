@@ -83,12 +83,17 @@ def ns_to_time(ns):
 
     ns must be in [0, (2³¹ − 1) s + 999999999 ns] (Time.sec is an int32); else ValueError.
     """
+    sec, nanosec = _split_ns(ns)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def _split_ns(ns):
     ns = int(ns)
     if ns < 0:
         raise ValueError(f'stamp: negative time {ns} ns')
     if ns > MAX_TIME_NS:
         raise ValueError(f'stamp: {ns} ns does not fit builtin_interfaces/Time (int32 sec)')
-    return Time(sec=ns // NS_PER_S, nanosec=ns % NS_PER_S)
+    return ns // NS_PER_S, ns % NS_PER_S
 
 
 def time_to_ns(t, reason='bad_stamp'):
@@ -247,6 +252,7 @@ def _bearing_from_fields(station, frame, sec, nanosec, px, py, pz, qx, qy, qz, q
 #: bytes; then, 8-aligned, position (3 float64), orientation (4) and covariance (36).
 _CDR_HEAD = {1: struct.Struct('<iII'), 0: struct.Struct('>iII')}
 _CDR_POSE = {1: struct.Struct('<43d'), 0: struct.Struct('>43d')}
+_FIX_POSE = struct.Struct('<7d')
 
 
 def bearing_from_cdr(raw, station, expected_frame=None):
@@ -308,6 +314,24 @@ def fix_to_msg(position, covariance, stamp_ns, frame_id):
     cov[3, 3] = cov[4, 4] = cov[5, 5] = UNKNOWN_ROTATION_VARIANCE
     msg.pose.covariance = cov.ravel().tolist()
     return msg
+
+
+def fix_to_cdr(position, covariance, stamp_ns, frame_id):
+    """:func:`fix_to_msg`'s message as CDR bytes (``Publisher.publish`` takes them as they
+    are): ``serialize_message(fix_to_msg(...))`` byte for byte but for the alignment padding
+    after frame_id, which CDR leaves unspecified (zeros here), without building the rclpy
+    message (~5 µs instead of ~45 µs with the serialization, once per fix on the node's
+    latency path). Same arguments, units and ValueError for a stamp out of range.
+    """
+    sec, nanosec = _split_ns(stamp_ns)
+    frame = frame_id.encode() + b'\0'
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = np.asarray(covariance, dtype=float)
+    cov[3, 3] = cov[4, 4] = cov[5, 5] = UNKNOWN_ROTATION_VARIANCE
+    x, y, z = (float(v) for v in position)
+    return b''.join((b'\x00\x01\x00\x00', _CDR_HEAD[1].pack(sec, nanosec, len(frame)), frame,
+                     bytes(-(12 + len(frame)) % 8), _FIX_POSE.pack(x, y, z, 0.0, 0.0, 0.0, 1.0),
+                     cov.astype('<f8').tobytes()))
 
 
 def fix_from_msg(msg):

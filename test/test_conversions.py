@@ -341,6 +341,32 @@ def test_fix_round_trip(p, c, ns, frame):
     assert stamp == ns and np.array_equal(pos, p) and np.array_equal(cov2, cov)
 
 
+@PROP
+@given(st.lists(coords, min_size=3, max_size=3), finite9, stamps,
+       st.one_of(frames, st.text(max_size=12)))
+def test_fix_to_cdr_is_the_serialized_fix_msg(p, c, ns, frame):
+    """The node publishes fix_to_cdr's bytes: what rclpy serializes of fix_to_msg, byte for
+    byte except the alignment padding after frame_id, which CDR leaves unspecified (rclpy's
+    serializer leaves whatever its buffer held there; fix_to_cdr writes zeros)."""
+    cov = np.asarray(c, dtype=float).reshape(3, 3)
+    if '\x00' in frame:
+        return          # rclpy truncates a string at NUL; a frame_id never holds one
+    msg = rc.fix_to_msg(p, cov, ns, frame)
+    got, want = rc.fix_to_cdr(p, cov, ns, frame), serialize_message(msg)
+    end = 16 + len(frame.encode()) + 1          # header, stamp, length, frame_id and NUL
+    pad = -(end - 4) % 8
+    assert len(got) == len(want) and got[:end] == want[:end]
+    assert got[end:end + pad] == bytes(pad) and got[end + pad:] == want[end + pad:]
+    back = deserialize_message(got, PoseWithCovarianceStamped)
+    assert back.header == msg.header and back.pose == msg.pose
+
+
+def test_fix_to_cdr_refuses_what_fix_to_msg_refuses():
+    for ns in (-1, rc.MAX_TIME_NS + 1):
+        with pytest.raises(ValueError, match='stamp'):
+            rc.fix_to_cdr([0.0, 0.0, 0.0], np.eye(3), ns, 'map')
+
+
 origins = st.tuples(st.floats(-80.0, 80.0), st.floats(-180.0, 180.0), st.floats(-100.0, 3000.0))
 enu_points = st.lists(st.floats(-50e3, 50e3), min_size=3, max_size=3)
 
