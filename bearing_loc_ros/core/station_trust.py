@@ -201,7 +201,8 @@ class StationTrust:
             excess, k, d2 = row
             h = self._hist.setdefault(b.station, deque(maxlen=self.window))
             h.append((excess, k, d2, k))
-            self._scales.pop(b.station, None)
+            # Here, off the fusion's latency path (settle), not at the next epoch's use.
+            self._scales[b.station] = self._window_scale(h)
             out[b.station] = d2
         return out
 
