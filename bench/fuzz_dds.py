@@ -22,7 +22,9 @@ for the messages sent (received + lost.sequence_gap = sent, except a lost tail, 
 receiver can see); the node's WARN lines (throttled, so far fewer than the messages).
 """
 import argparse
+from collections import Counter
 import os
+import re
 import random
 import subprocess
 import sys
@@ -32,23 +34,29 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 
 def malformed(rng, keep_valid):
-    """bench_fuzz_inputs' hostile bearing messages, half re-stamped now; without
-    ``keep_valid`` only those the conversion or the core's checks reject."""
+    """(message, restamp) pairs: bench_fuzz_inputs' hostile bearing messages, half of them
+    to be stamped with the time they are sent; without ``keep_valid`` only those the
+    conversion or the core's checks reject."""
     sys.path.insert(0, HERE)
     from bench_fuzz_inputs import bearing_messages
     from bearing_loc_ros import ros_conversions as rc
     while True:
         for msg in bearing_messages(1000, rng):
-            if rng.random() < 0.5:
-                now = time.time_ns()
-                msg.header.stamp.sec, msg.header.stamp.nanosec = now // 10 ** 9, now % 10 ** 9
+            restamp = rng.random() < 0.5
+            if restamp:
+                stamp(msg)
             if not keep_valid:
                 try:
                     rc.bearing_from_msg(msg, 'x1', expected_frame='map').validate()
                     continue
                 except ValueError:
                     pass
-            yield msg
+            yield msg, restamp
+
+
+def stamp(msg):
+    now = time.time_ns()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = now // 10 ** 9, now % 10 ** 9
 
 
 def run_fuzzer(n, rate, burst, seed, keep_valid):
@@ -67,11 +75,13 @@ def run_fuzzer(n, rate, burst, seed, keep_valid):
     time.sleep(3.0)                      # matched by the node before the first message
     print('start', flush=True)
     t0 = time.monotonic()
-    for i, msg in enumerate(msgs):
+    for i, (msg, restamp) in enumerate(msgs):
         if i < n:
             delay = t0 + i / rate - time.monotonic()
             if delay > 0:
                 time.sleep(delay)
+        if restamp:
+            stamp(msg)
         pub.publish(msg)
     print(f'sent {len(msgs)} in {time.monotonic() - t0:.1f} s', flush=True)
     time.sleep(3.0)
@@ -200,6 +210,10 @@ def main(argv=None):
         warns = [x for x in lines if '[WARN]' in x or '[ERROR]' in x]
         print(f'node log: {len(warns)} WARN/ERROR lines, {len(lines)} lines; '
               f'tracebacks: {sum("Traceback" in x for x in lines)}')
+        kinds = Counter(re.sub(r'[-+]?\d[\d.e+-]*', '#', w.partition(']: ')[2])[:90]
+                        for w in warns)
+        for text, count in kinds.most_common(4):
+            print(f'  {count:5d} x {text}')
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
