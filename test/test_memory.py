@@ -132,3 +132,41 @@ def test_the_real_trim_runs_on_glibc():
     h.update(a, 2)
     assert h.update(a, 1, log) and h.trims == 1
     assert 'RSS' in log.lines[-1]
+
+
+GHOSTS = '''
+import sys, rclpy
+from geometry_msgs.msg import PoseWithCovarianceStamped
+rclpy.init()
+node = rclpy.create_node('ghosts', namespace=sys.argv[1])
+pubs = [node.create_publisher(PoseWithCovarianceStamped, f'ghost_{k}/bearing', 10)
+        for k in range(int(sys.argv[2]))]
+print('ready', flush=True)
+sys.stdin.readline()
+'''
+
+
+def test_the_fusion_discovery_trims_once_discovered_publishers_left(harness, monkeypatch):
+    """The fusion node's discovery scan reports its subscriptions: publishers that appear
+    and leave again make it trim the heap (a counting stand-in for malloc_trim)."""
+    import subprocess
+    from bearing_loc_ros import fusion_wiring
+    from ros_helpers import node_env
+    calls = []
+    monkeypatch.setattr(fusion_wiring, 'HEAP', memory.HeapTrimmer(
+        trim=lambda pad: calls.append(pad) or 1, min_interval=0.0))
+    h = harness(stations=('s1', 's2', 's3'), discover=True, discovery_period=0.1)
+    assert h.spin(lambda: h.fusion._subs.keys() == {'s1', 's2', 's3'})
+    ghosts = subprocess.Popen([sys.executable, '-c', GHOSTS, f'/{h.ns}', '20'],
+                              stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                              env=node_env())
+    try:
+        assert ghosts.stdout.readline().strip() == 'ready'
+        assert h.spin(lambda: len(h.fusion._subs) == 23, timeout=20.0)
+        assert calls == []                   # subscriptions only grew
+    finally:
+        ghosts.stdin.close()
+        ghosts.wait(timeout=20)
+    assert h.spin(lambda: len(h.fusion._subs) == 3, timeout=20.0)
+    assert h.spin(lambda: len(calls) >= 1, timeout=5.0)
+    assert calls[0] == 0 and fusion_wiring.HEAP.failures == 0
