@@ -498,3 +498,22 @@ def test_cofactor_inverses_match_lapack_or_decline():
         np.testing.assert_allclose(got, ref, rtol=0, atol=1e-11 * np.max(np.abs(ref)))
     assert 300 < answered < 2500
     assert np.all(np.isinf(batch[200:320]))
+
+
+def test_robust_mle_screens_on_the_iteration_arrays_as_on_the_bearings():
+    # mle hands its station-major arrays to the robust screen (screen_station_major); the
+    # result equals confident_result screening from the bearings (robust.screen), field by
+    # field, on calm fixes, outliers, χ² outside the band and large confidence regions.
+    from bearing_loc_ros.core.robust import confident_result
+    rng = np.random.default_rng(3)
+    _, bs = random_problems(rng, 400, 5, noise=True, sigma=np.radians(1.0))
+    rows = np.flatnonzero(rng.random(400) < 0.2)
+    bs.azimuth[rows, 2] += rng.uniform(3.0, 30.0, rows.size) * bs.sigma_az[rows, 2]
+    bs.sigma_az[:] = bs.sigma_el[:] = np.radians(rng.uniform(0.3, 3.0, 400))[:, None]
+    bs.sigma_el[~bs.has_elevation] = np.nan
+    fast = locate('mle', bs)
+    plain = confident_result(locate('mle', bs, robust=False), bs)
+    for f in ('position', 'covariance', 'iterations', 'converged', 'status', 'excluded',
+              'nonlinearity'):
+        np.testing.assert_array_equal(getattr(fast, f), getattr(plain, f), err_msg=f)
+    assert 0.05 < np.mean(~np.isnan(fast.nonlinearity)) < 0.95     # both paths taken

@@ -332,7 +332,7 @@ def mle(bearings, **options):
     the paper's fix unchanged. ``robust=False`` gives the paper's estimator alone.
     """
     bearings.validate()
-    res = None
+    res = problem = None
     if bearings.M == 1:
         opts = mle.spec.parse(options, 1)
         res = solve_one('mle', bearings, None, opts)
@@ -343,7 +343,8 @@ def mle(bearings, **options):
         x, info, it, conv, div = _levenberg_marquardt(problem, x0, opts['max_iterations'],
                                                       opts['tolerance'])
         res = iterative_result('mle', x, spd_inverse3(info), it, conv, div)
-    return confident_result(res, bearings) if opts['robust'] else res
+    # The screen reuses the iteration's station-major arrays (hot in the cache).
+    return confident_result(res, bearings, stations=problem) if opts['robust'] else res
 
 
 @declare('wmle', MULTISTATION, ITERATIVE_OPTIONS + (REFERENCE_RANGE, ROBUST),

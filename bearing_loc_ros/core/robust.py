@@ -172,51 +172,60 @@ def screen(data, X, P, probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None
     ``data`` (:class:`Data`, M problems), X (M, 3) m, P (M, 3, 3) m². Calm (False) when every
     whitened residual has r_j² ≤ ``c2``, the residual χ² lies inside the two-sided χ²_dof band
     of ``probability`` (dof = M_meas − 3) and ν = sqrt(λ_max(P)) / min_k d_k ≤ ``max_nu``.
-    A few elementwise operations over (M, N) arrays, since at high SNR nearly every fix is
-    calm: the χ² band is looked up per distinct dof, and the ν test needs no eigenvalues,
-    λ_max(P) < t ⇔ tI − P positive definite ⇔ its three leading principal minors are
-    positive (Sylvester's criterion), t = (``max_nu`` min_k d_k)². A non-finite X or P
-    fails the screen. The same decisions as :func:`screen_one` (tested).
+    A non-finite X or P fails the screen. The same decisions as :func:`screen_one` (tested);
+    computed by :func:`screen_station_major` on station-major copies of ``data``.
+    """
+    def rows(v):
+        return np.ascontiguousarray(v.T)
+
+    pos = data.pos
+    return screen_station_major(
+        rows(pos[..., 0]), rows(pos[..., 1]), rows(pos[..., 2]), rows(data.az), rows(data.el),
+        rows(data.ia), rows(data.ie), data.az.shape[1] + rows(data.has_el).sum(axis=0),
+        data.d_ref, X, P, probability, c2, max_nu)
+
+
+def screen_station_major(px, py, pz, az, el, ia, ie, n_meas, d_ref, X, P,
+                         probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None):
+    """:func:`screen` on station-major (N, M) arrays, as the ML iteration keeps them.
+
+    ``px``, ``py``, ``pz`` station positions, m; ``az``, ``el`` measured angles, rad (el 0
+    where absent); ``ia``, ``ie`` inverse σ (σ_ref for range growth), 1/rad (ie 0 where
+    there is no elevation); ``n_meas`` (M,) measured angles per problem; ``d_ref`` m or None
+    (:class:`Data`'s fields, transposed). A few elementwise operations and row reductions,
+    since at high SNR nearly every fix is calm: the χ² band is looked up per distinct dof,
+    and the ν test needs no eigenvalues, λ_max(P) < t ⇔ tI − P positive definite ⇔ its
+    three leading principal minors are positive (Sylvester's criterion),
+    t = (``max_nu`` min_k d_k)².
     """
     c2 = outlier_c2() if c2 is None else c2
-    max_nu = max_nonlinearity(data.d_ref is not None) if max_nu is None else max_nu
-    pos = data.pos
+    max_nu = max_nonlinearity(d_ref is not None) if max_nu is None else max_nu
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        dx = X[:, 0:1] - pos[..., 0]
-        dy = X[:, 1:2] - pos[..., 1]
-        dz = X[:, 2:3] - pos[..., 2]
+        dx = X[:, 0] - px
+        dy = X[:, 1] - py
+        dz = X[:, 2] - pz
         rho2 = dx * dx + dy * dy
         r2 = rho2 + dz * dz
-        e_az = data.az - np.arctan2(dy, dx)
+        e_az = az - np.arctan2(dy, dx)
         e_az -= 2.0 * np.pi * np.ceil((e_az - np.pi) / (2.0 * np.pi))
-        e_el = data.el - np.arctan2(dz, np.sqrt(rho2))
-        ia, ie = data.ia, data.ie
-        if data.d_ref is not None:
-            f = data.d_ref / np.sqrt(r2)
+        e_el = el - np.arctan2(dz, np.sqrt(rho2))
+        if d_ref is not None:
+            f = d_ref / np.sqrt(r2)
             ia, ie = ia * f, ie * f
         qa = ia * e_az
         qa *= qa
         qe = ie * e_el
         qe *= qe
-        # Reductions over the few stations of a row: a matrix-vector product and reductions
-        # along the rows of transposed copies (numpy's reduction over a short last axis is
-        # ten times slower).
-        chi2 = (qa + qe) @ np.ones(qa.shape[1])
-        worst = np.ascontiguousarray(np.maximum(qa, qe).T).max(axis=0)
-        t = max_nu * max_nu * np.ascontiguousarray(r2.T).min(axis=0)
+        chi2 = (qa + qe).sum(axis=0)
+        worst = np.maximum(qa, qe).max(axis=0)
+        t = max_nu * max_nu * r2.min(axis=0)
         a = t - P[:, 0, 0]
         b = t - P[:, 1, 1]
         c = t - P[:, 2, 2]
         p01, p02, p12 = P[:, 0, 1], P[:, 0, 2], P[:, 1, 2]
         det = (a * (b * c - p12 * p12) - p01 * p01 * c - b * p02 * p02
                - 2.0 * p01 * p12 * p02)
-        has = data.has_el
-        if (has == has[:1]).all():      # the same stations measure elevation in every row
-            lo, hi = _band_cached(has.shape[1] + int(np.count_nonzero(has[:1])) - 3,
-                                  probability)
-        else:
-            lo, hi = _band_table(has.shape[1] + np.count_nonzero(has, axis=1) - 3,
-                                 probability)
+        lo, hi = _band_table(n_meas - 3, probability)
         calm = ((worst <= c2) & (chi2 >= lo) & (chi2 <= hi) & (t < np.inf) & (a > 0.0)
                 & (a * b > p01 * p01) & (det > 0.0))
     return ~calm
@@ -300,15 +309,17 @@ def _band_cached(dof, probability):
 
 
 def _band_table(dof, probability):
-    """(lo, hi) (M,) of :func:`chi2_band` for the integer dof (M,), one quantile per value."""
+    """(lo, hi) of :func:`chi2_band` for the integer dof (M,), one quantile per value."""
     if dof.size == 0:
         return np.zeros((2, 0))
-    d0 = int(dof.min())
-    table = np.array([_band_cached(k, probability) for k in range(d0, int(dof.max()) + 1)])
+    d0, d1 = int(dof.min()), int(dof.max())
+    if d0 == d1:
+        return _band_cached(d0, probability)
+    table = np.array([_band_cached(k, probability) for k in range(d0, d1 + 1)])
     return table[dof - d0].T
 
 
-def confident_result(result, bearings, d_ref=None):
+def confident_result(result, bearings, d_ref=None, stations=None):
     """The estimator's FixResult after screen, consensus, refit and assessment (module doc).
 
     ``result``: an ``mle`` (``d_ref`` None) or ``wmle`` (``d_ref`` = reference range, m)
@@ -317,8 +328,12 @@ def confident_result(result, bearings, d_ref=None):
     ``low_confidence`` with a finite position, or ``degenerate_geometry`` when no usable
     fix exists; ``excluded`` (M, N, 2) and
     ``nonlinearity`` (M,) are filled. A problem that passes the screen keeps the
-    estimator's own position, covariance and status.
+    estimator's own position, covariance and status. ``stations``: optionally the
+    estimator's station-major (N, M) arrays of ``bearings`` (attributes px, py, pz, az, el,
+    sa, se, n_measurements, as estimators._MLProblem keeps them), screened directly instead
+    of rebuilding them (:func:`screen_station_major`; same decisions).
     """
+    from .bearings import BearingSet
     from .fix import (FixResult, STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_LOW_CONFIDENCE,
                       STATUS_MAX_ITERATIONS, STATUS_OK, STATUSES)
     M, N = bearings.M, bearings.N
@@ -335,7 +350,6 @@ def confident_result(result, bearings, d_ref=None):
                              nonlinearity=np.full(1, np.nan))
     status = np.asarray(result.status)
     is_ok = status == STATUS_OK
-    data = Data(bearings, d_ref)
     if d_ref is not None:
         # Range-grown σ: the paper's cost has its attractor at infinite range, so every fix
         # is refitted on the full likelihood (the screen would keep the paper's estimate).
@@ -345,10 +359,15 @@ def confident_result(result, bearings, d_ref=None):
                                  and np.all(np.isfinite(result.covariance)))
                             or screen_one(bearings, result.position[0].tolist(), d_ref,
                                           result.covariance[0])])
-    else:
+    elif stations is not None:
         # Every row is screened (a row's decision depends on that row alone; a non-finite
-        # fix fails it).
-        trigger = screen(data, result.position, result.covariance)
+        # fix fails it), on the estimator's arrays.
+        st = stations
+        trigger = screen_station_major(st.px, st.py, st.pz, st.az, st.el, st.sa, st.se,
+                                       st.n_measurements, d_ref, result.position,
+                                       result.covariance)
+    else:
+        trigger = screen(Data(bearings, d_ref), result.position, result.covariance)
     # A fix the estimator did not converge on (max_iterations, diverged: typically a run-away
     # in range) always goes to the consensus, with its own position as one candidate when
     # finite; degenerate geometry stays as it is, and so does an ok fix without a finite
@@ -374,7 +393,9 @@ def confident_result(result, bearings, d_ref=None):
     conv = np.array(result.converged, dtype=bool)
     excluded = np.zeros((M, N, 2), dtype=bool)
     nu = np.full(M, np.nan)
-    data = data.take(idx)
+    data = Data(BearingSet(bearings.positions[idx], bearings.azimuth[idx],
+                           bearings.elevation[idx], bearings.sigma_az[idx],
+                           bearings.sigma_el[idx]), d_ref)
     start = np.where(np.all(np.isfinite(pos[idx]), axis=1)[:, None], pos[idx], np.nan)
     X, wa, we = consensus_fit(data, start)
     P, ok, _, _, nux = assess(data, X, wa, we)
