@@ -254,7 +254,8 @@ class Solved:
             m = len(idx)
             tokens = _number_tokens(np.concatenate([np.reshape(res.position, (m, 3)),
                                                     np.reshape(res.covariance, (m, 9)),
-                                                    np.reshape(bound, (m, 9))], axis=1))
+                                                    np.reshape(bound, (m, 9))], axis=1,
+                                                   dtype=float))
             solved = res.solve.tolist() if res.solve is not None else ['3d'] * m
             status = res.status.tolist()
             quoted = {text: json.dumps(str(text)) for text in set(status) | set(solved)}
