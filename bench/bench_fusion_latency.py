@@ -22,10 +22,12 @@ at once (namespaces /echo and /fusion) and the epochs go to one of them at a tim
 alternating blocks of ``--block`` seconds, so a change of the shared machine's load hits
 both alike; the ratio (fusion e2e median / echo e2e median) is printed per run, and
 ``--repeat`` runs per N give its spread. ``--seconds`` is the measurement time per node.
-``--baseline`` runs the echo node only.
+``--baseline`` runs the echo node only. ``--lean-echo`` adds a third node, the echo with
+raw subscriptions and no middleware-event handlers in the wait set (as the fusion node
+subscribes): the lowest floor an rclpy node reaches, and the fusion's ratio to it.
 
 Run: ``.venv/bin/python bench/bench_fusion_latency.py [--seconds 10] [--estimator mle]
-[--stations 10,50] [--repeat 3] [--block 1] [--baseline]``.
+[--stations 10,50] [--repeat 3] [--block 1] [--lean-echo] [--baseline]``.
 """
 
 import argparse
@@ -67,15 +69,19 @@ def make_bearings(n, stamp_ns, rng):
 ECHO_NODE = """
 import sys, rclpy
 from geometry_msgs.msg import PoseWithCovarianceStamped
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 rclpy.init(args=sys.argv)
 node = rclpy.create_node('fusion')
 n = len(node.declare_parameter('stations', ['s0']).value)
+lean = node.declare_parameter('lean', False).value
 pub = node.create_publisher(PoseWithCovarianceStamped, 'fix', 10)
 qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+events = SubscriptionEventCallbacks(use_default_callbacks=False) if lean else None
 for i in range(n):
     node.create_subscription(PoseWithCovarianceStamped, f's{i}/bearing',
-                             pub.publish if i == n - 1 else (lambda m: None), qos)
+                             pub.publish if i == n - 1 else (lambda m: None), qos,
+                             event_callbacks=events, raw=lean)
 try:
     rclpy.spin(node)
 except KeyboardInterrupt:
@@ -110,11 +116,13 @@ def core_only(n, estimator, epochs=200):
 
 
 def start_node(kind, n, estimator):
-    """Start the ``kind`` node ('echo' or 'fusion') in namespace /<kind>."""
+    """Start the ``kind`` node in namespace /<kind>: 'echo', 'lean' (the echo node with raw
+    subscriptions and no middleware-event handlers, as the fusion node subscribes) or
+    'fusion'."""
     stations = '[' + ','.join(f'"s{i}"' for i in range(n)) + ']'
     args = ['--ros-args', '-r', f'__ns:=/{kind}', '-p', f'stations:={stations}']
-    if kind == 'echo':
-        cmd = [sys.executable, '-c', ECHO_NODE] + args
+    if kind in ('echo', 'lean'):
+        cmd = [sys.executable, '-c', ECHO_NODE] + args + ['-p', f'lean:={kind == "lean"}']
     else:
         cmd = [sys.executable, '-m', 'bearing_loc_ros.fusion_node'] + args + [
             '-p', f'estimator:={estimator}', '-p', 'publish_markers:=false',
@@ -223,6 +231,9 @@ def main():
                     help='echo/fusion runs per N (the ratio is per run)')
     ap.add_argument('--block', type=float, default=1.0,
                     help='seconds of epochs sent to one node before switching to the other')
+    ap.add_argument('--lean-echo', action='store_true',
+                    help='also run the echo node with raw subscriptions and no middleware-'
+                    'event handlers (the leanest rclpy floor) and print the ratio to it')
     ap.add_argument('--baseline', action='store_true',
                     help='only the trivial echo node (the floor), no fusion_node')
     args = ap.parse_args()
@@ -234,12 +245,17 @@ def main():
             'echo node (rclpy + DDS floor), run in pairs')
     print(f'latency at {RATE:g} Hz epochs: {what}; {args.seconds:g} s per run, '
           f'{os.cpu_count()} CPUs, ROS_DOMAIN_ID={os.environ["ROS_DOMAIN_ID"]}')
+    lean = (' lean echo e2e median (ms) | ratio to lean | lean echo CPU (% core) |'
+            if args.lean_echo else '')
     print('| stations | run | fixes/epochs | fusion e2e median (ms) | fusion e2e p99 (ms) '
           '| echo e2e median (ms) | ratio | fusion CPU (% core) | echo CPU (% core) '
-          '| core median (ms) | core p99 (ms) |')
-    print('|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|')
+          f'| core median (ms) | core p99 (ms) |{lean}')
+    print('|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|'
+          + ('---:|---:|---:|' if args.lean_echo else ''))
     nan = float('nan')
     kinds = ('echo',) if args.baseline else ('echo', 'fusion')
+    if args.lean_echo:
+        kinds += ('lean',)
     for n in (int(s) for s in args.stations.split(',')):
         c_med, c_p99 = (nan, nan) if args.baseline else core_only(n, args.estimator)
         ratios = []
@@ -251,9 +267,14 @@ def main():
             med = np.median(lat) if len(lat) else nan
             p99 = np.percentile(lat, 99) if len(lat) else nan
             ratios.append(med / e_med)
+            lean = ''
+            if args.lean_echo:
+                l_lat, _, l_cpu = res['lean']
+                l_med = np.median(l_lat) if len(l_lat) else nan
+                lean = f' {l_med:.2f} | {med / l_med:.2f} | {100 * l_cpu:.1f} |'
             print(f'| {n} | {r + 1} | {len(lat)}/{sent} | {med:.2f} | {p99:.2f} | {e_med:.2f} '
                   f'| {med / e_med:.2f} | {100 * cpu:.1f} | {100 * e_cpu:.1f} | {c_med:.2f} '
-                  f'| {c_p99:.2f} |', flush=True)
+                  f'| {c_p99:.2f} |{lean}', flush=True)
         if args.repeat > 1 and not args.baseline:
             print(f'| {n} | all | | | | | {np.median(ratios):.2f} [{min(ratios):.2f}-'
                   f'{max(ratios):.2f}] | | | | |', flush=True)

@@ -14,6 +14,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import NavSatFix
 from visualization_msgs.msg import Marker, MarkerArray
@@ -211,6 +212,24 @@ def test_bad_messages_are_rejected_counted_and_do_not_stop_fixes(harness):
     assert values['bad.bad_azimuth_variance'] == '1'
     fusion_values = {kv.key: kv.value for kv in d['fusion'].values}
     assert fusion_values['bad_messages'] == '4'
+
+
+def test_malformed_cdr_is_counted_and_does_not_stop_fixes(harness):
+    """The bearing subscriptions are raw: bytes that are no PoseWithCovarianceStamped (a raw
+    publisher, a damaged bag) are the counted reason malformed_cdr, never an exception in
+    the executor; valid bytes in the same stream still make fixes."""
+    h = harness(stations=('s1', 's2', 's3'))
+    h.set_clock(100 * S)
+    h.send_round(100 * S)
+    raw = serialize_message(bearing_to_msg(truth_bearing('s3', 101 * S)))
+    for junk in (raw[:40], b'', b'\x00\x01\x00\x00' + b'\xff' * 400):
+        h.send(junk, 's3')
+    assert h.spin(lambda: h.fusion.core.station_stats('s3').received == 4)
+    assert dict(h.fusion.core.station_stats('s3').bad) == {'malformed_cdr': 3}
+    n = len(h.fixes)
+    h.set_clock(101 * S)
+    h.send_round(101 * S)
+    assert len(h.fixes) > n
 
 
 def test_station_drops_out_and_comes_back(harness):
