@@ -500,10 +500,11 @@ def test_cofactor_inverses_match_lapack_or_decline():
     assert np.all(np.isinf(batch[200:320]))
 
 
-def test_robust_mle_screens_on_the_iteration_arrays_as_on_the_bearings():
-    # mle hands its station-major arrays to the robust screen (screen_station_major); the
-    # result equals confident_result screening from the bearings (robust.screen), field by
-    # field, on calm fixes, outliers, χ² outside the band and large confidence regions.
+def test_robust_mle_screens_with_the_iterations_residuals_as_from_the_bearings():
+    # mle hands the residual statistics of its last evaluation to the robust screen
+    # (screen_decision); the result equals confident_result screening from the bearings
+    # (robust.screen), field by field, on calm fixes, outliers, χ² outside the band and
+    # large confidence regions.
     from bearing_loc_ros.core.robust import confident_result
     rng = np.random.default_rng(3)
     _, bs = random_problems(rng, 400, 5, noise=True, sigma=np.radians(1.0))

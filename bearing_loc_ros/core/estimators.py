@@ -69,6 +69,9 @@ DEFAULT_ESTIMATOR = 'mle'
 
 # Rows of the packed per-problem state of the ML iteration (see _MLProblem.pack).
 _A00, _A01, _A02, _A11, _A12, _A22, _B0, _B1, _B2, _COST, _SCALE, _OLD = range(12)
+# Two more rows with ``screen_rows``: the largest whitened r² of any angle and the smallest
+# squared station range, m², at X (the robust screen's statistics, core.robust).
+_WORST, _D2MIN = 12, 13
 
 
 class _MLProblem:
@@ -93,6 +96,7 @@ class _MLProblem:
         self.se = np.where(has_el, 1.0 / np.where(has_el, bearings.sigma_el.T, 1.0), 0.0)
         self.d_ref = None if d_ref is None else float(d_ref)
         self.n_measurements = bearings.N + np.count_nonzero(has_el, axis=0)
+        self.screen_rows = False
 
     def pseudo_linear_start(self):
         """X_LS (M, 3) of Wang, Zhang & Wu eq. (4) from the station-major arrays; NaN if singular.
@@ -130,6 +134,7 @@ class _MLProblem:
         for name in ('px', 'py', 'pz', 'az', 'el', 'sa', 'se'):
             setattr(out, name, getattr(self, name)[:, idx])
         out.d_ref = self.d_ref
+        out.screen_rows = self.screen_rows
         out.n_measurements = self.n_measurements[idx]
         return out
 
@@ -159,7 +164,7 @@ class _MLProblem:
             sa, se = self.sa, self.se
             ra = sa * e_az                                     # whitened residuals
             re = se * e_el
-            q = np.empty((12, x.shape[0]))
+            q = np.empty((14 if self.screen_rows else 12, x.shape[0]))
             factor = None
             if self.d_ref is not None:
                 # Zong & Cui (2015) eqs. (9)-(11): σ_k(d) = σ_ref (d_k / d_ref).
@@ -186,7 +191,11 @@ class _MLProblem:
             q[_B0] = (ax * ra + ex * re).sum(axis=0)
             q[_B1] = (ay * ra + ey * re).sum(axis=0)
             q[_B2] = (ez * re).sum(axis=0)
-            q[_COST] = (ra * ra + re * re).sum(axis=0)
+            rra, rre = ra * ra, re * re
+            q[_COST] = (rra + rre).sum(axis=0)
+            if self.screen_rows:
+                q[_WORST] = np.maximum(rra, rre).max(axis=0)
+                q[_D2MIN] = r2.min(axis=0)
             q[_SCALE] = np.sqrt(r2.mean(axis=0))
         if self.d_ref is None:
             q[_OLD] = q[_COST]
@@ -207,7 +216,7 @@ def _unpack_matrix(q):
     return A
 
 
-def _levenberg_marquardt(problem, x0, max_iterations, tolerance):
+def _levenberg_marquardt(problem, x0, max_iterations, tolerance, state=None):
     """Gauss-Newton (Zong & Cui 2015 eq. (8)) with Levenberg-Marquardt damping, over M problems.
 
     Step: (A + λ diag(A)) Δ = b, X ← X + Δ if the cost does not increase (else the step is
@@ -222,7 +231,8 @@ def _levenberg_marquardt(problem, x0, max_iterations, tolerance):
     Problems are iterated together (all state packed in one (12, M) array); converged ones
     are frozen and the working set is compacted when it halves: no Python loop over problems
     or stations. Returns (X, A at X, iterations, converged, diverged); A is the Fisher
-    information at X (Zong & Cui 2015 eqs. (6)-(8)), in 1/m².
+    information at X (Zong & Cui 2015 eqs. (6)-(8)), in 1/m². ``state``: a list that
+    receives the final packed state (rows, M) at X.
     """
     M = x0.shape[0]
     finite0 = np.all(np.isfinite(x0), axis=1)
@@ -307,6 +317,8 @@ def _levenberg_marquardt(problem, x0, max_iterations, tolerance):
     flush()
     X = X.T.copy()
     X[~finite0] = np.nan
+    if state is not None:
+        state.append(Q)
     return X, _unpack_matrix(Q), iterations, converged & finite0, diverged
 
 
@@ -332,7 +344,7 @@ def mle(bearings, **options):
     the paper's fix unchanged. ``robust=False`` gives the paper's estimator alone.
     """
     bearings.validate()
-    res = problem = None
+    res = stats = None
     if bearings.M == 1:
         opts = mle.spec.parse(options, 1)
         res = solve_one('mle', bearings, None, opts)
@@ -340,11 +352,16 @@ def mle(bearings, **options):
         problem = _MLProblem(bearings)
         opts, x0 = start(mle.spec, bearings, options, problem.pseudo_linear_start,
                          validated=True)
+        # The robust screen's residual statistics come from the iteration's last evaluation.
+        problem.screen_rows = bool(opts['robust'])
+        state = []
         x, info, it, conv, div = _levenberg_marquardt(problem, x0, opts['max_iterations'],
-                                                      opts['tolerance'])
+                                                      opts['tolerance'], state)
         res = iterative_result('mle', x, spd_inverse3(info), it, conv, div)
-    # The screen reuses the iteration's station-major arrays (hot in the cache).
-    return confident_result(res, bearings, stations=problem) if opts['robust'] else res
+        if problem.screen_rows:
+            Q = state[0]
+            stats = (Q[_COST], Q[_WORST], Q[_D2MIN], problem.n_measurements)
+    return confident_result(res, bearings, screen_stats=stats) if opts['robust'] else res
 
 
 @declare('wmle', MULTISTATION, ITERATIVE_OPTIONS + (REFERENCE_RANGE, ROBUST),

@@ -192,14 +192,9 @@ def screen_station_major(px, py, pz, az, el, ia, ie, n_meas, d_ref, X, P,
     ``px``, ``py``, ``pz`` station positions, m; ``az``, ``el`` measured angles, rad (el 0
     where absent); ``ia``, ``ie`` inverse σ (σ_ref for range growth), 1/rad (ie 0 where
     there is no elevation); ``n_meas`` (M,) measured angles per problem; ``d_ref`` m or None
-    (:class:`Data`'s fields, transposed). A few elementwise operations and row reductions,
-    since at high SNR nearly every fix is calm: the χ² band is looked up per distinct dof,
-    and the ν test needs no eigenvalues, λ_max(P) < t ⇔ tI − P positive definite ⇔ its
-    three leading principal minors are positive (Sylvester's criterion),
-    t = (``max_nu`` min_k d_k)².
+    (:class:`Data`'s fields, transposed). One evaluation of the whitened residuals (a few
+    elementwise operations and row reductions), then :func:`screen_decision`.
     """
-    c2 = outlier_c2() if c2 is None else c2
-    max_nu = max_nonlinearity(d_ref is not None) if max_nu is None else max_nu
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         dx = X[:, 0] - px
         dy = X[:, 1] - py
@@ -218,7 +213,27 @@ def screen_station_major(px, py, pz, az, el, ia, ie, n_meas, d_ref, X, P,
         qe *= qe
         chi2 = (qa + qe).sum(axis=0)
         worst = np.maximum(qa, qe).max(axis=0)
-        t = max_nu * max_nu * r2.min(axis=0)
+    return screen_decision(chi2, worst, r2.min(axis=0), n_meas, P, d_ref is not None,
+                           probability, c2, max_nu)
+
+
+def screen_decision(chi2, worst, d2min, n_meas, P, grown=False,
+                    probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None):
+    """:func:`screen` from its statistics: (M,) True where the fix needs the consensus.
+
+    ``chi2`` Σ r_j² and ``worst`` max_j r_j² of the whitened residuals at the fix, ``d2min``
+    min_k d_k², m², ``n_meas`` measured angles (all (M,)), P (M, 3, 3) m², ``grown`` for
+    range-grown σ (the ν bound). The estimator may hand these from its own last evaluation
+    (``mle``: the same numbers in the same order as :func:`screen_station_major`). A few
+    operations on (M,) arrays, since at high SNR nearly every fix is calm: the χ² band is
+    looked up per distinct dof, and the ν test needs no eigenvalues: λ_max(P) < t ⇔ tI − P
+    positive definite ⇔ its three leading principal minors are positive (Sylvester's
+    criterion), t = (``max_nu`` min_k d_k)². A non-finite P or d fails the screen.
+    """
+    c2 = outlier_c2() if c2 is None else c2
+    max_nu = max_nonlinearity(grown) if max_nu is None else max_nu
+    with np.errstate(invalid='ignore', over='ignore'):
+        t = max_nu * max_nu * d2min
         a = t - P[:, 0, 0]
         b = t - P[:, 1, 1]
         c = t - P[:, 2, 2]
@@ -319,7 +334,7 @@ def _band_table(dof, probability):
     return table[dof - d0].T
 
 
-def confident_result(result, bearings, d_ref=None, stations=None):
+def confident_result(result, bearings, d_ref=None, screen_stats=None):
     """The estimator's FixResult after screen, consensus, refit and assessment (module doc).
 
     ``result``: an ``mle`` (``d_ref`` None) or ``wmle`` (``d_ref`` = reference range, m)
@@ -328,10 +343,10 @@ def confident_result(result, bearings, d_ref=None, stations=None):
     ``low_confidence`` with a finite position, or ``degenerate_geometry`` when no usable
     fix exists; ``excluded`` (M, N, 2) and
     ``nonlinearity`` (M,) are filled. A problem that passes the screen keeps the
-    estimator's own position, covariance and status. ``stations``: optionally the
-    estimator's station-major (N, M) arrays of ``bearings`` (attributes px, py, pz, az, el,
-    sa, se, n_measurements, as estimators._MLProblem keeps them), screened directly instead
-    of rebuilding them (:func:`screen_station_major`; same decisions).
+    estimator's own position, covariance and status. ``screen_stats``: optionally the
+    screen's statistics (chi2, worst, d2min, n_meas) at the result's positions, from the
+    estimator's last evaluation (:func:`screen_decision`; the same decisions as
+    :func:`screen`, tested), instead of evaluating the residuals again.
     """
     from .bearings import BearingSet
     from .fix import (FixResult, STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_LOW_CONFIDENCE,
@@ -359,13 +374,10 @@ def confident_result(result, bearings, d_ref=None, stations=None):
                                  and np.all(np.isfinite(result.covariance)))
                             or screen_one(bearings, result.position[0].tolist(), d_ref,
                                           result.covariance[0])])
-    elif stations is not None:
+    elif screen_stats is not None:
         # Every row is screened (a row's decision depends on that row alone; a non-finite
-        # fix fails it), on the estimator's arrays.
-        st = stations
-        trigger = screen_station_major(st.px, st.py, st.pz, st.az, st.el, st.sa, st.se,
-                                       st.n_measurements, d_ref, result.position,
-                                       result.covariance)
+        # fix fails it).
+        trigger = screen_decision(*screen_stats, result.covariance)
     else:
         trigger = screen(Data(bearings, d_ref), result.position, result.covariance)
     # A fix the estimator did not converge on (max_iterations, diverged: typically a run-away
