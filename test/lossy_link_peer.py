@@ -61,21 +61,30 @@ def run_fusion(qos, seconds):
     import rclpy
     from rclpy.parameter import Parameter
 
+    from geometry_msgs.msg import PoseWithCovarianceStamped
+    from rclpy.serialization import deserialize_message
+
     from bearing_loc_ros import fusion_node
     from bearing_loc_ros.ros_conversions import time_to_ns
+
+    def stamp_ns(msg):
+        # The node subscribes raw (CDR bytes) or, in older builds, to messages.
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            msg = deserialize_message(bytes(msg), PoseWithCovarianceStamped)
+        return time_to_ns(msg.header.stamp)
 
     delivered = {}
     fixes = []
     original = fusion_node.FusionNode._on_bearing
 
     def on_bearing(self, station, msg, info):
-        t = time_to_ns(msg.header.stamp)
+        t = stamp_ns(msg)
         delivered[t] = delivered.get(t, 0) + 1
         return original(self, station, msg, info)
 
     if len(inspect.signature(original).parameters) == 3:     # (self, station, msg): older
         def on_bearing(self, station, msg):  # noqa: F811 - the same for the older signature
-            t = time_to_ns(msg.header.stamp)
+            t = stamp_ns(msg)
             delivered[t] = delivered.get(t, 0) + 1
             return original(self, station, msg)
 
