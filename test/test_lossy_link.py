@@ -123,15 +123,19 @@ def run_links(levels, qos='best_effort'):
             cmd = [sys.executable, PEER]
             fusion = subprocess.Popen(
                 ['ip', 'netns', 'exec', link.fu, *cmd, 'fusion', qos, str(SECONDS)], env=env,
-                stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+                stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
             stations = subprocess.Popen(
                 ['ip', 'netns', 'exec', link.st, *cmd, 'stations', qos, str(SECONDS + 1)],
                 env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
             procs[loss] = (fusion, stations)
         for loss, (fusion, stations) in procs.items():
-            text, _ = fusion.communicate(timeout=SECONDS + 60)
-            stations.wait(timeout=30)
-            out[loss] = json.loads(text.strip().splitlines()[-1])
+            text, err = fusion.communicate(timeout=SECONDS + 60)
+            lines = text.strip().splitlines()
+            # A peer that died early must fail here with its error, not as a timeout below.
+            assert fusion.returncode == 0 and lines, \
+                f'fusion peer ({loss} % loss) exited {fusion.returncode}: {err[-2000:]}'
+            stations.wait(timeout=SECONDS + 30)
+            out[loss] = json.loads(lines[-1])
     finally:
         for pair in procs.values():
             for p in pair:
