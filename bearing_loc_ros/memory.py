@@ -31,11 +31,10 @@ def glibc_malloc_trim():
         return None
     try:
         libc = ctypes.CDLL(None)
-        version = libc.gnu_get_libc_version     # glibc only: musl has malloc_trim as a stub
+        libc.gnu_get_libc_version               # glibc only: musl has malloc_trim as a stub
         trim = libc.malloc_trim
     except (OSError, AttributeError):
         return None
-    version.restype = ctypes.c_char_p
     trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
     return trim
 
@@ -63,8 +62,8 @@ class HeapTrimmer:
     gone); never twice within ``min_interval`` s (``clock``: seconds, monotonic).
 
     ``trim``: the C function (default :func:`glibc_malloc_trim`; None: never trims).
-    Counters: ``trims`` made, ``failures`` (the call raised), ``deferred`` (a fall seen inside
-    the interval; its trim follows at the first :meth:`update` after it). Callers are held
+    Counters: ``trims`` made, ``failures`` (the call raised), ``deferred`` (updates that saw
+    a fall inside the interval; the trim follows at the first :meth:`update` after it). Callers are held
     by weak reference, so a destroyed node leaves nothing behind.
     """
 
