@@ -63,8 +63,8 @@ class HeapTrimmer:
 
     ``trim``: the C function (default :func:`glibc_malloc_trim`; None: never trims).
     Counters: ``trims`` made, ``failures`` (the call raised), ``deferred`` (updates that saw
-    a fall inside the interval; the trim follows at the first :meth:`update` after it). Callers are held
-    by weak reference, so a destroyed node leaves nothing behind.
+    a fall inside the interval; the trim follows at the first :meth:`update` after it).
+    Callers are held by weak reference, so a destroyed node leaves nothing behind.
     """
 
     def __init__(self, trim=None, min_interval=MIN_TRIM_INTERVAL, clock=time.monotonic):
