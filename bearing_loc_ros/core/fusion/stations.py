@@ -179,6 +179,7 @@ class StationRegistry:
         #                               again before the pending epoch closed)
         self.warnings_suppressed = 0
         self._warned = {}             # (station, kind) -> [last emitted now, suppressed]
+        self.event_blocker = None     # station the event trigger last found missing
         self.apply_config(config)
         for s in stations:
             self.add_station(s)
