@@ -16,7 +16,8 @@ queue). All on loopback with their own ROS_DOMAIN_ID.
 
 Prints: whether the node is still alive; the fixes while x1 sent (fixed fraction of the
 observation cycles between the first and the last fix, largest gap between consecutive fix
-stamps and between fix arrivals, with where the largest arrival gaps were); x1's
+stamps and between fix arrivals, with where the largest arrival gaps were; fixes whose
+Mahalanobis error to the target is above the chi2_3 0.9999 quantile); x1's
 /diagnostics counters (received, accepted, bad.*, dropped.*, lost.*) and how they account
 for the messages sent (received + lost.sequence_gap = sent, except a lost tail, which no
 receiver can see); the node's WARN lines (throttled, so far fewer than the messages).
@@ -120,14 +121,17 @@ def main(argv=None):
                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     os.environ.update(ROS_DOMAIN_ID=env['ROS_DOMAIN_ID'],
                       ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    import numpy as np
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseWithCovarianceStamped
+    from scipy.stats import chi2
 
     from bearing_loc_ros.processes import interrupt
+    from soak_fusion import TARGET
     rclpy.init()
     node = rclpy.create_node('fuzz_probe')
-    diag, fixes, diag_times = {}, [], []
+    diag, fixes, diag_times, d2 = {}, [], [], []
 
     def on_diag(msg):
         diag_times.append(time.monotonic())
@@ -136,6 +140,12 @@ def main(argv=None):
 
     def on_fix(msg):
         fixes.append((time.monotonic(), msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9))
+        p, c = msg.pose.pose.position, np.reshape(msg.pose.covariance, (6, 6))[:3, :3]
+        e = np.array([p.x, p.y, p.z]) - TARGET
+        try:
+            d2.append(float(e @ np.linalg.solve(c, e)))
+        except np.linalg.LinAlgError:
+            d2.append(np.inf)
     node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 50)
     node.create_subscription(PoseWithCovarianceStamped, '/soak/fix', on_fix, 100)
 
@@ -177,6 +187,11 @@ def main(argv=None):
         print(f'fixes while x1 sent: {len(stamps)} of {cycles:.0f} observation cycles '
               f'({100 * len(stamps) / cycles:.2f} %); largest gap between fix stamps {gap:.3f} '
               f's, between fix arrivals {agap:.3f} s (epoch period 0.100 s)')
+        bound = chi2.ppf(0.9999, 3)
+        wrong = [x for x in d2[k0:] if x > bound]
+        print(f'  fixes confidently wrong (Mahalanobis error² to the target above the chi2_3 '
+              f'0.9999 quantile {bound:.1f}): {len(wrong)} of {len(d2) - k0}; largest '
+              f'{max(d2[k0:], default=float("nan")):.1f}')
         print('  largest arrival gaps (s, at s after the start): '
               + ', '.join(f'{g:.3f} at {w:.1f}' for g, w in agaps[:3]))
         dt = [t for t in diag_times if t0 <= t <= t1]
