@@ -98,13 +98,16 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
         Xt = X + step
         ct, rat, ret, gat, get, ut, dt = parts(Xt)
         acc = np.isfinite(ct) & (ct <= cost) & ~done
-        X = np.where(acc[:, None], Xt, X)
-        cost = np.where(acc, ct, cost)
-        ra, re = np.where(acc[:, None], rat, ra), np.where(acc[:, None], ret, re)
-        ga = np.where(acc[:, None, None], gat, ga)
-        ge = np.where(acc[:, None, None], get, ge)
-        u = np.where(acc[:, None, None], ut, u)
-        d = np.where(acc[:, None], dt, d)
+        if acc.all():
+            X, cost, ra, re, ga, ge, u, d = Xt, ct, rat, ret, gat, get, ut, dt
+        elif acc.any():
+            X = np.where(acc[:, None], Xt, X)
+            cost = np.where(acc, ct, cost)
+            ra, re = np.where(acc[:, None], rat, ra), np.where(acc[:, None], ret, re)
+            ga = np.where(acc[:, None, None], gat, ga)
+            ge = np.where(acc[:, None, None], get, ge)
+            u = np.where(acc[:, None, None], ut, u)
+            d = np.where(acc[:, None], dt, d)
         lam = np.where(done, lam,
                        np.where(acc, 0.1 * lam * (lam > 1e-6), np.maximum(10.0 * lam, 1e-3)))
         scale = np.sqrt(np.mean(d * d, axis=-1))
@@ -191,17 +194,19 @@ def _prefer_all_bearings(data, X, wa, we, X_ml, X_ls):
     sub = data.take(idx)
     ones = np.ones_like(sub.az)
     she = sub.has_el.astype(float)
-    best, cost = None, None
-    for start in (X_ml[idx], X_ls[idx]):
-        good = np.all(np.isfinite(start), axis=-1)
-        Xs = _refit(sub, np.where(good[:, None], start, X[idx]), ones, she)
-        cs = np.where(good, _cost(sub, Xs, ones, she), np.inf)
-        if best is None:
-            best, cost = Xs, cs
-        else:
-            better = cs < cost
-            best = np.where(better[:, None], Xs, best)
-            cost = np.where(better, cs, cost)
+    # Both starts (the estimator's fix, the all-station ls fix) in one refit of 2K rows
+    # (each row's refit is independent of the others).
+    n = idx.size
+    starts = np.concatenate([X_ml[idx], X_ls[idx]])
+    good = np.all(np.isfinite(starts), axis=-1)
+    both = data.take(np.concatenate([idx, idx]))
+    ones2, she2 = np.concatenate([ones, ones]), np.concatenate([she, she])
+    Xs = _refit(both, np.where(good[:, None], starts, np.concatenate([X[idx], X[idx]])),
+                ones2, she2)
+    cs = np.where(good, _cost(both, Xs, ones2, she2), np.inf)
+    better = cs[n:] < cs[:n]
+    best = np.where(better[:, None], Xs[n:], Xs[:n])
+    cost = np.where(better, cs[n:], cs[:n])
     ra, re, *_ = sub.evaluate(best)
     chi2 = (ra * ra + she * re * re).sum(axis=-1)
     dof = sub.az.shape[1] + sub.has_el.sum(axis=-1) - 3

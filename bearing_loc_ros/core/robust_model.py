@@ -105,9 +105,22 @@ class Data:
             else:
                 log_s2 = np.zeros_like(d)
             ra, re = ia * e_az, ie * e_el
-            ga = np.stack([-dy, dx, np.zeros_like(dx)], axis=-1) * (ia / rho2)[..., None]
+            # ga = [−dy, dx, 0] ia/ρ², ge = [−dx t, −dy t, ρ/r²] ie: filled in place (the
+            # same operations as stacking the columns, without the temporaries).
+            ga = np.empty(dv.shape)
+            s = ia / rho2
+            np.multiply(dy, s, out=ga[..., 0])
+            np.negative(ga[..., 0], out=ga[..., 0])
+            np.multiply(dx, s, out=ga[..., 1])
+            np.multiply(s, 0.0, out=ga[..., 2])
             t = dz / (rho * r2)
-            ge = np.stack([-dx * t, -dy * t, rho / r2], axis=-1) * ie[..., None]
+            ge = np.empty(dv.shape)
+            np.multiply(dx, t, out=ge[..., 0])
+            np.negative(ge[..., 0], out=ge[..., 0])
+            np.multiply(dy, t, out=ge[..., 1])
+            np.negative(ge[..., 1], out=ge[..., 1])
+            np.divide(rho, r2, out=ge[..., 2])
+            ge *= ie[..., None]
             u = dv / d[..., None]
         return ra, re, ga, ge, u, d, log_s2
 
@@ -200,5 +213,15 @@ def chi2_band(dof, probability=CONSISTENCY_PROBABILITY):
 def chi2_upper(dof, probability=CONSISTENCY_PROBABILITY):
     """The ``probability`` quantile of χ²_dof (inf for dof < 1: nothing to test)."""
     dof = np.asarray(dof)
+    if dof.dtype.kind in 'iu':
+        # Integer dof (every caller here): one cached quantile per value, the same numbers.
+        return np.array([_upper_cached(k, probability) for k in dof.ravel().tolist()],
+                        dtype=float).reshape(dof.shape)
     ok = dof >= 1
     return np.where(ok, _chi2.ppf(probability, np.where(ok, dof, 1)), np.inf)
+
+
+@lru_cache(maxsize=1024)
+def _upper_cached(dof, probability):
+    """:func:`chi2_upper` of one integer dof, as a float."""
+    return float(_chi2.ppf(probability, dof)) if dof >= 1 else np.inf
