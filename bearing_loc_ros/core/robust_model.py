@@ -74,14 +74,15 @@ class Data:
         out.d_ref = self.d_ref
         return out
 
-    def evaluate(self, X):
+    def evaluate(self, X, gradients=True):
         """Whitened residuals and gradients at X (M, 3) (or (M, K, 3) candidates).
 
         Returns ra, re (…, N) whitened residuals r = (measured − predicted)/σ (azimuth
         wrapped to (−π, π]); ga, ge (…, N, 3) whitened gradients ∇h/σ, 1/m (the angle
         gradients of Zong & Cui 2015 eq. (6)); u (…, N, 3) unit lines of sight; d (…, N)
         ranges, m; log_s2 (…, N) log σ_j² up to a constant (2 log(d/d_ref) with range
-        growth, 0 otherwise).
+        growth, 0 otherwise). With ``gradients`` False, ga, ge and u are None (the same
+        residuals, ranges and log σ², for scores and inlier tests).
         """
         if X.ndim == 3:              # (M, K, 3) candidates: broadcast over K
             pos, az, el = self.pos[:, None], self.az[:, None], self.el[:, None]
@@ -105,6 +106,8 @@ class Data:
             else:
                 log_s2 = np.zeros_like(d)
             ra, re = ia * e_az, ie * e_el
+            if not gradients:
+                return ra, re, None, None, None, d, log_s2
             # ga = [−dy, dx, 0] ia/ρ², ge = [−dx t, −dy t, ρ/r²] ie: filled in place (the
             # same operations as stacking the columns, without the temporaries).
             ga = np.empty(dv.shape)
@@ -130,7 +133,7 @@ def whitened_residuals(bearings, X, d_ref=None):
 
     re is 0 for azimuth-only bearings. Zong & Cui 2015 eq. (5) with W of eq. (4) or (11).
     """
-    ra, re, *_ = Data(bearings, d_ref).evaluate(np.asarray(X, dtype=float))
+    ra, re, *_ = Data(bearings, d_ref).evaluate(np.asarray(X, dtype=float), gradients=False)
     return ra, re
 
 
