@@ -203,6 +203,31 @@ def test_one_fix_screen_and_lambda_max_agree_with_the_batch_screen():
         assert robust._lambda_max(A.tolist()) == pytest.approx(lam, rel=1e-9, abs=1e-12 * lam)
 
 
+def test_consensus_inverse_equals_safe_inverse_around_its_rank_threshold():
+    # The ls candidates' rank test uses closed-form eigenvalues: the same decisions and the
+    # same inverse as crlb.safe_inverse, also for eigenvalue ratios across rcond = 1e-12.
+    from bearing_loc_ros.core.crlb import safe_inverse
+    from bearing_loc_ros.core.robust_consensus import _psd_inverse
+    rng = np.random.default_rng(3)
+    B = rng.standard_normal((2000, 3, 3)) * 10.0 ** rng.uniform(-3, 4, (2000, 1, 1))
+    spd = B @ B.transpose(0, 2, 1)
+    v = rng.standard_normal((500, 3, 2))
+    rank2 = v @ v.transpose(0, 2, 1)
+    U = np.linalg.qr(rng.standard_normal((3000, 3, 3)))[0]
+    lam = np.stack([np.ones(3000), 10.0 ** rng.uniform(-14, -10, 3000), np.full(3000, 3.0)],
+                   axis=-1)
+    near = np.einsum('mij,mj,mkj->mik', U, lam, U)
+    near = 0.5 * (near + near.transpose(0, 2, 1))
+    bad = spd[:40].copy()
+    bad[:20, 1, 2] = np.nan
+    bad[20:, 0, 0] = -bad[20:, 0, 0]
+    scaled = np.eye(3) * np.array([0.0, 1e-3, 2.0, 7.0])[:, None, None]
+    for A in (spd, rank2, near, bad, scaled):
+        fast, ref = _psd_inverse(A), safe_inverse(A)
+        assert np.array_equal(fast, ref, equal_nan=True)
+    assert 0 < np.isinf(_psd_inverse(near)[:, 0, 0]).sum() < len(near)
+
+
 def test_robust_one_fix_path_gives_the_batch_result():
     tr = trials('config/scenarios/six_station_const.yaml', 60)
     b = noisy(tr, math.radians(3.0), 6, (0.1, math.radians(20), math.radians(90)))
