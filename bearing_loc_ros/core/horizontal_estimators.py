@@ -47,6 +47,7 @@ Statuses as in core/estimators.py: ``ok``, ``max_iterations``, ``diverged``,
 and the target on one line with no usable elevation; position NaN, covariance inf).
 """
 
+import math
 import numbers
 
 import numpy as np
@@ -121,6 +122,10 @@ def prepare(bearings, target_altitude, target_altitude_sigma=0.0, use_elevations
     """
     if not isinstance(bearings, BearingSet):
         raise ValueError(f'bearings: expected a BearingSet, got {type(bearings).__name__}')
+    if bearings.M == 1:
+        p = _prepare_one(bearings, target_altitude, target_altitude_sigma, use_elevations)
+        if p is not None:
+            return p
     pos, az, el = bearings.positions, bearings.azimuth, bearings.elevation
     saz, sel = bearings.sigma_az, bearings.sigma_el
     if bearings.N >= 2:
@@ -152,6 +157,39 @@ def prepare(bearings, target_altitude, target_altitude_sigma=0.0, use_elevations
     p.saz = saz
     p.sel = np.where(p.use_el, sel, np.nan)
     p.z0, p.sz = z0, sz
+    return p
+
+
+def _prepare_one(bearings, target_altitude, target_altitude_sigma, use_elevations):
+    """:func:`prepare` of one problem whose input is certainly valid, else None.
+
+    The same checks on Python floats (horizontal_single.fields_valid; z₀, σ_z plain finite
+    numbers, σ_z ≥ 0; ``use_elevations`` a bool) and the same arrays; anything else (None)
+    takes the full check, which names the bad field.
+    """
+    from .horizontal_single import fields_valid
+    scalar = (float, int, np.floating, np.integer)
+    if not (isinstance(target_altitude, scalar) and isinstance(target_altitude_sigma, scalar)
+            and not isinstance(target_altitude, (bool, np.bool_))
+            and not isinstance(target_altitude_sigma, (bool, np.bool_))
+            and isinstance(use_elevations, (bool, np.bool_))):
+        return None
+    try:
+        z0, sz = float(target_altitude), float(target_altitude_sigma)
+    except OverflowError:
+        return None
+    if not (math.isfinite(z0) and math.isfinite(sz) and sz >= 0.0) \
+            or not fields_valid(bearings):
+        return None
+    pos, el = bearings.positions, bearings.elevation
+    p = object.__new__(HorizontalProblem)
+    p.px, p.py, p.pz = pos[..., 0], pos[..., 1], pos[..., 2]
+    p.use_el = np.isfinite(el) & bool(use_elevations)
+    p.az = bearings.azimuth
+    p.el = np.where(p.use_el, el, 0.0)
+    p.saz = bearings.sigma_az
+    p.sel = np.where(p.use_el, bearings.sigma_el, np.nan)
+    p.z0, p.sz = np.array([z0]), np.array([sz])
     return p
 
 

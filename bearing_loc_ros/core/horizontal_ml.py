@@ -20,6 +20,7 @@ from .horizontal_crlb import prior_covariance
 from .estimators import (STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_MAX_ITERATIONS,
                          STATUS_OK)
 from .horizontal_estimators import fix_result, parse_horizontal_options, start
+from .horizontal_single import solve_one
 
 
 def ml_terms(p, X, factor=None, d_ref=None):
@@ -146,6 +147,11 @@ def iterative_result(p, method, X, info, iterations, converged, diverged):
                       z=X[:, 2])
 
 
+def _one(p, method, d_ref, opts, initial):
+    """The one-problem float path (core/horizontal_single.py), or None for the batch path."""
+    return solve_one(p, method, d_ref, dict(opts, initial=initial))
+
+
 def mle(p, **options):
     """Maximum likelihood (maximum a posteriori for σ_z > 0), Zong & Cui 2015 eqs. (3)-(8).
 
@@ -153,9 +159,14 @@ def mle(p, **options):
     when σ_z = 0), by :func:`levenberg_marquardt` from ``ls``. With azimuths only the z
     terms decouple and ẑ = z₀ exactly. Covariance: the inverse of the prior-combined
     information at X̂ (:func:`.horizontal_crlb.prior_covariance`), m². Options:
-    ``max_iterations``, ``tolerance``, ``initial``.
+    ``max_iterations``, ``tolerance``, ``initial``. One problem (M = 1) runs the same
+    iteration on Python floats (core/horizontal_single.py, same results to rounding).
     """
     opts, initial = parse_horizontal_options('mle', options, p.M)
+    if p.M == 1:
+        res = _one(p, 'mle', None, opts, initial)
+        if res is not None:
+            return res
     X, info, it, conv, div = levenberg_marquardt(p, start(p, initial), opts['max_iterations'],
                                                  opts['tolerance'])
     return iterative_result(p, 'mle', X, info, it, conv, div)
@@ -168,9 +179,14 @@ def wmle(p, **options):
     current iterate (z of the iterate: z₀ when σ_z = 0), held fixed within a step (eq. (11),
     iteratively reweighted, as in the 3D ``wmle``); the prior term is not range-scaled.
     Covariance: inverse prior-combined information with σ(d̂), m². Options:
-    ``reference_range`` (d_ref, m), ``max_iterations``, ``tolerance``, ``initial``.
+    ``reference_range`` (d_ref, m), ``max_iterations``, ``tolerance``, ``initial``. One
+    problem (M = 1) runs on Python floats as :func:`mle` does.
     """
     opts, initial = parse_horizontal_options('wmle', options, p.M)
+    if p.M == 1:
+        res = _one(p, 'wmle', opts['reference_range'], opts, initial)
+        if res is not None:
+            return res
     X, info, it, conv, div = levenberg_marquardt(p, start(p, initial), opts['max_iterations'],
                                                  opts['tolerance'], opts['reference_range'])
     return iterative_result(p, 'wmle', X, info, it, conv, div)
