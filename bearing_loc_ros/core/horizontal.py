@@ -132,11 +132,15 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
 
 def _robust(method, bearings, res, p, options):
     """Problem by problem :func:`.horizontal_robust.robust_fix`; FixResult with ``excluded``."""
-    from .horizontal_robust import robust_fix
+    from .horizontal_robust import robust_fix, screen_one
     from .estimator_spec import DEFAULT_REFERENCE_RANGE
     d_ref = (options.get('reference_range', DEFAULT_REFERENCE_RANGE) if method == 'wmle'
              else None)
     names = ('position', 'covariance', 'iterations', 'converged', 'status')
+    if bearings.M == 1 and screen_one(bearings, res, p.use_el[0], d_ref):
+        # One fix that passes the screen (decided on floats): kept as it is.
+        return FixResult(method=method, excluded=np.zeros((1, bearings.N, 2), dtype=bool),
+                         **{k: np.array(getattr(res, k)) for k in names})
     fields = {k: np.array(getattr(res, k)) for k in names}
     fields['status'] = fields['status'].astype(object)
     excluded = np.zeros((bearings.M, bearings.N, 2), dtype=bool)

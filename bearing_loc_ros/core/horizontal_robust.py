@@ -30,6 +30,8 @@ With c² the χ²₁ quantile of :data:`~bearing_loc_ros.core.robust.OUTLIER_PRO
 Units: m, rad; ENU, azimuth θ CCW from East, elevation ψ above the horizontal.
 """
 
+import math
+
 import numpy as np
 
 from .conventions import azimuth_elevation, wrap_angle
@@ -54,6 +56,57 @@ def residuals2(bs, X, sigma_az, sigma_el, use_el):
         sel = np.where(use_el, sigma_el, 1.0)
         d2 = d2 + np.where(use_el, (el - el_hat) ** 2 / sel ** 2, 0.0)
     return d2
+
+
+#: Relative margin of :func:`screen_one`: a statistic this close to its threshold is decided
+#: by the vectorised screen (the float residuals differ from numpy's by a few ulps).
+SCREEN_MARGIN = 1e-9
+
+
+def screen_one(bs, result, use_el, d_ref=None):
+    """Step 1 (the screen) of a one-problem fix on Python floats: True, False or None.
+
+    The test of core/horizontal.py ``screen_passed`` for M = 1: status ok, every whitened
+    residual d_j² ≤ c² and Σ d_j² ≤ the χ²_dof quantile of CONSISTENCY_PROBABILITY (dof =
+    used angles − 2), d_j² as in the module docstring (azimuth residual wrapped to (−π, π],
+    σ grown by d/d_ref for ``wmle``). None when a statistic lies within
+    :data:`SCREEN_MARGIN` (relative) of its threshold: the caller then runs the vectorised
+    test, whose residuals may differ from these in the last bits.
+    """
+    if str(result.status[0]) != STATUS_OK:
+        return False
+    x, y, z = result.position[0].tolist()
+    if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
+        return False
+    c2 = _c2()
+    atan2, sqrt, pi = math.atan2, math.sqrt, math.pi
+    total = 0.0
+    n_angles = 0
+    for (px, py, pz), az, el, saz, sel, used in zip(
+            bs.positions[0].tolist(), bs.azimuth[0].tolist(), bs.elevation[0].tolist(),
+            bs.sigma_az[0].tolist(), bs.sigma_el[0].tolist(), use_el.tolist()):
+        dx, dy, dz = x - px, y - py, z - pz
+        rho = math.hypot(dx, dy)
+        if d_ref is not None:
+            f = sqrt(dx * dx + dy * dy + dz * dz) / d_ref
+            saz, sel = saz * f, sel * f
+        e = math.remainder(az - atan2(dy, dx), 2.0 * pi)
+        d2 = (e / saz) ** 2
+        n_angles += 1
+        if used:
+            d2 += ((el - atan2(dz, rho)) / sel) ** 2
+            n_angles += 1
+        if not math.isfinite(d2):
+            return None
+        if abs(d2 - c2) <= SCREEN_MARGIN * c2:
+            return None
+        if d2 > c2:
+            return False
+        total += d2
+    upper = float(chi2_upper(max(n_angles - 2, 1)))
+    if abs(total - upper) <= SCREEN_MARGIN * upper:
+        return None
+    return total <= upper
 
 
 def pair_candidates(bs, z0):
