@@ -140,6 +140,8 @@ def test_bad_one_problem_input_names_the_same_field_as_a_batch():
     bad.append((BearingSet(pos, bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el),
                 100.0, 0.0, True))
     bad += [(bs, np.nan, 0.0, True), (bs, 100.0, -1.0, True), (bs, True, 0.0, True),
+            (bs, np.array([np.inf]), 0.0, True), (bs, 100.0, np.array([-2.0]), True),
+            (bs, 10 ** 400, 0.0, True),
             (bs, 100.0, np.inf, True), (bs, 100.0, 0.0, 1), (bs, 'high', 0.0, True)]
     for b, z0, sz, use_el in bad:
         with pytest.raises(ValueError) as one:
@@ -152,8 +154,10 @@ def test_bad_one_problem_input_names_the_same_field_as_a_batch():
 def test_one_problem_prepare_builds_the_batch_arrays():
     rng = np.random.default_rng(63)
     for bs, z0 in _problems(rng, 5, 5):
-        for sz, use_el in ((0.0, True), (7.5, False), (np.float64(2.0), np.bool_(True))):
-            fast, full = prepare(bs, z0, sz, use_el), prepare(_twice(bs), z0, sz, use_el)
+        for z, sz, use_el in ((z0, 0.0, True), (z0, 7.5, False),
+                              (np.array([z0]), np.float64(2.0), np.bool_(True)),
+                              (int(z0), np.array(3), False)):
+            fast, full = prepare(bs, z, sz, use_el), prepare(_twice(bs), z, sz, use_el)
             for name in ('px', 'py', 'pz', 'az', 'el', 'saz', 'sel', 'use_el', 'z0', 'sz'):
                 a, b = getattr(fast, name), getattr(full, name)[:1]
                 assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), name

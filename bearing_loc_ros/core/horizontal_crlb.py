@@ -57,6 +57,8 @@ def _as_problem_vector(value, M, name):
         v = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise ValueError(f'{name}: not a number ({type(value).__name__})') from None
+    except OverflowError:
+        raise ValueError(f'{name}: beyond the float range, must be finite') from None
     if v.ndim > 1 or (v.ndim == 1 and v.shape[0] not in (1, M)):
         raise ValueError(f'{name}: expected a number or {M} numbers, got shape {v.shape}')
     return np.broadcast_to(v, (M,)).astype(float)

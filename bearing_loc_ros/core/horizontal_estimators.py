@@ -168,15 +168,8 @@ def _prepare_one(bearings, target_altitude, target_altitude_sigma, use_elevation
     takes the full check, which names the bad field.
     """
     from .horizontal_single import fields_valid
-    scalar = (float, int, np.floating, np.integer)
-    if not (isinstance(target_altitude, scalar) and isinstance(target_altitude_sigma, scalar)
-            and not isinstance(target_altitude, (bool, np.bool_))
-            and not isinstance(target_altitude_sigma, (bool, np.bool_))
-            and isinstance(use_elevations, (bool, np.bool_))):
-        return None
-    try:
-        z0, sz = float(target_altitude), float(target_altitude_sigma)
-    except OverflowError:
+    z0, sz = _one_number(target_altitude), _one_number(target_altitude_sigma)
+    if z0 is None or sz is None or not isinstance(use_elevations, (bool, np.bool_)):
         return None
     if not (math.isfinite(z0) and math.isfinite(sz) and sz >= 0.0) \
             or not fields_valid(bearings):
@@ -191,6 +184,21 @@ def _prepare_one(bearings, target_altitude, target_altitude_sigma, use_elevation
     p.sel = np.where(p.use_el, bearings.sigma_el, np.nan)
     p.z0, p.sz = np.array([z0]), np.array([sz])
     return p
+
+
+def _one_number(value):
+    """``value`` as a float when it is a plain number or a (1,)/() float or int array."""
+    if isinstance(value, np.ndarray):
+        if value.shape not in ((), (1,)) or value.dtype.kind not in 'fiu':
+            return None
+        value = value.reshape(-1)[0]
+    if isinstance(value, (bool, np.bool_)) \
+            or not isinstance(value, (float, int, np.floating, np.integer)):
+        return None
+    try:
+        return float(value)
+    except OverflowError:
+        return None
 
 
 def parse_horizontal_options(method, options, M):
