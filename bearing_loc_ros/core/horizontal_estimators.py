@@ -52,7 +52,7 @@ import numbers
 
 import numpy as np
 
-from .bearings import BearingSet
+from .bearings import BearingSet, MAX_ABS_ANGLE, MAX_ABS_POSITION, SIGMA_MAX, SIGMA_MIN
 from .estimator_spec import (BEARING_SIGMA, EstimatorSpec, MAX_ITERATIONS, MULTISTATION, Option,
                              RANGE_GROWN_SIGMA, REFERENCE_RANGE, STEP_DECAY, TOLERANCE)
 from .estimators import FixResult, STATUS_DEGENERATE, STATUS_OK
@@ -163,11 +163,10 @@ def prepare(bearings, target_altitude, target_altitude_sigma=0.0, use_elevations
 def _prepare_one(bearings, target_altitude, target_altitude_sigma, use_elevations):
     """:func:`prepare` of one problem whose input is certainly valid, else None.
 
-    The same checks on Python floats (horizontal_single.fields_valid; z₀, σ_z plain finite
+    The same checks on Python floats (:func:`fields_valid`; z₀, σ_z plain finite
     numbers, σ_z ≥ 0; ``use_elevations`` a bool) and the same arrays; anything else (None)
     takes the full check, which names the bad field.
     """
-    from .horizontal_single import fields_valid
     z0, sz = _one_number(target_altitude), _one_number(target_altitude_sigma)
     if z0 is None or sz is None or not isinstance(use_elevations, (bool, np.bool_)):
         return None
@@ -184,6 +183,34 @@ def _prepare_one(bearings, target_altitude, target_altitude_sigma, use_elevation
     p.sel = np.where(p.use_el, bearings.sigma_el, np.nan)
     p.z0, p.sz = np.array([z0]), np.array([sz])
     return p
+
+
+def fields_valid(bearings):
+    """True when a one-problem BearingSet of float64 arrays certainly passes the field rules.
+
+    The rules of ``BearingSet.validate(require_elevation=False)`` (core/bearings.py) on
+    Python floats: |coordinate| ≤ MAX_ABS_POSITION m, |θ| ≤ MAX_ABS_ANGLE rad, ψ NaN (1D)
+    or |ψ| < π/2, σ_θ (and σ_ψ where ψ is given) in [SIGMA_MIN, SIGMA_MAX] rad, N ≥ 2.
+    Anything else returns False and goes through the full check, which names the bad field.
+    """
+    arrays = (bearings.positions, bearings.azimuth, bearings.elevation, bearings.sigma_az,
+              bearings.sigma_el)
+    if not all(type(a) is np.ndarray and a.dtype == np.float64 for a in arrays):
+        return False
+    N = bearings.azimuth.shape[-1]
+    if (bearings.positions.shape != (1, N, 3) or N < 2
+            or any(a.shape != (1, N) for a in arrays[1:])):
+        return False
+    if not (all(abs(v) <= MAX_ABS_POSITION for v in bearings.positions.ravel().tolist())
+            and all(abs(v) <= MAX_ABS_ANGLE for v in bearings.azimuth[0].tolist())):
+        return False
+    for el, saz, sel in zip(bearings.elevation[0].tolist(), bearings.sigma_az[0].tolist(),
+                            bearings.sigma_el[0].tolist()):
+        if not SIGMA_MIN <= saz <= SIGMA_MAX:
+            return False
+        if el == el and not (abs(el) < HALF_PI and SIGMA_MIN <= sel <= SIGMA_MAX):
+            return False
+    return True
 
 
 def _one_number(value):

@@ -29,7 +29,6 @@ import math
 
 import numpy as np
 
-from .bearings import HALF_PI, MAX_ABS_ANGLE, MAX_ABS_POSITION, SIGMA_MAX, SIGMA_MIN
 from .fix import (FixResult, STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_MAX_ITERATIONS,
                   STATUS_OK)
 from .horizontal_crlb import RCOND
@@ -42,34 +41,6 @@ _TWO_PI = 2.0 * math.pi
 #: :func:`.horizontal_estimators.on_station_line` take the batch test (closed-form 2 × 2
 #: eigenvalues carry an error of a few ε λ_max, far below it).
 _LINE_MARGIN = 2.0
-
-
-def fields_valid(bearings):
-    """True when a one-problem BearingSet of float64 arrays certainly passes the field rules.
-
-    The rules of ``BearingSet.validate(require_elevation=False)`` (core/bearings.py) on
-    Python floats: |coordinate| ≤ MAX_ABS_POSITION m, |θ| ≤ MAX_ABS_ANGLE rad, ψ NaN (1D)
-    or |ψ| < π/2, σ_θ (and σ_ψ where ψ is given) in [SIGMA_MIN, SIGMA_MAX] rad, N ≥ 2.
-    Anything else returns False and goes through the full check, which names the bad field.
-    """
-    arrays = (bearings.positions, bearings.azimuth, bearings.elevation, bearings.sigma_az,
-              bearings.sigma_el)
-    if not all(type(a) is np.ndarray and a.dtype == np.float64 for a in arrays):
-        return False
-    N = bearings.azimuth.shape[-1]
-    if (bearings.positions.shape != (1, N, 3) or N < 2
-            or any(a.shape != (1, N) for a in arrays[1:])):
-        return False
-    if not (all(abs(v) <= MAX_ABS_POSITION for v in bearings.positions.ravel().tolist())
-            and all(abs(v) <= MAX_ABS_ANGLE for v in bearings.azimuth[0].tolist())):
-        return False
-    for el, saz, sel in zip(bearings.elevation[0].tolist(), bearings.sigma_az[0].tolist(),
-                            bearings.sigma_el[0].tolist()):
-        if not SIGMA_MIN <= saz <= SIGMA_MAX:
-            return False
-        if el == el and not (abs(el) < HALF_PI and SIGMA_MIN <= sel <= SIGMA_MAX):
-            return False
-    return True
 
 
 class _Problem:
