@@ -1,9 +1,9 @@
-"""One-problem path of the horizontal ``mle`` and ``wmle`` (and its robust screen) on floats.
+"""One-problem path of the horizontal ``mle`` and ``wmle`` on Python floats.
 
 Why a second path: the horizontal iteration of :mod:`.horizontal_ml` is vectorised over M
 problems; with M = 1 (one fix at a time: the fusion node's epochs, ``bearing_loc locate``
 with one problem) its numpy calls on arrays of N ≤ 10 numbers cost far more than the
-arithmetic (bench/bench_estimators.py: about 1 ms per fix against 0.05 ms for the 3D ``mle``
+arithmetic (bench/bench_estimators.py: about 1 ms per fix, against 0.05 ms for the 3D ``mle``
 on floats). This module runs exactly the same algorithm on Python floats, station by
 station: the start (Wang, Zhang & Wu eq. (4) on the plane-reduced, σ-whitened system of
 :mod:`.horizontal_estimators`), the Gauss-Newton step of Zong & Cui 2015 eq. (8) with the z
@@ -12,17 +12,19 @@ twin of core/estimators.py ``_levenberg_marquardt``: same damping, stopping rule
 statuses), the range weights of eqs. (9)-(11) for ``wmle``, the prior-combined covariance of
 :func:`.horizontal_crlb.prior_covariance` and the station-line test of
 :func:`.horizontal_estimators.on_station_line`. The per-station terms are the same floating
-point operations as :func:`.horizontal_ml.ml_terms`; the batch path sums them with numpy's
-``einsum``/``sum`` (whose summation order is numpy's), this one in station order, so the
-two agree to rounding (test/test_horizontal_single.py compares them on random problems,
-degenerate ones included).
+point operations as :func:`.horizontal_ml.ml_terms`, in the same order (the information
+matrix comes out bit for bit); the residuals differ in the last bit where numpy's
+``arctan2`` and the C library's ``atan2`` round differently (a few per cent of arguments), so
+the two paths agree to rounding (test/test_horizontal_single.py compares them on random
+problems, degenerate ones included).
 
 Conventions (DESIGN.md): ENU metres, azimuth θ CCW from East, elevation ψ above the
 horizontal, radians; σ in rad; z₀, σ_z in m.
 
 Whenever the floats would meet IEEE special values (a target on a station's vertical axis,
-a singular start, an overflow) or the station-line test is within rounding of its threshold,
-:func:`solve_one` returns None and the caller runs the batch path, which handles them.
+a singular start, an overflow), or the stations are collinear and the azimuths do not
+clearly rule out a target on their line, :func:`solve_one` returns None and the caller runs
+the batch path, which handles them.
 """
 
 import math
@@ -37,9 +39,9 @@ from .ml_single import _iterate
 
 _PI = math.pi
 _TWO_PI = 2.0 * math.pi
-#: Margin of the float station-line test: eigenvalue ratios within it of the threshold of
-#: :func:`.horizontal_estimators.on_station_line` take the batch test (closed-form 2 × 2
-#: eigenvalues carry an error of a few ε λ_max, far below it).
+#: Margin of the float station-line test: scatter eigenvalue ratios below this multiple of
+#: the collinearity threshold of :func:`.horizontal_estimators.on_station_line` take the
+#: χ² test (closed-form 2 × 2 eigenvalues carry an error of a few ε λ_max, far below it).
 _LINE_MARGIN = 2.0
 
 
