@@ -405,12 +405,29 @@ def confident_result(result, bearings, d_ref=None, screen_stats=None):
     conv = np.array(result.converged, dtype=bool)
     excluded = np.zeros((M, N, 2), dtype=bool)
     nu = np.full(M, np.nan)
-    data = Data(BearingSet(bearings.positions[idx], bearings.azimuth[idx],
-                           bearings.elevation[idx], bearings.sigma_az[idx],
-                           bearings.sigma_el[idx]), d_ref)
     start = np.where(np.all(np.isfinite(pos[idx]), axis=1)[:, None], pos[idx], np.nan)
-    X, wa, we = consensus_fit(data, start)
-    P, ok, _, _, nux = assess(data, X, wa, we)
+    steps = None
+    if M == 1:
+        # One problem: steps 2-4 on Python floats (the batch path's numbers to rounding),
+        # unless they cannot follow it there (robust_single.Fallback).
+        from .robust_single import Fallback, refine
+        try:
+            steps = refine(bearings, start[0].tolist(), d_ref)
+        except Fallback:
+            pass
+    if steps is not None:
+        X1, P1, ok1, nu1, wa1, we1 = steps
+        X, P = np.array([X1], dtype=float), np.array([P1], dtype=float)
+        wa, we = np.array([wa1]), np.array([we1])
+        ok, nux = np.array([ok1]), np.array([nu1], dtype=float)
+        has_el = bearings.has_elevation
+    else:
+        data = Data(BearingSet(bearings.positions[idx], bearings.azimuth[idx],
+                               bearings.elevation[idx], bearings.sigma_az[idx],
+                               bearings.sigma_el[idx]), d_ref)
+        X, wa, we = consensus_fit(data, start)
+        P, ok, _, _, nux = assess(data, X, wa, we)
+        has_el = data.has_el
     finite = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
     # No finite refit (e.g. a target far beyond the baseline): the estimator's own
     # finite fix is kept, as low_confidence, without exclusions.
@@ -424,7 +441,7 @@ def confident_result(result, bearings, d_ref=None, screen_stats=None):
                            STATUS_DEGENERATE)
     conv[idx] = ok
     excluded[idx, :, 0] = finite[:, None] & (wa == 0)
-    excluded[idx, :, 1] = finite[:, None] & data.has_el & (we == 0)
+    excluded[idx, :, 1] = finite[:, None] & has_el & (we == 0)
     nu[idx] = np.where(finite, nux, np.nan)
     return FixResult(pos, cov, result.iterations, conv, status, result.method,
                      excluded=excluded, nonlinearity=nu)
