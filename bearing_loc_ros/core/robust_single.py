@@ -155,30 +155,39 @@ def _rank_ok(A):
 
 
 def _lu_solve(A, B):
-    """Solve A X = B (3 × 3, B a list of columns) by Gaussian elimination, partial pivoting."""
-    a = [list(A[0]), list(A[1]), list(A[2])]
-    cols = [list(b) for b in B]
-    for k in range(3):
-        p = max(range(k, 3), key=lambda i: abs(a[i][k]))
-        if a[p][k] == 0.0:
-            raise ZeroDivisionError
-        if p != k:
-            a[k], a[p] = a[p], a[k]
-            for b in cols:
-                b[k], b[p] = b[p], b[k]
-        for i in range(k + 1, 3):
-            m = a[i][k] / a[k][k]
-            a[i][k] = m
-            for j in range(k + 1, 3):
-                a[i][j] -= m * a[k][j]
-            for b in cols:
-                b[i] -= m * b[k]
+    """Solve A X = B (3 × 3; B a sequence of right-hand sides): Gaussian elimination with
+    partial pivoting (the first largest pivot), unrolled. ZeroDivisionError if singular."""
+    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = A
+    p = [0, 1, 2]
+    if abs(a10) > abs(a00) and abs(a10) >= abs(a20):
+        a00, a01, a02, a10, a11, a12 = a10, a11, a12, a00, a01, a02
+        p[0], p[1] = 1, 0
+    elif abs(a20) > abs(a00) and abs(a20) > abs(a10):
+        a00, a01, a02, a20, a21, a22 = a20, a21, a22, a00, a01, a02
+        p[0], p[2] = 2, 0
+    if a00 == 0.0:
+        raise ZeroDivisionError
+    l10, l20 = a10 / a00, a20 / a00
+    a11, a12 = a11 - l10 * a01, a12 - l10 * a02
+    a21, a22 = a21 - l20 * a01, a22 - l20 * a02
+    if abs(a21) > abs(a11):
+        a11, a12, a21, a22 = a21, a22, a11, a12
+        l10, l20 = l20, l10
+        p[1], p[2] = p[2], p[1]
+    if a11 == 0.0:
+        raise ZeroDivisionError
+    l21 = a21 / a11
+    a22 = a22 - l21 * a12
+    if a22 == 0.0:
+        raise ZeroDivisionError
     out = []
-    for b in cols:
-        x2 = b[2] / a[2][2]
-        x1 = (b[1] - a[1][2] * x2) / a[1][1]
-        x0 = (b[0] - a[0][1] * x1 - a[0][2] * x2) / a[0][0]
-        out.append((x0, x1, x2))
+    for b in B:
+        y0 = b[p[0]]
+        y1 = b[p[1]] - l10 * y0
+        y2 = b[p[2]] - l20 * y0 - l21 * y1
+        x2 = y2 / a22
+        x1 = (y1 - a12 * x2) / a11
+        out.append(((y0 - a01 * x1 - a02 * x2) / a00, x1, x2))
     return out
 
 
@@ -272,22 +281,30 @@ def _refit(pb, X0, wa, we, iterations=REFIT_ITERATIONS):
     ev = pb.evaluate(X)
     cost = _cost_of(ev, wa, we)
     for _ in range(iterations):
-        F = _fisher(ev, wa, we)
-        g = [0.0, 0.0, 0.0]
+        (f00, f01, f02), (_, f11, f12), (_, _, f22) = _fisher(ev, wa, we)
+        g0 = g1 = g2 = 0.0
         for (ra, re, ga, ge, u, d, _), w1, w2 in zip(ev, wa, we):
-            for i in range(3):
-                g[i] -= w1 * ra * ga[i] + w2 * re * ge[i]
+            a, e = w1 * ra, w2 * re
+            g0 -= a * ga[0] + e * ge[0]
+            g1 -= a * ga[1] + e * ge[1]
+            g2 -= a * ga[2] + e * ge[2]
             if grow:
                 k = (w1 * (1.0 - ra * ra) + w2 * (1.0 - re * re)) / d
                 v = 2.0 * (w1 + w2) / (d * d)
-                for i in range(3):
-                    g[i] += k * u[i]
-                    for j in range(3):
-                        F[i][j] += v * u[i] * u[j]
-        Fd = [[F[i][j] + (lam * F[i][i] if i == j else 0.0) for j in range(3)]
-              for i in range(3)]
+                u0, u1, u2 = u
+                g0 += k * u0
+                g1 += k * u1
+                g2 += k * u2
+                f00 += v * u0 * u0
+                f01 += v * u0 * u1
+                f02 += v * u0 * u2
+                f11 += v * u1 * u1
+                f12 += v * u1 * u2
+                f22 += v * u2 * u2
+        Fd = ((f00 + lam * f00, f01, f02), (f01, f11 + lam * f11, f12),
+              (f02, f12, f22 + lam * f22))
         try:
-            step = _lu_solve(Fd, ((-g[0], -g[1], -g[2]),))[0]
+            step = _lu_solve(Fd, ((-g0, -g1, -g2),))[0]
         except (ZeroDivisionError, OverflowError):
             step = (0.0, 0.0, 0.0)
         step = tuple(s if math.isfinite(s) else 0.0 for s in step)
