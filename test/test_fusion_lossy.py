@@ -145,6 +145,22 @@ def test_stamps_far_off_the_node_clock_are_explained_once(offset_s, cause):
     assert diag['fusion'].values['clock_warnings'] == 's1,s2'
 
 
+def test_a_station_alternating_far_off_and_good_stamps_warns_throttled():
+    # A good bearing clears the station's clock warning, so a station alternating between
+    # far-off and good stamps sets it again each time: the log must still be throttled.
+    core = FusionCore(FusionConfig(estimator='ls'), stations=['s1', 's2'])
+    now = 100 * S
+    for k in range(200):                   # 20 s of node time, one far-off bearing in two
+        t = now + k * 100 * MS
+        core.add_bearing(bearing('s2', t), t)
+        core.add_bearing(bearing('s1', t + (40 * S if k % 2 else 0)), t)
+    warnings = [text for lvl, text in core.drain_events() if 'NTP' in text]
+    # One per throttle period (5 s of node time) at most: 20 s -> 4 or 5, not 100.
+    assert 1 <= len(warnings) <= 5
+    assert 'suppressed' in warnings[-1]
+    assert core.registry.warnings_suppressed >= 95
+
+
 def test_invalid_bearing_warnings_are_throttled_and_counted():
     core = FusionCore(FusionConfig(estimator='ls'), stations=['s1', 's2'])
     n = 2872

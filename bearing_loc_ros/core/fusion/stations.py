@@ -366,8 +366,11 @@ class StationRegistry:
             if reason in (TOO_LATE, FROM_FUTURE) and st.clock_warning is None \
                     and abs(stamp - now) > self.align.buffer_age_ns:
                 st.clock_warning = clock_hint(st.clock_offset_s())
-                self.events.append(('warn', f'{bearing.station}: {st.clock_warning} (its '
-                                            f'bearings are dropped as {reason})'))
+                # Throttled: a station alternating between far-off and good stamps sets the
+                # warning again after every good bearing.
+                self.warn_throttled(bearing.station, 'clock', f'{bearing.station}: '
+                                    f'{st.clock_warning} (its bearings are dropped as '
+                                    f'{reason})', now)
             return False
         st.clock_warning = None
         last = self.last_epoch_ns
