@@ -292,7 +292,8 @@ def test_view_serves_a_bag_directly(tmp_path):
 
         async def watch():
             c = await FoxgloveClient(f'ws://127.0.0.1:{port}').connect()
-            await c.pump(5.0, lambda c: '/fix' in c.by_topic)
+            # Generous: a loaded machine may take seconds to open the bags and advertise.
+            assert await c.pump(30.0, lambda c: '/fix' in c.by_topic), view.output()
             await c.subscribe(list(c.by_topic) + ['/map_geojson'])
             await c.pump(30.0, lambda c: len(c.messages.get('/fix', ())) >= 5
                          and 'replaying again' in view.output())
