@@ -352,17 +352,12 @@ def confident_result(result, bearings, d_ref=None, screen_stats=None):
     from .fix import (FixResult, STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_LOW_CONFIDENCE,
                       STATUS_MAX_ITERATIONS, STATUS_OK, STATUSES)
     M, N = bearings.M, bearings.N
-    if M == 1 and d_ref is None and str(result.status[0]) == STATUS_OK:
-        # One calm fix (the fusion's and locate's usual case): screened on Python floats and
-        # returned as it is, without the array bookkeeping below (same result).
-        x = result.position[0].tolist()
-        P = result.covariance[0].tolist()
-        if all(map(math.isfinite, x)) and all(map(math.isfinite, P[0] + P[1] + P[2])) \
-                and not screen_one(bearings, x, None, P):
-            return FixResult(result.position, result.covariance, result.iterations,
-                             result.converged, result.status, result.method,
-                             excluded=np.zeros((1, N, 2), dtype=bool),
-                             nonlinearity=np.full(1, np.nan))
+    if M == 1:
+        # One problem (the fusion's and locate's case): on Python floats, without the array
+        # bookkeeping below (the same decisions; robust_single for steps 2-4).
+        out = _confident_one(result, bearings, d_ref)
+        if out is not None:
+            return out
     status = np.asarray(result.status)
     is_ok = status == STATUS_OK
     if d_ref is not None:
@@ -405,29 +400,12 @@ def confident_result(result, bearings, d_ref=None, screen_stats=None):
     conv = np.array(result.converged, dtype=bool)
     excluded = np.zeros((M, N, 2), dtype=bool)
     nu = np.full(M, np.nan)
+    data = Data(BearingSet(bearings.positions[idx], bearings.azimuth[idx],
+                           bearings.elevation[idx], bearings.sigma_az[idx],
+                           bearings.sigma_el[idx]), d_ref)
     start = np.where(np.all(np.isfinite(pos[idx]), axis=1)[:, None], pos[idx], np.nan)
-    steps = None
-    if M == 1:
-        # One problem: steps 2-4 on Python floats (the batch path's numbers to rounding),
-        # unless they cannot follow it there (robust_single.Fallback).
-        from .robust_single import Fallback, refine
-        try:
-            steps = refine(bearings, start[0].tolist(), d_ref)
-        except Fallback:
-            pass
-    if steps is not None:
-        X1, P1, ok1, nu1, wa1, we1 = steps
-        X, P = np.array([X1], dtype=float), np.array([P1], dtype=float)
-        wa, we = np.array([wa1]), np.array([we1])
-        ok, nux = np.array([ok1]), np.array([nu1], dtype=float)
-        has_el = bearings.has_elevation
-    else:
-        data = Data(BearingSet(bearings.positions[idx], bearings.azimuth[idx],
-                               bearings.elevation[idx], bearings.sigma_az[idx],
-                               bearings.sigma_el[idx]), d_ref)
-        X, wa, we = consensus_fit(data, start)
-        P, ok, _, _, nux = assess(data, X, wa, we)
-        has_el = data.has_el
+    X, wa, we = consensus_fit(data, start)
+    P, ok, _, _, nux = assess(data, X, wa, we)
     finite = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
     # No finite refit (e.g. a target far beyond the baseline): the estimator's own
     # finite fix is kept, as low_confidence, without exclusions.
@@ -441,7 +419,60 @@ def confident_result(result, bearings, d_ref=None, screen_stats=None):
                            STATUS_DEGENERATE)
     conv[idx] = ok
     excluded[idx, :, 0] = finite[:, None] & (wa == 0)
-    excluded[idx, :, 1] = finite[:, None] & has_el & (we == 0)
+    excluded[idx, :, 1] = finite[:, None] & data.has_el & (we == 0)
     nu[idx] = np.where(finite, nux, np.nan)
     return FixResult(pos, cov, result.iterations, conv, status, result.method,
                      excluded=excluded, nonlinearity=nu)
+
+
+def _confident_one(result, bearings, d_ref):
+    """:func:`confident_result` of one problem on Python floats, or None for the array path.
+
+    The same decisions in the same order: the screen (:func:`screen_one`; every fix with
+    range-grown σ, every ``max_iterations`` or ``diverged`` fix goes on), steps 2-4 by
+    :func:`.robust_single.refine` (None where it raises :class:`.robust_single.Fallback`),
+    and the same statuses, exclusions and fallbacks to the estimator's own fix.
+    """
+    from .fix import (FixResult, STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_LOW_CONFIDENCE,
+                      STATUS_MAX_ITERATIONS, STATUS_OK, STATUSES)
+    from .robust_single import Fallback, refine
+    N = bearings.N
+    status = str(result.status[0])
+    x = result.position[0].tolist()
+    C = result.covariance[0].tolist()
+    x_finite = all(map(math.isfinite, x))
+    usable = x_finite and all(map(math.isfinite, C[0] + C[1] + C[2]))
+    if status == STATUS_OK:
+        # An ok fix without a finite position and covariance stays as it is.
+        trigger = usable and (d_ref is not None or screen_one(bearings, x, None, C))
+    else:
+        trigger = status in (STATUS_MAX_ITERATIONS, STATUS_DIVERGED)
+    if not trigger:
+        return FixResult(result.position, result.covariance, result.iterations,
+                         result.converged, result.status, result.method,
+                         excluded=np.zeros((1, N, 2), dtype=bool),
+                         nonlinearity=np.full(1, np.nan))
+    try:
+        X, P, ok, nu, wa, we = refine(bearings, x if x_finite else [math.nan] * 3, d_ref)
+    except Fallback:
+        return None
+    excluded = np.zeros((1, N, 2), dtype=bool)
+    if all(map(math.isfinite, X)) and all(map(math.isfinite, P[0] + P[1] + P[2])):
+        status = STATUS_OK if ok else STATUS_LOW_CONFIDENCE
+        excluded[0, :, 0] = np.array(wa) == 0
+        excluded[0, :, 1] = bearings.has_elevation[0] & (np.array(we) == 0)
+        pos, cov = np.array([X], dtype=float), np.array([P], dtype=float)
+    else:
+        # No finite refit: the estimator's own finite fix is kept, as low_confidence,
+        # without exclusions (else no usable fix).
+        ok, nu = False, math.nan
+        if usable:
+            status = STATUS_LOW_CONFIDENCE
+            pos = np.array(result.position, dtype=float)
+            cov = np.array(result.covariance, dtype=float)
+        else:
+            status = STATUS_DEGENERATE
+            pos, cov = np.full((1, 3), np.nan), np.full((1, 3, 3), np.inf)
+    return FixResult(pos, cov, result.iterations, np.array([ok]),
+                     np.array([status], dtype=f'<U{max(map(len, STATUSES))}'), result.method,
+                     excluded=excluded, nonlinearity=np.array([nu], dtype=float))

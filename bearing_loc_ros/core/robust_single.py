@@ -27,9 +27,9 @@ import numpy as np
 from .robust_consensus import _ls_candidates as _ls_candidates_batch
 from .robust_consensus import _score as _score_batch
 from .robust_consensus import _station_masks
-from .robust_model import (chi2_upper, Data, DECISIVE_PROBABILITY, max_nonlinearity,
-                           MULTIMODE_PROBABILITY, outlier_c2, REFIT_ITERATIONS, REFIT_ROUNDS,
-                           TEST_INVERSION_Z)
+from .robust_model import (_upper_cached, CONSISTENCY_PROBABILITY, Data,
+                           DECISIVE_PROBABILITY, max_nonlinearity, MULTIMODE_PROBABILITY,
+                           outlier_c2, REFIT_ITERATIONS, REFIT_ROUNDS, TEST_INVERSION_Z)
 
 _TWO_PI = 2.0 * math.pi
 _RCOND = 1e-12
@@ -41,10 +41,9 @@ class Fallback(Exception):
     """The float path cannot reproduce the batch path here: use the batch path."""
 
 
-def _upper(dof, probability=None):
-    if probability is None:
-        return float(chi2_upper(dof))
-    return float(chi2_upper(dof, probability))
+def _upper(dof, probability=CONSISTENCY_PROBABILITY):
+    """robust_model.chi2_upper of one integer dof, as a float (cached)."""
+    return _upper_cached(int(dof), probability)
 
 
 class Problem:
