@@ -116,7 +116,10 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
 
     def parts(X):
         ra, re, ga, ge, u, d, log_s2 = data.evaluate(X)
-        cost = (wa * (ra * ra + log_s2) + we * (re * re + log_s2)).sum(axis=-1)
+        if grow:
+            cost = (wa * (ra * ra + log_s2) + we * (re * re + log_s2)).sum(axis=-1)
+        else:               # log σ² = 0: r² + 0 is r² (r² ≥ +0)
+            cost = (wa * (ra * ra) + we * (re * re)).sum(axis=-1)
         return cost, ra, re, ga, ge, u, d
 
     cost, ra, re, ga, ge, u, d = parts(X)
@@ -147,12 +150,15 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
             ra, re = np.where(acc[:, None], rat, ra), np.where(acc[:, None], ret, re)
             ga = np.where(acc[:, None, None], gat, ga)
             ge = np.where(acc[:, None, None], get, ge)
-            u = np.where(acc[:, None, None], ut, u)
+            if grow:
+                u = np.where(acc[:, None, None], ut, u)
             d = np.where(acc[:, None], dt, d)
         lam = np.where(done, lam,
                        np.where(acc, 0.1 * lam * (lam > 1e-6), np.maximum(10.0 * lam, 1e-3)))
-        scale = np.sqrt(np.mean(d * d, axis=-1))
-        done |= (np.linalg.norm(step, axis=-1) <= 1e-10 * scale) | (lam > 1e10)
+        # rms range and step length (np.mean and np.linalg.norm's operations, without
+        # their Python overhead)
+        scale = np.sqrt((d * d).sum(axis=-1) / d.shape[-1])
+        done |= (np.sqrt((step * step).sum(axis=-1)) <= 1e-10 * scale) | (lam > 1e10)
         if np.all(done):
             break
     return X
