@@ -104,3 +104,136 @@ def test_station_leaving_two_angles_is_untestable_on_both_paths():
     assert st.deletion_residuals(items, {}, x, P, F) == [None, None]
     assert [st.deletion_residual(b, i, {}, x, P, F) for b, i in items] == [None, None]
     assert st.StationTrust().update([b for b, _ in items], {}, x, P) == {}
+
+
+def _gate_problem(rng, n, wrap=False, on_axis=False, sigma_el_nan=False):
+    """A one-problem BearingSet (every third station azimuth-only), its σ and a fix."""
+    from bearing_loc_ros.core.fusion.gating import _trusted_set
+    x = rng.normal(0.0, 3000.0, 3)
+    x[2] = abs(x[2]) + 100.0
+    fix = x + rng.normal(0.0, 20.0, 3)
+    bearings = []
+    for i in range(n):
+        p = rng.normal(0.0, 5000.0, 3)
+        if on_axis and i == 1:
+            p = fix - [0.0, 0.0, 50.0]           # the fix straight above a station
+        if wrap and i == 0:
+            p = x + [1000.0, rng.normal(0.0, 1e-3), 0.0]    # azimuth near ±π
+        d = x - p
+        az = float(np.arctan2(d[1], d[0]) + rng.normal(0.0, 0.05))
+        az = float(np.arctan2(np.sin(az), np.cos(az)))
+        el = (float(np.arctan2(d[2], np.hypot(d[0], d[1])) + rng.normal(0.0, 0.05))
+              if i % 3 else float('nan'))
+        s = float(rng.uniform(1e-3, 3e-2))
+        bearings.append(Bearing(f's{i}', 0, p, az, el, s, s if el == el else np.nan))
+    bs = _trusted_set(bearings)
+    saz = bs.sigma_az * rng.uniform(1.0, 2.0, bs.sigma_az.shape)
+    sel = bs.sigma_el.copy()
+    if sigma_el_nan:
+        sel[0, 1] = np.nan                       # np.nan_to_num's 1.0 on both paths
+    return bs, fix, saz, sel
+
+
+@pytest.mark.parametrize('seed', range(60))
+def test_float_gate_equals_the_numpy_gate_bit_for_bit(seed):
+    from bearing_loc_ros.core.fusion import gating
+    from bearing_loc_ros.core.bearings import BearingSet
+    rng = np.random.default_rng(seed)
+    bs, x, saz, sel = _gate_problem(rng, int(rng.integers(2, 30)), wrap=seed % 3 == 0,
+                                    on_axis=seed % 4 == 0, sigma_el_nan=seed % 5 == 0)
+    gate = 0.999 if seed % 7 else 1.0
+    fast = gating._gate_one(bs, x, saz, sel, gate)
+    plain = gating._gate(BearingSet(bs.positions, bs.azimuth, bs.elevation, saz, sel,
+                                    bs.stations), x, np.zeros((bs.N, 3, 3)), gate)
+    assert fast is not None
+    d2, dof, worst, top = fast
+    assert np.array_equal(np.array(d2), plain[0], equal_nan=True)
+    assert dof == plain[1].tolist()
+    assert (worst, top) == (plain[2], plain[3])
+    assert (seed % 4 == 0) == bool(np.isnan(d2).any())
+    assert float(np.nansum(d2)) == float(np.nansum(plain[0]))
+
+
+def test_float_gate_ties_and_zero_variance():
+    from bearing_loc_ros.core.fusion import gating
+    rng = np.random.default_rng(1)
+    bs, x, saz, sel = _gate_problem(rng, 6)
+    # Two stations with the same ratio: the first, as np.argmax.
+    bs.positions[0, 4], bs.azimuth[0, 4], bs.elevation[0, 4] = (bs.positions[0, 1],
+                                                                bs.azimuth[0, 1],
+                                                                bs.elevation[0, 1])
+    saz[0, 4], sel[0, 4] = saz[0, 1] * 1e-3, sel[0, 1] * 1e-3
+    saz[0, 1], sel[0, 1] = saz[0, 4], sel[0, 4]
+    worst = gating._gate_one(bs, x, saz, sel, 0.999)[2]
+    assert worst == 1
+    saz[0, 2] = 0.0                              # Python would raise: the numpy path
+    assert gating._gate_one(bs, x, saz, sel, 0.999) is None
+
+
+def _covariances(rng):
+    """Covariances around the PSD boundary: well-conditioned, nearly singular, indefinite,
+    asymmetric, tiny and huge scales, non-finite."""
+    out = []
+    for _ in range(300):
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        lam = rng.uniform(0.1, 10.0, 3) * 10.0 ** rng.uniform(-8, 8)
+        k = rng.integers(0, 5)
+        if k == 1:
+            lam[0] = lam[2] * rng.choice([1e-8, 1e-9, 1.1e-9, 9e-10, 1e-10, 1e-16, 0.0])
+        elif k == 2:
+            lam[0] = -lam[2] * rng.choice([1e-6, 9e-10, 1.1e-9, 1e-12])
+        elif k == 3:
+            lam = -lam
+        c = (q * lam) @ q.T
+        if rng.random() < 0.3:
+            c = c + rng.normal(0.0, 1e-12, (3, 3)) * abs(c).max()
+        out.append(c)
+    out += [np.zeros((3, 3)), np.diag([1.0, 1.0, np.nan]), np.diag([1.0, np.inf, 1.0]),
+            np.diag([1e-200, 1e-200, 1e-200]), np.diag([1e200, 1.0, 1.0]),
+            np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]])]
+    return out
+
+
+def test_covariance_ok_equals_the_eigenvalue_rule():
+    from bearing_loc_ros.core.fusion import gating
+    rng = np.random.default_rng(7)
+    fast_taken = 0
+    for c in _covariances(rng):
+        with np.errstate(all='ignore'):
+            plain = bool(np.all(np.isfinite(c))) and (lambda lam: bool(
+                lam[-1] > 0.0 and lam[0] >= -1e-9 * lam[-1]))(
+                np.linalg.eigvalsh(0.5 * (c + c.T)))
+        assert gating.covariance_ok(c) == plain, c
+        if np.all(np.isfinite(c)) and gating.cholesky_positive(c.tolist()):
+            assert plain
+            fast_taken += 1
+    assert fast_taken > 100
+
+
+@pytest.mark.parametrize('seed', range(12))
+def test_solve_epoch_with_and_without_the_float_gate(seed, monkeypatch):
+    """Epochs with gross outliers (the gate drops stations): the float gate and the numpy
+    gate give the same epochs bit for bit."""
+    from bearing_loc_ros.core.fusion import gating
+    rng = np.random.default_rng(100 + seed)
+    bs, x, _, _ = _gate_problem(rng, int(rng.integers(4, 15)), wrap=seed % 2 == 0)
+    bearings = [Bearing(s, 0, bs.positions[0, i], float(bs.azimuth[0, i]),
+                        float(bs.elevation[0, i]), float(bs.sigma_az[0, i]),
+                        float(bs.sigma_el[0, i])) for i, s in enumerate(bs.stations)]
+    for i in rng.choice(len(bearings), size=min(2, len(bearings) - 3), replace=False):
+        b = bearings[i]
+        bearings[i] = Bearing(b.station, 0, b.position, float(b.azimuth + 0.3), b.elevation,
+                              b.sigma_azimuth, b.sigma_elevation)
+
+    def run():
+        return [gating.solve_epoch(bearings, est, {}, 2, 0.999, validated=True)
+                for est in ('mle', 'ls', 'wmle')]
+    fast = run()
+    monkeypatch.setattr(gating, '_gate_one', lambda *a: None)
+    plain = run()
+    for f, p in zip(fast, plain):
+        assert (f.reason, f.detail, f.chi2, f.dof, f.residuals) == (p.reason, p.detail, p.chi2,
+                                                                     p.dof, p.residuals)
+        assert [b.station for b in f.rejected] == [b.station for b in p.rejected]
+        for a, b in ((f.position, p.position), (f.covariance, p.covariance)):
+            assert (a is None and b is None) or np.array_equal(a, b, equal_nan=True)
