@@ -253,6 +253,7 @@ def _bearing_from_fields(station, frame, sec, nanosec, px, py, pz, qx, qy, qz, q
 _CDR_HEAD = {1: struct.Struct('<iII'), 0: struct.Struct('>iII')}
 _CDR_POSE = {1: struct.Struct('<43d'), 0: struct.Struct('>43d')}
 _FIX_POSE = struct.Struct('<7d')
+_FIX_COVARIANCE = struct.Struct('<36d')
 
 
 def bearing_from_cdr(raw, station, expected_frame=None):
@@ -325,13 +326,23 @@ def fix_to_cdr(position, covariance, stamp_ns, frame_id):
     """
     sec, nanosec = _split_ns(stamp_ns)
     frame = frame_id.encode() + b'\0'
-    cov = np.zeros((6, 6))
-    cov[:3, :3] = np.asarray(covariance, dtype=float)
-    cov[3, 3] = cov[4, 4] = cov[5, 5] = UNKNOWN_ROTATION_VARIANCE
+    c = np.asarray(covariance, dtype=float)
+    if c.shape == (3, 3):
+        # The 6 × 6 row-major block packed from floats: the same bytes as the array's.
+        (a, b, d), (e, f, g), (h, i, j) = c.tolist()
+        u = UNKNOWN_ROTATION_VARIANCE
+        cov = _FIX_COVARIANCE.pack(a, b, d, 0.0, 0.0, 0.0, e, f, g, 0.0, 0.0, 0.0,
+                                   h, i, j, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, u, 0.0, 0.0,
+                                   0.0, 0.0, 0.0, 0.0, u, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, u)
+    else:
+        full = np.zeros((6, 6))
+        full[:3, :3] = c
+        full[3, 3] = full[4, 4] = full[5, 5] = UNKNOWN_ROTATION_VARIANCE
+        cov = full.astype('<f8').tobytes()
     x, y, z = (float(v) for v in position)
     return b''.join((b'\x00\x01\x00\x00', _CDR_HEAD[1].pack(sec, nanosec, len(frame)), frame,
                      bytes(-(12 + len(frame)) % 8), _FIX_POSE.pack(x, y, z, 0.0, 0.0, 0.0, 1.0),
-                     cov.astype('<f8').tobytes()))
+                     cov))
 
 
 def fix_from_msg(msg):

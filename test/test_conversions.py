@@ -361,6 +361,19 @@ def test_fix_to_cdr_is_the_serialized_fix_msg(p, c, ns, frame):
     assert back.header == msg.header and back.pose == msg.pose
 
 
+def test_fix_to_cdr_packs_the_covariance_as_the_array_bytes():
+    """The 3 × 3 covariance packed from floats gives the bytes of the 6 × 6 float64 array
+    (also -0.0, NaN and inf); another shape that broadcasts takes the array path."""
+    cov = np.array([[1.5, -0.0, np.nan], [np.inf, 2.0, -3e-300], [7.0, 8.0, -np.inf]])
+    full = np.zeros((6, 6))
+    full[:3, :3] = cov
+    full[3, 3] = full[4, 4] = full[5, 5] = rc.UNKNOWN_ROTATION_VARIANCE
+    assert rc.fix_to_cdr([1.0, 2.0, 3.0], cov, 5, 'map').endswith(full.tobytes())
+    full[:3, :3] = [1.0, 2.0, 3.0]
+    assert rc.fix_to_cdr([1.0, 2.0, 3.0], [1.0, 2.0, 3.0], 5, 'map').endswith(
+        full.tobytes())
+
+
 def test_fix_to_cdr_refuses_what_fix_to_msg_refuses():
     for ns in (-1, rc.MAX_TIME_NS + 1):
         with pytest.raises(ValueError, match='stamp'):
