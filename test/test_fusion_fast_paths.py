@@ -232,8 +232,8 @@ def test_solve_epoch_with_and_without_the_float_gate(seed, monkeypatch):
     monkeypatch.setattr(gating, '_gate_one', lambda *a: None)
     plain = run()
     for f, p in zip(fast, plain):
-        assert (f.reason, f.detail, f.chi2, f.dof, f.residuals) == (p.reason, p.detail, p.chi2,
-                                                                     p.dof, p.residuals)
+        assert (f.reason, f.detail, f.chi2, f.dof) == (p.reason, p.detail, p.chi2, p.dof)
+        assert f.residuals == p.residuals
         assert [b.station for b in f.rejected] == [b.station for b in p.rejected]
         for a, b in ((f.position, p.position), (f.covariance, p.covariance)):
             assert (a is None and b is None) or np.array_equal(a, b, equal_nan=True)

@@ -31,6 +31,7 @@ from .results import (BAD_COVARIANCE, DEGENERATE_GEOMETRY, Epoch, ESTIMATOR_ERRO
 #: Epoch reason of a fix that failed its consistency checks (estimator status
 #: ``low_confidence``, core.robust): position and covariance are set, but it is no fix.
 LOW_CONFIDENCE = 'low_confidence'
+_FLOAT_MAX = float(np.finfo(float).max)      # np.nan_to_num's value for +inf
 
 
 @lru_cache(maxsize=64)
@@ -126,8 +127,8 @@ def residuals_one(bearings, position, sigma_az, sigma_el):
         if math.isfinite(e):
             se = sel[i]
             # np.nan_to_num(σ_ψ, nan=1.0)
-            se = 1.0 if math.isnan(se) else (se if math.isfinite(se) else
-                                              math.copysign(np.finfo(float).max, se))
+            if not math.isfinite(se):
+                se = 1.0 if math.isnan(se) else math.copysign(_FLOAT_MAX, se)
             var_el = se * se
             if var_el == 0.0:
                 return None
