@@ -237,3 +237,15 @@ def test_solve_epoch_with_and_without_the_float_gate(seed, monkeypatch):
         assert [b.station for b in f.rejected] == [b.station for b in p.rejected]
         for a, b in ((f.position, p.position), (f.covariance, p.covariance)):
             assert (a is None and b is None) or np.array_equal(a, b, equal_nan=True)
+
+
+def test_nansum_of_a_list_is_numpys():
+    from bearing_loc_ros.core.fusion.gating import _nansum
+    rng = np.random.default_rng(5)
+    for n in range(1, 300, 7):
+        v = (rng.standard_normal(n) * 10.0 ** rng.uniform(-5, 5, n)).tolist()
+        for i in rng.choice(n, size=n // 4, replace=False):
+            v[i] = float('nan')
+        assert _nansum(v) == float(np.nansum(np.array(v)))
+    assert _nansum([float('nan')] * 3) == 0.0
+    assert np.signbit(_nansum([-0.0, -0.0])) == np.signbit(np.nansum([-0.0, -0.0]))

@@ -308,11 +308,12 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
                       iterations=int(res.iterations[0]), result=res)
         if status == _estimators.STATUS_DEGENERATE:
             return Epoch(DEGENERATE_GEOMETRY, **common)
+        finite = all(map(math.isfinite, pos.ravel().tolist()))
         excluded = getattr(res, 'excluded', None)
-        if excluded is not None and np.all(np.isfinite(pos)):
+        if excluded is not None and finite:
             # A station with an excluded angle is an outlier station (the gate's unit):
             # dropped and the fix recomputed, while the rest stays solvable.
-            out = set(np.flatnonzero(excluded[0].any(axis=1)).tolist())
+            out = {i for i, x in enumerate(excluded[0].any(axis=1).tolist()) if x}
             remaining = [b for i, b in enumerate(used) if i not in out]
             if out and len(remaining) >= int(min_stations) \
                     and count_reason(remaining, horizontal) is None:
@@ -326,7 +327,7 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
                          detail='failed the consistency checks (core.robust)', **common)
         if status != _estimators.STATUS_OK or not bool(res.converged[0]):
             return Epoch(NOT_CONVERGED, **common)
-        if not np.all(np.isfinite(pos)):
+        if not finite:
             return Epoch(DEGENERATE_GEOMETRY, detail='non-finite position', **common)
         if not covariance_ok(cov):
             return Epoch(BAD_COVARIANCE, **common)
@@ -355,7 +356,15 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         solved = getattr(res, 'solve', None)
         n_free = 2 if solved is not None and str(solved[0]) == 'horizontal' else 3
         return Epoch(OK, position=pos, covariance=0.5 * (cov + cov.T), residuals=residuals,
-                     chi2=float(np.nansum(d2)), dof=int(np.sum(dof)) - n_free, **common)
+                     chi2=_nansum(d2), dof=int(sum(dof)) - n_free, **common)
+
+
+def _nansum(values):
+    """float(np.nansum(values)) of a 1-D list or array: numpy's summation (its order and
+    rounding) of the values with NaN as 0, without np.nansum's copies."""
+    if type(values) is list:
+        return float(np.add.reduce(np.array([0.0 if v != v else v for v in values])))
+    return float(np.nansum(values))
 
 
 def _gate(bearings, position, pcov, outlier_gate):
