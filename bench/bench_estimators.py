@@ -23,7 +23,7 @@ Single-threaded (OMP/BLAS threads pinned to 1 before numpy is imported). The med
 |x_scipy − x_mle| shows both solve the same problem.
 
 Profile one fix (pyinstrument is a bench-only tool: ``.venv/bin/pip install pyinstrument``):
-``.venv/bin/python bench/bench_estimators.py --profile mle``.
+``.venv/bin/python bench/bench_estimators.py --profile mle`` (or ``--profile 'wmle robust'``).
 
 Run: .venv/bin/python bench/bench_estimators.py [--quick] [--large] [--problems 300]
 """
@@ -183,14 +183,16 @@ def batch_table(sizes, M_of, rng, repeat=3):
 
 
 def profile(name, N=6, calls=2000):
-    """pyinstrument profile of ``calls`` single-fix calls of estimator ``name``."""
+    """pyinstrument profile of ``calls`` single-fix calls of ``name`` (a METHODS name or a
+    VARIANTS label, e.g. 'wmle robust')."""
     from pyinstrument import Profiler
-    _, bs = problems(N, calls, np.random.default_rng(1))
+    tgt, bs = problems(N, calls, np.random.default_rng(1))
     ones = split(bs)
+    run = runner(name, tgt)
     p = Profiler(interval=1e-4)
     p.start()
-    for b in ones:
-        est.locate(name, b)
+    for k, b in enumerate(ones):
+        run(b, slice(k, k + 1))
     p.stop()
     print(p.output_text(unicode=True, color=False, show_all=False))
 
