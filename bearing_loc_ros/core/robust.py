@@ -105,7 +105,10 @@ Units: m, rad; ENU, azimuth θ CCW from East, elevation ψ above the horizontal.
 
 Modules: :mod:`.robust_model` (residuals, Fisher information, nonlinearity, χ² bands),
 :mod:`.robust_consensus` (steps 2-3) and this one (steps 1 and 4, :func:`confident_result`);
-every public name is importable from here.
+every public name is importable from here. One problem per call (the fusion node, ``bearing_loc
+locate`` on one problem) runs steps 2-4 on Python floats (:mod:`.robust_single`, the same
+statuses and exclusions as the batch path, positions within the refit's stopping resolution),
+falling back to the arrays where floats cannot follow them.
 """
 
 import math
