@@ -35,6 +35,7 @@ from . import fusion_channels
 from .core.display import AccuracyMap, AccuracyMapConfig
 from .core.fusion import FusionConfig, make_core
 from .core.fusion.config import check_station_ids
+from .discovery_probe import ProbeProcess
 from .fusion_wiring import BearingInputs, FusionOutputs
 from .ros_common import core_parameter_error, declare_schema, keep_last_qos, log_events, \
     main_for, ParameterError
@@ -95,7 +96,14 @@ class FusionNode(Node):
         self.discover = p['discover']
         self.qos_reliability = p['qos_reliability']
         self.bearing_qos = keep_last_qos(p['qos_depth'], p['qos_reliability'])
-        self.inputs = BearingInputs(self, self.core, self.bearing_qos, self._on_bearing)
+        probe = None
+        if self.discover and p['discovery_probe']:
+            probe = ProbeProcess(
+                ['--namespace', self.get_namespace(), '--qos-depth', str(p['qos_depth']),
+                 '--qos-reliability', p['qos_reliability'], '--frame-id', self.frame_id],
+                log=self.get_logger())
+        self.inputs = BearingInputs(self, self.core, self.bearing_qos, self._on_bearing,
+                                    probe)
         # The inputs' bookkeeping under the node's former names (read by tests and tools).
         self._subs, self._seq = self.inputs.subs, self.inputs.seq
         self._single_publisher = self.inputs.single_publisher
@@ -224,6 +232,7 @@ class FusionNode(Node):
         if self.channel_host is not None:
             self.channel_host.destroy()
         if getattr(self, 'inputs', None) is not None:
+            self.inputs.stop_probe()
             self.inputs.destroy_events()
         return super().destroy_node()
 
@@ -235,7 +244,8 @@ class FusionNode(Node):
         entries = self.core.diagnostics(now)
         entries[0].values.update(fixes_published=self.fixes_published, mode=self.mode,
                                  qos_reliability=self.qos_reliability,
-                                 discovered_stations=len(self.inputs.discovered))
+                                 discovered_stations=len(self.inputs.discovered),
+                                 **self.inputs.probe_diagnostics())
         if not self._subs and not self.discover:
             entries[0].level = 'error'
             entries[0].message = ('no stations: set stations:=[...] or discover:=true')

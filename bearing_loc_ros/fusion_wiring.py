@@ -1,8 +1,10 @@
 """The fusion node's rclpy plumbing: bearing subscriptions in, publications out.
 
 :class:`BearingInputs` keeps one ``<station>/bearing`` subscription per station (from the
-``stations`` parameter and from discovery), counts losses (the middleware's message-lost
-events and gaps in a single publisher's sequence numbers) and reports incompatible QoS.
+``stations`` parameter and from discovery: a discovered topic once the discovery probe
+process has seen a valid bearing on it, ``discovery_probe``), counts losses (the
+middleware's message-lost events and gaps in a single publisher's sequence numbers) and
+reports incompatible QoS.
 :class:`FusionOutputs` owns the publishers and turns the core's epochs, accuracy maps and
 diagnostics into messages (built by ``ros_conversions``). No numerics here: alignment,
 solving, gating and the per-station counters live in ``bearing_loc_ros.core.fusion``.
@@ -64,13 +66,20 @@ class BearingInputs:
     ``subs``: station -> Subscription; ``discovered``: stations found by discovery (not in
     the parameter); ``seq``: station -> last publication sequence number;
     ``single_publisher``: station -> exactly one publisher (sequence gaps valid);
-    ``incompatible_qos``: station -> incompatible publishers seen (QoS events). The
+    ``incompatible_qos``: station -> incompatible publishers seen (QoS events);
+    ``probe``: a ``discovery_probe.ProbeProcess`` or None (discovery subscribes at once);
+    ``candidates``: discovered topics with a publisher that are watched by the probe, not
+    subscribed here; ``trusted``: candidates the probe found valid, subscribed on the next
+    scans (at most MAX_NEW_PER_SCAN per scan). The
     middleware events (incompatible QoS or type, messages lost) are not in the executor's
     wait set: :meth:`poll_events` reads them (the node calls it before each diagnostics).
     """
 
-    def __init__(self, node, core, qos, on_bearing):
+    def __init__(self, node, core, qos, on_bearing, probe=None):
         self.node, self.core, self.qos, self.on_bearing = node, core, qos, on_bearing
+        self.probe = probe
+        self.candidates = set()     # discovered, with a publisher, not subscribed (probed)
+        self.trusted = set()        # candidates the probe found valid, not subscribed yet
         self.subs = {}
         self.incompatible_qos = {}
         self.discovered = set()
@@ -123,6 +132,21 @@ class BearingInputs:
             for event in events:
                 event.poll()
 
+    def stop_probe(self):
+        """Stop the discovery probe process (if any) and reap it."""
+        if self.probe is not None:
+            self.probe.stop()
+
+    def probe_diagnostics(self):
+        """The discovery probe's counters for /diagnostics ({} without a probe)."""
+        p = self.probe
+        if p is None:
+            return {}
+        return {'discovery_candidates': len(self.candidates),
+                'discovery_probe_running': p.running, 'discovery_probe_starts': p.starts,
+                'discovery_probe_failures': p.failures,
+                'discovery_probe_garbage': p.garbage}
+
     def destroy_events(self):
         """Release the event handles (before the node and its subscriptions go)."""
         for events in self.events.values():
@@ -140,17 +164,28 @@ class BearingInputs:
     def discover(self):
         """Subscribe to new */bearing topics under the namespace (at most
         MAX_NEW_PER_SCAN per scan); drop discovered stations whose publishers are gone once
-        they are not alive (waiting: at once; alive: after station_timeout, when stale)."""
+        they are not alive (waiting: at once; alive: after station_timeout, when stale).
+
+        With a ``probe`` (``discovery_probe.ProbeProcess``), a new topic is first watched by
+        the probe process and subscribed here only once it delivered a valid bearing, so
+        publishers that never send one cost this process no subscription."""
         node, log = self.node, self.node.get_logger()
         found = topics_under_namespace(node, '/bearing', BEARING_TYPE, STATION_ID_RE)
-        new = 0
-        for station, name in found.items():
-            if new < MAX_NEW_PER_SCAN and station not in self.subs \
-                    and node.count_publishers(name) > 0:
-                self.discovered.add(station)
-                self.subscribe(station, wait=False)
-                new += 1
-                log.info(f'discovered station {station} ({name})')
+        if self.probe is not None:
+            self.candidates = {station for station, name in found.items()
+                               if station not in self.subs and node.count_publishers(name) > 0}
+            self.trusted.update(self.probe.update(self.candidates))
+            self.trusted &= self.candidates
+            new = sorted(self.trusted)[:MAX_NEW_PER_SCAN]
+            self.trusted.difference_update(new)
+        else:
+            new = [station for station, name in found.items()
+                   if station not in self.subs and node.count_publishers(name) > 0]
+            new = new[:MAX_NEW_PER_SCAN]
+        for station in new:
+            self.discovered.add(station)
+            self.subscribe(station, wait=False)
+            log.info(f'discovered station {station} ({found[station]})')
         for station in list(self.discovered):
             topic = f'{node.get_namespace().rstrip("/")}/{station}/bearing'
             gone = station not in found or node.count_publishers(topic) == 0

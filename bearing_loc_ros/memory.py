@@ -9,7 +9,9 @@ once more a little later), at most once per ``min_interval`` seconds for the pro
 Elsewhere (musl, macOS, Windows) it does nothing. It never raises: a failing trim is counted
 and ignored. What stays resident after a trim is memory still in use or pages shared with
 live allocations (with rclpy and Fast DDS, about 6-8 MiB after the first 200 subscriptions
-to departed publishers, little after further ones).
+to departed publishers, little after further ones): the fusion node's discovery therefore
+watches unproven topics in a child process (``discovery_probe``) and subscribes itself only
+to those that delivered a valid bearing.
 
 No numerics and no ROS here; the caller passes its logger (``debug`` is used).
 """

@@ -6,16 +6,20 @@ Starts a fusion node (``bearing_loc_ros.fusion_node``, ``discover:=true``, defau
 QoS and trigger, estimator ls) in namespace /soak, fed by ``--stations`` stations at 10 Hz
 (the publisher of ``soak_fusion.py``), all on loopback with their own ROS_DOMAIN_ID. After a
 warm-up, each round starts a process holding ``--ghosts`` empty publishers on
-``/soak/ghost_<k>/bearing``, waits until the node has discovered all of them (its
-/diagnostics ``discovered_stations``), holds them for ``--hold`` s, ends the process and
-waits until the node has dropped them again and ``--settle`` s more. Prints the node's RSS
-(/proc/<pid>/status VmRSS) before the churn, with the ghosts and after each round, and the
+``/soak/ghost_<k>/bearing``, waits until the node has found all of them (its
+/diagnostics ``discovery_candidates``, the topics its discovery probe process watches; with
+``--no-probe``, ``discovered_stations``, the topics it subscribed to itself), holds them for
+``--hold`` s, ends the process and waits until the node has dropped them again and
+``--settle`` s more. Prints the node's RSS (/proc/<pid>/status VmRSS; with the probe, the
+probe process's RSS too) before the churn, with the ghosts and after each round, and the
 fixes: the largest gap between consecutive fix stamps (one epoch period = no outage) and the
 fixes per observation cycle while the ghosts came and went. ``--node-log PATH`` keeps the node's
 output, with its debug messages (the heap trims of ``bearing_loc_ros.memory``).
 
 ``--env NAME=VALUE`` (repeatable) sets an environment variable of the fusion node only, for
-example ``--env MALLOC_ARENA_MAX=2``; ``--no-trim`` runs the node without its heap trim.
+example ``--env MALLOC_ARENA_MAX=2``; ``--no-trim`` runs the node without its heap trim;
+``--no-probe`` with ``discovery_probe:=false`` (the node subscribes to every discovered
+topic itself).
 """
 import argparse
 import os
@@ -48,6 +52,29 @@ def rss_kb(pid):
     return None
 
 
+def children(pid):
+    """Process ids of ``pid``'s children (Linux /proc)."""
+    out = []
+    try:
+        for task in os.listdir(f'/proc/{pid}/task'):
+            with open(f'/proc/{pid}/task/{task}/children') as f:
+                out += [int(c) for c in f.read().split()]
+    except OSError:
+        pass
+    return out
+
+
+def probe_rss_kb(pid):
+    """Summed RSS of ``pid``'s children (the discovery probe), in KiB."""
+    total = 0
+    for c in children(pid):
+        try:
+            total += rss_kb(c) or 0
+        except OSError:
+            pass
+    return total
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--stations', type=int, default=4)
@@ -61,6 +88,8 @@ def main(argv=None):
     ap.add_argument('--node-log', help='file for the fusion node output (debug level)')
     ap.add_argument('--no-trim', action='store_true',
                     help='the node without its heap trim (bearing_loc_ros.memory), to compare')
+    ap.add_argument('--no-probe', action='store_true',
+                    help='discovery_probe:=false: the node subscribes to every discovered topic')
     a = ap.parse_args(argv)
     here = os.path.dirname(os.path.abspath(__file__))
     repo = os.path.dirname(here)
@@ -73,7 +102,8 @@ def main(argv=None):
         [sys.executable, '-c', NO_TRIM if a.no_trim else RUN, '--ros-args', '-r', '__ns:=/soak',
          '-p', f'stations:=[{",".join(names)}]', '-p', 'estimator:=ls',
          '-p', 'discover:=true', '-p', 'accuracy_map.enabled:=false',
-         '-p', 'diagnostics_period:=0.5']
+         '-p', 'diagnostics_period:=0.5',
+         '-p', f'discovery_probe:={"false" if a.no_probe else "true"}']
         + (['--log-level', 'soak.fusion:=debug'] if a.node_log else []),
         cwd=repo, env=node_env, stderr=subprocess.STDOUT,
         stdout=open(a.node_log, 'w') if a.node_log else subprocess.DEVNULL)
@@ -111,8 +141,10 @@ def main(argv=None):
                 return True
         return until is None
 
+    key = 'discovered_stations' if a.no_probe else 'discovery_candidates'
+
     def discovered():
-        return int(diag.get('discovered_stations', -1))
+        return int(diag.get(key, -1))
 
     ghosts = []
     try:
@@ -131,6 +163,7 @@ def main(argv=None):
             found = spin(120, lambda: discovered() >= a.ghosts)
             spin(a.hold)
             r_with = rss_kb(fusion.pid)
+            p_with = probe_rss_kb(fusion.pid)
             g.stdin.close()
             g.wait(timeout=30)
             left = spin(120, lambda: discovered() == 0)
@@ -139,7 +172,9 @@ def main(argv=None):
             print(f'round {r + 1}: {a.ghosts} ghosts {"discovered" if found else "NOT all"} '
                   f'{"and dropped" if left else "NOT dropped"}; RSS with them '
                   f'{r_with / 1024:.1f} MiB ({100 * (r_with - r0) / r0:+.2f} %), after '
-                  f'{r_after / 1024:.1f} MiB ({100 * (r_after - r0) / r0:+.2f} %)', flush=True)
+                  f'{r_after / 1024:.1f} MiB ({100 * (r_after - r0) / r0:+.2f} %); probe '
+                  f'process {p_with / 1024:.1f} MiB with them, {len(children(fusion.pid))} '
+                  f'running after', flush=True)
         t1 = time.monotonic()
         s = sorted(set(stamps[k0:]))
         gaps = [b - c for b, c in zip(s[1:], s)]
@@ -149,7 +184,8 @@ def main(argv=None):
               f'{max(gaps, default=float("nan")):.3f} s (epoch period {1 / a.rate:.3f} s); '
               f'gaps > 1.5 periods: {sum(x > 1.5 / a.rate for x in gaps)}')
         print(f'RSS {r0 / 1024:.1f} -> {r_after / 1024:.1f} MiB after the last round: '
-              f'{100 * (r_after - r0) / r0:+.2f} %')
+              f'{100 * (r_after - r0) / r0:+.2f} %; diagnostics: ' + ', '.join(
+                  f'{k}={v}' for k, v in diag.items() if k.startswith('discovery')))
     finally:
         node.destroy_node()
         rclpy.try_shutdown()

@@ -157,6 +157,9 @@ def _fusion_schema():
           'PoseWithCovarianceStamped topic under the namespace'),
         P('discovery_period', DOUBLE, 1.0, 'Wall-clock period of the topic discovery scan',
           's', 0.05, 3600.0),
+        P('discovery_probe', BOOL, True, 'Discovery: watch a new topic in a short-lived '
+          'child process until it delivers a valid bearing, and subscribe only then (false: '
+          'subscribe at once; the subscriptions to publishers that never send keep memory)'),
         P('qos_depth', INTEGER, 10, 'Keep-last depth of each bearing subscription', '', 1,
           10000),
         P('qos_reliability', STRING, 'best_effort', 'QoS reliability of the bearing '
