@@ -117,8 +117,9 @@ async def slow_client(url):
 
 async def session(url, sim):
     a = await FoxgloveClient(url).connect()
-    await a.pump(10.0, lambda c: {'/fix', '/markers', '/accuracy_map', '/map_geojson'}
-                 <= set(c.by_topic))
+    topics = {'/fix', '/markers', '/accuracy_map', '/map_geojson'}
+    # Generous: on a loaded machine discovery of the fusion's publishers can take seconds.
+    assert await a.pump(30.0, lambda c: topics <= set(c.by_topic)), sorted(a.by_topic)
     await a.subscribe(['/fix', '/markers', '/accuracy_map', '/map_geojson', '/clock',
                        '/view/fix_stats'])
     slow = await slow_client(url)
