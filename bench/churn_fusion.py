@@ -93,9 +93,9 @@ def main(argv=None):
     a = ap.parse_args(argv)
     here = os.path.dirname(os.path.abspath(__file__))
     repo = os.path.dirname(here)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(160 + os.getpid() % 40),
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1',
-               AMENT_PREFIX_PATH=os.environ.get('AMENT_PREFIX_PATH', sys.prefix))
+    sys.path.insert(0, here)
+    from soak_fusion import bench_env, start_publisher
+    env = bench_env(160, 40)
     node_env = dict(env, **dict(kv.split('=', 1) for kv in a.env))
     names = [f's{k + 1}' for k in range(a.stations)]
     fusion = subprocess.Popen(
@@ -108,12 +108,7 @@ def main(argv=None):
         cwd=repo, env=node_env, stderr=subprocess.STDOUT,
         stdout=open(a.node_log, 'w') if a.node_log else subprocess.DEVNULL)
     total = a.warm_up + a.rounds * (a.hold + a.settle + 60) + 30
-    pub = subprocess.Popen([sys.executable, os.path.join(here, 'soak_fusion.py'), '--role',
-                            'publisher', '--stations', str(a.stations), '--rate', str(a.rate),
-                            '--duration', str(total)], cwd=repo, env=env,
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    os.environ.update(ROS_DOMAIN_ID=env['ROS_DOMAIN_ID'],
-                      ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    pub = start_publisher(env, a.stations, a.rate, total)
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseWithCovarianceStamped

@@ -104,9 +104,9 @@ def main(argv=None):
     if a.role == 'fuzzer':
         return run_fuzzer(a.n, a.rate, a.burst, a.seed, a.keep_valid)
     repo = os.path.dirname(HERE)
-    env = dict(os.environ, ROS_DOMAIN_ID=str(200 + os.getpid() % 30),
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1',
-               AMENT_PREFIX_PATH=os.environ.get('AMENT_PREFIX_PATH', sys.prefix))
+    sys.path.insert(0, HERE)
+    from soak_fusion import bench_env, start_publisher, TARGET
+    env = bench_env(200, 30)
     log_path = os.path.join(os.environ.get('TMPDIR', '/tmp'), f'fuzz_dds_{os.getpid()}.log')
     log = open(log_path, 'w+')
     fusion = subprocess.Popen(
@@ -115,12 +115,7 @@ def main(argv=None):
          '-p', 'accuracy_map.enabled:=false', '-p', 'diagnostics_period:=0.5'],
         cwd=repo, env=env, stdout=log, stderr=subprocess.STDOUT)
     total = a.warm_up + a.n / a.rate + 60
-    honest = subprocess.Popen([sys.executable, os.path.join(HERE, 'soak_fusion.py'), '--role',
-                               'publisher', '--stations', '4', '--rate', '10',
-                               '--duration', str(total)], cwd=repo, env=env,
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    os.environ.update(ROS_DOMAIN_ID=env['ROS_DOMAIN_ID'],
-                      ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    honest = start_publisher(env, 4, 10, total)
     import numpy as np
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -128,7 +123,6 @@ def main(argv=None):
     from scipy.stats import chi2
 
     from bearing_loc_ros.processes import interrupt
-    from soak_fusion import TARGET
     rclpy.init()
     node = rclpy.create_node('fuzz_probe')
     diag, fixes, diag_times, d2 = {}, [], [], []

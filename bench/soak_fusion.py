@@ -70,6 +70,27 @@ def rss_kb(pid):
     return None
 
 
+def bench_env(base, span):
+    """Environment of a bench run: its own ROS domain (``base`` + pid mod ``span``),
+    discovery on loopback, unbuffered output, the venv as the ament prefix."""
+    return dict(os.environ, ROS_DOMAIN_ID=str(base + os.getpid() % span),
+                ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1',
+                AMENT_PREFIX_PATH=os.environ.get('AMENT_PREFIX_PATH', sys.prefix))
+
+
+def start_publisher(env, stations, rate, duration):
+    """Start this script's paced synthetic stations (role ``publisher``) as a child."""
+    repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    pub = subprocess.Popen([sys.executable, os.path.abspath(__file__), '--role', 'publisher',
+                            '--stations', str(stations), '--rate', str(rate),
+                            '--duration', str(duration)], cwd=repo, env=env,
+                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    # The measuring node of the calling process joins the same domain.
+    os.environ.update(ROS_DOMAIN_ID=env['ROS_DOMAIN_ID'],
+                      ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    return pub
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--stations', type=int, default=50)
@@ -81,9 +102,7 @@ def main(argv=None):
     if a.role == 'publisher':
         return run_publisher(a.stations, a.rate, a.duration)
     repo = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    env = dict(os.environ, ROS_DOMAIN_ID=str(120 + os.getpid() % 40),
-               ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST', PYTHONUNBUFFERED='1',
-               AMENT_PREFIX_PATH=os.environ.get('AMENT_PREFIX_PATH', sys.prefix))
+    env = bench_env(120, 40)
     names = list(station_positions(a.stations))
     fusion = subprocess.Popen(
         [sys.executable, '-m', 'bearing_loc_ros.fusion_node', '--ros-args', '-r', '__ns:=/soak',
@@ -92,12 +111,7 @@ def main(argv=None):
          '-p', f'buffer_size:={max(50, int(2 * a.rate))}'],
         cwd=repo, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     total = a.duration + a.warm_up + 5
-    pub = subprocess.Popen([sys.executable, os.path.abspath(__file__), '--role', 'publisher',
-                            '--stations', str(a.stations), '--rate', str(a.rate),
-                            '--duration', str(total)], cwd=repo, env=env,
-                           stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    os.environ.update(ROS_DOMAIN_ID=env['ROS_DOMAIN_ID'],
-                      ROS_AUTOMATIC_DISCOVERY_RANGE='LOCALHOST')
+    pub = start_publisher(env, a.stations, a.rate, total)
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
 
@@ -110,6 +124,8 @@ def main(argv=None):
         for s in msg.status:
             if s.name.endswith(': fusion'):
                 last.update({kv.key: kv.value for kv in s.values})
+                # The counters hold at this stamp (node clock), not at the reception time.
+                last['stamp_s'] = msg.header.stamp.sec + 1e-9 * msg.header.stamp.nanosec
     node.create_subscription(DiagnosticArray, '/diagnostics', on_diag, 10)
     try:
         t0 = time.monotonic()
@@ -117,6 +133,7 @@ def main(argv=None):
             rclpy.spin_once(node, timeout_sec=0.1)
         r0 = rss_kb(fusion.pid)
         e0, f0 = int(last.get('epochs', 0)), int(last.get('fixes', 0))
+        s0 = last.get('stamp_s', 0.0)
         t1 = time.monotonic()
         print(f'warm-up done: RSS {r0 / 1024:.1f} MiB, epochs {e0}, fixes {f0}', flush=True)
         next_report = t1 + 60
@@ -135,12 +152,13 @@ def main(argv=None):
             rclpy.spin_once(node, timeout_sec=0.1)
         r1 = rss_kb(fusion.pid)
         e1, f1 = int(last.get('epochs', 0)), int(last.get('fixes', 0))
-        cycles = (t_end + 3 - t1) * a.rate
+        # Observation cycles between the two diagnostics the counters come from.
+        cycles = (last.get('stamp_s', 0.0) - s0) * a.rate
         print(f'stations {a.stations} x {a.rate:g} Hz, {a.duration:.0f} s after a '
               f'{a.warm_up:.0f} s warm-up')
         print(f'RSS {r0 / 1024:.1f} -> {r1 / 1024:.1f} MiB: {100 * (r1 - r0) / r0:+.2f} %')
         print(f'fixes {f1 - f0} of {cycles:.0f} observation cycles: '
-              f'{100 * (f1 - f0) / cycles:.2f} %; fixes / epochs '
+              f'{100 * (f1 - f0) / max(cycles, 1e-9):.2f} %; fixes / epochs '
               f'{100 * (f1 - f0) / max(1, e1 - e0):.2f} %')
     finally:
         node.destroy_node()
