@@ -7,6 +7,7 @@
 * :func:`spin_until` spins an executor until a predicate holds or a timeout passes.
 * :class:`Probe` is a node in a fresh rclpy context with its own executor, torn down by
   :meth:`Probe.close`.
+* :data:`GHOST_PUBLISHERS` is a script holding N empty ``ghost_<k>/bearing`` publishers.
 * :func:`seed000_variant` writes the seed000 scenario with another rate and duration;
   :func:`static3_bags` simulates the static3 scenario into a bag of every storage.
 """
@@ -17,6 +18,19 @@ import time
 from bearing_loc_ros.processes import ChildProcess
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+#: ``python -c GHOST_PUBLISHERS NAMESPACE N``: N empty publishers on ``ghost_<k>/bearing``
+#: under NAMESPACE; prints ``ready`` and holds them until a line arrives on stdin.
+GHOST_PUBLISHERS = '''
+import sys, rclpy
+from geometry_msgs.msg import PoseWithCovarianceStamped
+rclpy.init()
+node = rclpy.create_node('ghosts', namespace=sys.argv[1])
+pubs = [node.create_publisher(PoseWithCovarianceStamped, f'ghost_{k}/bearing', 10)
+        for k in range(int(sys.argv[2]))]
+print('ready', flush=True)
+sys.stdin.readline()
+'''
 
 
 class NodeProcess(ChildProcess):

@@ -27,7 +27,7 @@ from bearing_loc_ros.core.simulation import load_scenario, simulate
 from bearing_loc_ros.fusion_node import FusionNode
 from bearing_loc_ros.ros_conversions import (bearing_from_msg, bearing_to_msg, fix_from_msg,
                                              ns_to_time, time_to_ns)
-from ros_helpers import REPO, spin_until
+from ros_helpers import GHOST_PUBLISHERS, REPO, spin_until
 
 pytestmark = pytest.mark.ros
 
@@ -502,18 +502,6 @@ def test_burst_is_counted_as_received_or_lost(harness):
     assert h.fusion.core.last_epoch.ok
 
 
-CHURN = '''
-import sys, rclpy
-from geometry_msgs.msg import PoseWithCovarianceStamped
-rclpy.init()
-node = rclpy.create_node('churn', namespace=sys.argv[1])
-pubs = [node.create_publisher(PoseWithCovarianceStamped, f'ghost_{k}/bearing', 10)
-        for k in range(int(sys.argv[2]))]
-print('ready', flush=True)
-sys.stdin.readline()
-'''
-
-
 #: Python objects three rounds of 200 churning publishers may leave alive (gc-tracked; the
 #: fusion node holds nothing of them).
 PY_CHURN_BOUND = 1000
@@ -562,7 +550,7 @@ def test_publisher_churn_causes_no_outage_and_memory_is_bounded(harness):
         py.append(len(gc.get_objects()))
     measure()
     for cycle in range(3):
-        churn = subprocess.Popen([sys.executable, '-c', CHURN, f'/{h.ns}', '200'],
+        churn = subprocess.Popen([sys.executable, '-c', GHOST_PUBLISHERS, f'/{h.ns}', '200'],
                                  stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                                  env=node_env())
         try:

@@ -134,32 +134,20 @@ def test_the_real_trim_runs_on_glibc():
     assert 'RSS' in log.lines[-1]
 
 
-GHOSTS = '''
-import sys, rclpy
-from geometry_msgs.msg import PoseWithCovarianceStamped
-rclpy.init()
-node = rclpy.create_node('ghosts', namespace=sys.argv[1])
-pubs = [node.create_publisher(PoseWithCovarianceStamped, f'ghost_{k}/bearing', 10)
-        for k in range(int(sys.argv[2]))]
-print('ready', flush=True)
-sys.stdin.readline()
-'''
-
-
 def test_the_fusion_discovery_trims_once_discovered_publishers_left(harness, monkeypatch):
     """The fusion node's discovery scan reports its subscriptions: publishers that appear
     and leave again make it trim the heap (a counting stand-in for malloc_trim). Without
     the discovery probe, so that the node subscribes to them itself."""
     import subprocess
     from bearing_loc_ros import fusion_wiring
-    from ros_helpers import node_env
+    from ros_helpers import GHOST_PUBLISHERS, node_env
     calls = []
     monkeypatch.setattr(fusion_wiring, 'HEAP', memory.HeapTrimmer(
         trim=lambda pad: calls.append(pad) or 1, min_interval=0.0))
     h = harness(stations=('s1', 's2', 's3'), discover=True, discovery_period=0.1,
                 discovery_probe=False)
     assert h.spin(lambda: h.fusion._subs.keys() == {'s1', 's2', 's3'})
-    ghosts = subprocess.Popen([sys.executable, '-c', GHOSTS, f'/{h.ns}', '20'],
+    ghosts = subprocess.Popen([sys.executable, '-c', GHOST_PUBLISHERS, f'/{h.ns}', '20'],
                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                               env=node_env())
     try:
