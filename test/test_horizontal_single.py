@@ -202,3 +202,15 @@ def test_float_screen_agrees_with_the_vectorised_screen():
                     assert got == want
                     decided[got] += 1
     assert decided[True] >= 20 and decided[False] >= 20
+
+
+def test_an_altitude_sigma_whose_square_underflows_goes_to_the_batch_path():
+    # σ_z = 1e-170 is a valid, positive σ, but 1/σ_z² overflows on floats: the one-problem
+    # path must hand the problem over instead of raising ZeroDivisionError.
+    rng = np.random.default_rng(5)
+    tri = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0], [300.0, 800.0, 0.0]])
+    bs = simulate_bearings([500.0, 400.0, 100.0], tri, 1e-3, rng=rng)
+    for method in ('mle', 'wmle'):
+        fast = locate_horizontal(method, bs, 100.0, 1e-170)
+        plain = locate_horizontal(method, _twice(bs), 100.0, 1e-170)
+        assert str(fast.status[0]) == str(plain.status[0])

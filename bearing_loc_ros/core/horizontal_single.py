@@ -263,8 +263,8 @@ def solve_one(p, method, d_ref, opts):
     parsed options and ``initial`` the parsed start ((1, 3), z NaN when not given) or None.
     None when the problem needs the batch path (module docstring).
     """
-    problem = _Problem(p, d_ref)
     try:
+        problem = _Problem(p, d_ref)        # 1/σ_z² underflows for σ_z below ~1e-162
         x0 = opts.get('initial')
         if x0 is None:
             xy = problem.start()
