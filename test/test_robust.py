@@ -426,3 +426,14 @@ def test_confidently_wrong_ok_fixes_are_rarer_than_a_tenth_of_a_percent(scenario
     assert ok.sum() > 200
     k = int(np.count_nonzero(nees(res, tr.targets, ok) > Q9999))
     assert stats.poisson.sf(k - 1, 1e-3 * ok.sum()) > 0.01, (k, ok.sum())
+
+
+def test_lambda_max_of_huge_or_tiny_covariances_is_lapacks():
+    # The closed-form cubic overflows (1e110 m²) or divides by an underflowed r³ (1e-110 m²);
+    # the screen must then get LAPACK's eigenvalue, not an exception.
+    from bearing_loc_ros.core.robust import _lambda_max
+    for scale in (1e110, 1e-110, 1.0):
+        m = np.array([[1.0, 0.1, 0.0], [0.1, 2.0, 0.0], [0.0, 0.0, 1.0]]) * scale
+        assert _lambda_max(m.tolist()) == pytest.approx(np.linalg.eigvalsh(m)[-1], rel=1e-12)
+    assert math.isnan(_lambda_max([[1e300, 0.0, 1e300], [0.0, math.inf, 0.0],
+                                   [1e300, 0.0, 1.0]]))

@@ -300,6 +300,16 @@ def _lambda_max(p):
     B = (A − qI)/r, r² = tr((A − qI)²)/6, λ_max = q + 2r cos(acos(det B / 2) / 3).
     NaN for a non-finite matrix.
     """
+    try:
+        return _lambda_max_cubic(p)
+    except (OverflowError, ZeroDivisionError):
+        # Entries beyond ~1e100 m² or below ~1e-100 m² overflow or underflow the cubic's
+        # powers: LAPACK gives the same λ_max there (NaN for a non-finite matrix).
+        m = np.asarray(p, dtype=float)
+        return float(np.linalg.eigvalsh(m)[-1]) if np.all(np.isfinite(m)) else math.nan
+
+
+def _lambda_max_cubic(p):
     a, b, c = p[0][0], p[1][1], p[2][2]
     d, e, f = p[0][1], p[1][2], p[0][2]
     off = d * d + e * e + f * f
