@@ -139,7 +139,10 @@ class ProbeProcess:
         self._sent = None           # the last set sent to the current probe
         self._asked = set()         # every station sent to the current probe
         self._seq = 0
-        self._unacked = None        # (seq, time sent) of the oldest unacknowledged command
+        # (newest seq sent, time the oldest unacknowledged command was sent): cleared only
+        # by an ack of the newest command, so no command goes untracked.
+        self._unacked = None
+        self._last_send = -math.inf
         self._idle = False
 
     @property
@@ -151,13 +154,18 @@ class ProbeProcess:
         """Probe ``candidates`` (a set of station names); return the sorted list of
         candidates the probe has reported valid since the last call. Never blocks."""
         candidates = set(candidates)
+        asked = set(self._asked)        # a probe reaped below forgets what it was asked
         valid = self._drain()
         valid += self._check_health()
         if candidates and self.proc is None and self.clock() >= self._not_before:
             self._start()
-        if self.proc is not None and candidates != self._sent:
+        # The set again when it changed, and as a keep-alive while candidates wait, so that a
+        # probe hanging after its last answer is found within ack_timeout.
+        if self.proc is not None and (candidates != self._sent or (
+                candidates and self._unacked is None
+                and self.clock() - self._last_send > 0.5 * self.ack_timeout)):
             self._send(candidates)
-        out = sorted(s for s in valid if s in candidates and s in self._asked)
+        out = sorted(s for s in valid if s in candidates and (s in asked or s in self._asked))
         self.accepted += len(out)
         return out
 
@@ -266,13 +274,16 @@ class ProbeProcess:
         else:
             err = None
         if written != len(line):            # the pipe is full (a hung probe) or closed
+            if self.proc.poll() == 0:
+                return      # it exited after idle just now: _check_health reaps it
             self._stop(kill=True)
             self._failed(f'discovery probe does not read its input ({err or "pipe full"})')
             return
         self._sent = set(stations)
         self._asked |= self._sent
-        if self._unacked is None:
-            self._unacked = (self._seq, self.clock())
+        now = self.clock()
+        self._last_send = now
+        self._unacked = (self._seq, now if self._unacked is None else self._unacked[1])
 
     def _failed(self, text):
         self.failures += 1

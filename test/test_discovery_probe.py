@@ -21,10 +21,12 @@ FAKE = '''
 import os, sys
 valid = os.environ.get('VALID', '').split()
 mode = os.environ.get('MODE', '')
+answered = 0
 for line in sys.stdin:
     n = line.split()[1]
-    if mode == 'hang':
+    if mode == 'hang' or (mode == 'hang-later' and answered):
         continue
+    answered += 1
     print('hello there', flush=True)
     print('valid', flush=True)
     for s in valid:
@@ -102,6 +104,26 @@ def test_a_hung_probe_is_killed_and_the_restart_backs_off(monkeypatch):
         assert not p.running                        # backing off: no restart at once
         update_until(p, {'s1'}, lambda got: p.running)
         assert p.starts == 2
+    finally:
+        p.stop()
+
+
+def test_a_probe_that_hangs_after_answering_is_found_by_the_keep_alive(monkeypatch):
+    # The candidate set does not change after the first answer: only the keep-alive can
+    # find the hang.
+    p = fake(monkeypatch, mode='hang-later', ack_timeout=0.4, backoff=(30.0, 60.0))
+    try:
+        update_until(p, {'s1'}, lambda got: p.failures >= 1, timeout=5.0)
+        assert p.failures == 1 and not p.running
+    finally:
+        p.stop()
+
+
+def test_stations_reported_valid_by_a_probe_that_then_died_are_accepted(monkeypatch):
+    p = fake(monkeypatch, valid='s1', mode='die', backoff=(30.0, 60.0))
+    try:
+        got = update_until(p, {'s1'}, lambda got: p.failures >= 1 and got, timeout=5.0)
+        assert got == ['s1'] and p.failures == 1
     finally:
         p.stop()
 
