@@ -29,6 +29,7 @@ import re
 import random
 import subprocess
 import sys
+import tempfile
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -107,8 +108,8 @@ def main(argv=None):
     sys.path.insert(0, HERE)
     from soak_fusion import bench_env, start_publisher, TARGET
     env = bench_env(200, 30)
-    log_path = os.path.join(os.environ.get('TMPDIR', '/tmp'), f'fuzz_dds_{os.getpid()}.log')
-    log = open(log_path, 'w+')
+    fd, log_path = tempfile.mkstemp(prefix='fuzz_dds_', suffix='.log')
+    log = os.fdopen(fd, 'w+')
     fusion = subprocess.Popen(
         [sys.executable, '-m', 'bearing_loc_ros.fusion_node', '--ros-args', '-r', '__ns:=/soak',
          '-p', 'stations:=[s1,s2,s3,s4,x1]', '-p', 'estimator:=ls',
