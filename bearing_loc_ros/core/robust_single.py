@@ -9,35 +9,45 @@ computations, in the same order where the batch path fixes one: consensus candid
 the log σ² term, Levenberg-Marquardt on the full negative log-likelihood of the inliers
 (Zong & Cui 2015 eqs. (3)-(11) with the log σ(d) term), the all-bearing preference, and
 the assessment (Fisher covariance, decisive exclusions, test-inversion widening for
-range-grown σ, nonlinearity ν, second optimum). Eigenvalues of 3 × 3 symmetric matrices
-come from the trigonometric solution of the characteristic cubic (Smith 1961), linear
-solves from Gaussian elimination with partial pivoting. Statuses, exclusions and
-convergence flags are the batch path's; positions agree within the refit's stopping
-resolution (it stops at steps below 1e-10 of the rms station range, and rounding decides on
-which step: measured ≤ 5e-9 of the range, tested at 1e-7), covariances within 1.3e-7 of
-their largest entry.
+range-grown σ, nonlinearity ν, second optimum).
+
+Each Levenberg-Marquardt iterate is evaluated in one pass over the stations (cost, Fisher
+information and gradient together). The candidates of N ≥ 5 stations (N(N + 1)/2 + 2 of
+them) are solved and scored as arrays: the station subsets' normal equations are one
+product of the subset masks with the stations' packed equations, solved by cofactors.
+3 × 3 inverses and solves are cofactor formulas where tr(A) tr(adj A) ≤ 1e5 det(A) (then
+κ(A) ≤ 1e5: crlb.safe_inverse's rank test certainly passes and the result agrees with
+LAPACK's to about κ ε); other matrices are decided as crlb.safe_inverse decides them, by
+eigenvalues of the characteristic cubic (Smith 1961) where clear, else by LAPACK. Statuses,
+exclusions and convergence flags are the batch path's; positions agree within the refit's
+stopping resolution (it stops at steps below 1e-10 of the rms station range, and rounding
+decides on which step: measured ≤ 5e-9 of the range, tested at 1e-7), covariances within
+1.3e-7 of their largest entry.
 
 Where the floats cannot follow the batch path to rounding (a division by zero, a log of
-zero, a rank test or major axis too close to call), :class:`Fallback` is raised and the
-caller runs the batch path. Units: m, rad; ENU, azimuth θ CCW from East, elevation ψ above
-the horizontal.
+zero, a rank test or major axis too close to call, a non-finite Fisher information),
+:class:`Fallback` is raised and the caller runs the batch path. Units: m, rad; ENU,
+azimuth θ CCW from East, elevation ψ above the horizontal.
 """
 
-import math
+from math import acos, atan2, ceil, cos, inf, isfinite, log, nan, pi, sin, sqrt
 
 import numpy as np
 
-from .robust_consensus import _ls_candidates as _ls_candidates_batch
-from .robust_consensus import _score as _score_batch
 from .robust_consensus import _station_masks
-from .robust_model import (_upper_cached, CONSISTENCY_PROBABILITY, Data,
-                           DECISIVE_PROBABILITY, max_nonlinearity, MULTIMODE_PROBABILITY,
-                           outlier_c2, REFIT_ITERATIONS, REFIT_ROUNDS, TEST_INVERSION_Z)
+from .robust_model import (_upper_cached, CONSISTENCY_PROBABILITY, DECISIVE_PROBABILITY,
+                           max_nonlinearity, MULTIMODE_PROBABILITY, outlier_c2,
+                           REFIT_ITERATIONS, REFIT_ROUNDS, TEST_INVERSION_Z)
 
-_TWO_PI = 2.0 * math.pi
+_TWO_PI = 2.0 * pi
 _RCOND = 1e-12
 _CLEAR = 1e-5
-_INF3 = ((math.inf,) * 3,) * 3
+#: tr(A) tr(adj A) / det(A) bound below which a cofactor inverse is used (κ(A) ≤ this).
+_TRACE_CLEAR = 1e5
+#: Smallest N whose consensus candidates are solved and scored as arrays.
+_ARRAY_CANDIDATES = 5
+_INF3 = ((inf,) * 3,) * 3
+_NAN3 = (nan, nan, nan)
 
 
 class Fallback(Exception):
@@ -50,67 +60,37 @@ def _upper(dof, probability=CONSISTENCY_PROBABILITY):
 
 
 class Problem:
-    """One problem's per-angle lists (σ are σ_ref for range growth; see robust_model.Data)."""
+    """One problem's stations as float tuples (σ are σ_ref for range growth; robust_model.Data).
+
+    ``rows``: per station (px, py, pz, θ, ψ, 1/σ_θ, 1/σ_ψ), ψ and 1/σ_ψ 0 without elevation.
+    """
 
     def __init__(self, bearings, d_ref):
-        self.pos = bearings.positions[0].tolist()
-        self.az = bearings.azimuth[0].tolist()
+        pos = bearings.positions[0].tolist()
         el = bearings.elevation[0].tolist()
-        self.has = [math.isfinite(e) for e in el]
-        self.el = [e if h else 0.0 for e, h in zip(el, self.has)]
-        self.ia = [1.0 / s for s in bearings.sigma_az[0].tolist()]
-        se = bearings.sigma_el[0].tolist()
-        self.ie = [1.0 / s if h else 0.0 for s, h in zip(se, self.has)]
-        self.d_ref = None if d_ref is None else float(d_ref)
-        self.n = len(self.az)
+        self.has = [isfinite(e) for e in el]
         self.hasf = [1.0 if h else 0.0 for h in self.has]
+        self.rows = [(p[0], p[1], p[2], a, e if h else 0.0, 1.0 / sa, 1.0 / se if h else 0.0)
+                     for p, a, e, sa, se, h in zip(pos, bearings.azimuth[0].tolist(), el,
+                                                   bearings.sigma_az[0].tolist(),
+                                                   bearings.sigma_el[0].tolist(), self.has)]
+        if not all(isfinite(r[5]) and isfinite(r[6]) for r in self.rows):
+            raise Fallback('σ too small for floats')
+        self.d_ref = None if d_ref is None else float(d_ref)
+        self.n = len(self.rows)
+        self.n_has = sum(self.has)
+        self._arrays = None
 
-    def evaluate(self, X, gradients=True):
-        """Per station (ra, re, ga, ge, u, d, log_s2): robust_model.Data.evaluate on floats."""
-        x0, x1, x2 = X
-        d_ref = self.d_ref
-        out = []
-        for (px, py, pz), az, el, ia, ie in zip(self.pos, self.az, self.el, self.ia, self.ie):
-            dx, dy, dz = x0 - px, x1 - py, x2 - pz
-            rho2 = dx * dx + dy * dy
-            r2 = rho2 + dz * dz
-            rho = math.sqrt(rho2)
-            d = math.sqrt(r2)
-            e_az = az - math.atan2(dy, dx)
-            e_az -= _TWO_PI * math.ceil((e_az - math.pi) / _TWO_PI)
-            e_el = el - math.atan2(dz, rho)
-            if d_ref is not None:
-                f = d_ref / d
-                ia, ie = ia * f, ie * f
-                log_s2 = 2.0 * math.log(d / d_ref)
-            else:
-                log_s2 = 0.0
-            ra, re = ia * e_az, ie * e_el
-            if not gradients:
-                out.append((ra, re, None, None, None, d, log_s2))
-                continue
-            s = ia / rho2
-            t = dz / (rho * r2)
-            out.append((ra, re, (-(dy * s), dx * s, s * 0.0),
-                        (-(dx * t) * ie, -(dy * t) * ie, (rho / r2) * ie),
-                        (dx / d, dy / d, dz / d), d, log_s2))
-        return out
+    def arrays(self):
+        """(positions (3, N), θ, ψ, 1/σ_θ, 1/σ_ψ, has elevation) as arrays (N,), built once."""
+        if self._arrays is None:
+            px, py, pz, az, el, ia, ie = zip(*self.rows)
+            self._arrays = (np.array([px, py, pz]), np.array(az), np.array(el), np.array(ia),
+                            np.array(ie), np.array(self.has))
+        return self._arrays
 
 
-def _fisher(ev, wa, we):
-    """Σ w g gᵀ as packed (a00, a01, a02, a11, a12, a22), 1/m²."""
-    a00 = a01 = a02 = a11 = a12 = a22 = 0.0
-    for (_, _, ga, ge, _, _, _), w1, w2 in zip(ev, wa, we):
-        g0, g1, g2 = ga
-        h0, h1, h2 = ge
-        a00 += w1 * g0 * g0 + w2 * h0 * h0
-        a01 += w1 * g0 * g1 + w2 * h0 * h1
-        a02 += w1 * g0 * g2 + w2 * h0 * h2
-        a11 += w1 * g1 * g1 + w2 * h1 * h1
-        a12 += w1 * g1 * g2 + w2 * h1 * h2
-        a22 += w1 * g2 * g2 + w2 * h2 * h2
-    return [[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]]
-
+# --- 3 × 3 symmetric matrices (packed a00, a01, a02, a11, a12, a22) -------------------------
 
 def _eig_extremes(A):
     """(λ_min, λ_mid, λ_max) of a finite symmetric 3 × 3 matrix (Smith 1961)."""
@@ -118,18 +98,18 @@ def _eig_extremes(A):
     d, e, f = A[0][1], A[1][2], A[0][2]
     q = (a + b + c) / 3.0
     aa, bb, cc = a - q, b - q, c - q
-    r = math.sqrt((aa * aa + bb * bb + cc * cc + 2.0 * (d * d + e * e + f * f)) / 6.0)
+    r = sqrt((aa * aa + bb * bb + cc * cc + 2.0 * (d * d + e * e + f * f)) / 6.0)
     if not r > 0.0:
         return q, q, q
     det = (aa * (bb * cc - e * e) - d * (d * cc - e * f) + f * (d * e - bb * f)) / r ** 3
-    phi = math.acos(min(1.0, max(-1.0, 0.5 * det))) / 3.0
-    hi = q + 2.0 * r * math.cos(phi)
-    lo = q + 2.0 * r * math.cos(phi + _TWO_PI / 3.0)
+    phi = acos(min(1.0, max(-1.0, 0.5 * det))) / 3.0
+    hi = q + 2.0 * r * cos(phi)
+    lo = q + 2.0 * r * cos(phi + _TWO_PI / 3.0)
     return lo, 3.0 * q - hi - lo, hi
 
 
 def _finite3(A):
-    return all(map(math.isfinite, A[0] + A[1] + A[2]))
+    return all(map(isfinite, A[0] + A[1] + A[2]))
 
 
 def _clear(A):
@@ -193,73 +173,185 @@ def _lu_solve(A, B):
     return out
 
 
-def _safe_inverse(A):
-    """crlb.safe_inverse of one 3 × 3 symmetric matrix (nested lists; +inf when it fails).
+def _full(a00, a01, a02, a11, a12, a22):
+    return [[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]]
+
+
+def _cofactor_inverse(a00, a01, a02, a11, a12, a22):
+    """A⁻¹ packed by cofactors when tr(A) tr(adj A) ≤ 1e5 det(A) (A positive definite), else
+    None. That product bounds κ(A), so crlb.safe_inverse's rank test passes and the
+    cofactors agree with LAPACK's inverse to about κ ε."""
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    if (a00 > 0.0 and c22 > 0.0 and 0.0 < det < inf
+            and (a00 + a11 + a22) * (c00 + c11 + c22) <= _TRACE_CLEAR * det):
+        i = 1.0 / det
+        return c00 * i, c01 * i, c02 * i, c11 * i, c12 * i, c22 * i
+    return None
+
+
+def _safe_inverse_packed(a00, a01, a02, a11, a12, a22):
+    """crlb.safe_inverse of one symmetric matrix: packed inverse, or None (+inf: it fails).
 
     :class:`Fallback` for an ill-conditioned matrix that passes the rank test (its inverse
     is the batch path's only to about κ ε).
     """
+    out = _cofactor_inverse(a00, a01, a02, a11, a12, a22)
+    if out is not None:
+        return out
+    A = _full(a00, a01, a02, a11, a12, a22)
     if not _finite3(A):
-        return _INF3
+        return None
     if not _clear(A):
         if _rank_ok(A):
             raise Fallback('ill-conditioned information')
-        return _INF3
+        return None
     c = _lu_solve(A, ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)))
-    return tuple(tuple(c[j][i] for j in range(3)) for i in range(3))
+    # (LU's inverse is symmetric only to rounding: the lower triangle as LAPACK's is unused)
+    return c[0][0], c[1][0], c[2][0], c[1][1], c[2][1], c[2][2]
+
+
+def _safe_inverse(A):
+    """crlb.safe_inverse of one 3 × 3 symmetric matrix (nested lists; +inf when it fails)."""
+    P = _safe_inverse_packed(A[0][0], A[0][1], A[0][2], A[1][1], A[1][2], A[2][2])
+    return _INF3 if P is None else _full(*P)
+
+
+def _quad_packed(v0, v1, v2, P):
+    p00, p01, p02, p11, p12, p22 = P
+    return (v0 * (p00 * v0 + p01 * v1 + p02 * v2) + v1 * (p01 * v0 + p11 * v1 + p12 * v2)
+            + v2 * (p02 * v0 + p12 * v1 + p22 * v2))
 
 
 def _quad(v, P, w):
     return sum(v[i] * P[i][j] * w[j] for i in range(3) for j in range(3))
 
 
-def _ls_candidates(pb, masks):
-    """Pseudo-linear LS (Wang, Zhang & Wu eq. (4)) of each station mask -> list of (3,)."""
-    per = []
-    for (px, py, pz), az, el, h in zip(pb.pos, pb.az, pb.el, pb.hasf):
-        s, c = math.sin(az), math.cos(az)
-        sp, cp = math.sin(el), math.cos(el)
-        r1 = (s, -c, 0.0)
-        r2 = (h * c * sp, h * s * sp, -h * cp)
-        y1 = r1[0] * px + r1[1] * py + r1[2] * pz
-        y2 = r2[0] * px + r2[1] * py + r2[2] * pz
-        A = [[r1[i] * r1[j] + r2[i] * r2[j] for j in range(3)] for i in range(3)]
-        b = [r1[i] * y1 + r2[i] * y2 for i in range(3)]
-        per.append((A, b))
-    out = []
-    for mask in masks:
-        A = [[0.0] * 3 for _ in range(3)]
-        b = [0.0] * 3
-        for k, (An, bn) in zip(mask, per):
-            if k:
-                for i in range(3):
-                    b[i] += bn[i]
-                    for j in range(3):
-                        A[i][j] += An[i][j]
-        if not _finite3(A) or _clear(A):
-            out.append(_lu_solve(A, (b,))[0] if _finite3(A) else (math.nan,) * 3)
-        elif _rank_ok(A):
-            # Ill-conditioned but invertible: LAPACK's inverse, as the batch path.
-            out.append(tuple((np.linalg.inv(np.array(A)) @ np.array(b)).tolist()))
+def _solve_packed(a00, a01, a02, a11, a12, a22, b0, b1, b2):
+    """A x = b for symmetric A: cofactors where clear (as :func:`_cofactor_inverse`), else
+    Gaussian elimination with partial pivoting (ZeroDivisionError if singular)."""
+    c00 = a11 * a22 - a12 * a12
+    c01 = a02 * a12 - a01 * a22
+    c02 = a01 * a12 - a02 * a11
+    c11 = a00 * a22 - a02 * a02
+    c12 = a01 * a02 - a00 * a12
+    c22 = a00 * a11 - a01 * a01
+    det = a00 * c00 + a01 * c01 + a02 * c02
+    if (a00 > 0.0 and c22 > 0.0 and 0.0 < det < inf
+            and (a00 + a11 + a22) * (c00 + c11 + c22) <= _TRACE_CLEAR * det):
+        return ((c00 * b0 + c01 * b1 + c02 * b2) / det, (c01 * b0 + c11 * b1 + c12 * b2) / det,
+                (c02 * b0 + c12 * b1 + c22 * b2) / det)
+    return _lu_solve(_full(a00, a01, a02, a11, a12, a22), ((b0, b1, b2),))[0]
+
+
+# --- the likelihood on floats ----------------------------------------------------------------
+
+def _state(pb, X, wa, we):
+    """(L, F packed, ½∇L, Σ d²) at X: robust_consensus._refit's cost, information and gradient.
+
+    L = Σ w (r² + log σ²); F = Σ w g gᵀ (+ Σ 2 (wa + we) u uᵀ / d² with range growth);
+    ½∇L = −Σ w r g (+ Σ (wa (1 − ra²) + we (1 − re²)) u / d with range growth). One pass over
+    the stations (robust_model.Data.evaluate's quantities, not kept).
+    """
+    x0, x1, x2 = X
+    d_ref = pb.d_ref
+    cost = f00 = f01 = f02 = f11 = f12 = f22 = g0 = g1 = g2 = sd2 = 0.0
+    for (px, py, pz, az, el, ia, ie), w1, w2 in zip(pb.rows, wa, we):
+        dx = x0 - px
+        dy = x1 - py
+        dz = x2 - pz
+        rho2 = dx * dx + dy * dy
+        r2 = rho2 + dz * dz
+        rho = sqrt(rho2)
+        d = sqrt(r2)
+        sd2 += d * d
+        e_az = az - atan2(dy, dx)
+        e_az -= _TWO_PI * ceil((e_az - pi) / _TWO_PI)
+        e_el = el - atan2(dz, rho)
+        if d_ref is not None:
+            f = d_ref / d
+            ia *= f
+            ie *= f
+        ra = ia * e_az
+        re = ie * e_el
+        s = ia / rho2
+        t = dz / (rho * r2)
+        a0 = -(dy * s)
+        a1 = dx * s
+        h0 = -(dx * t) * ie
+        h1 = -(dy * t) * ie
+        h2 = (rho / r2) * ie
+        wra = w1 * ra
+        wre = w2 * re
+        g0 -= wra * a0 + wre * h0
+        g1 -= wra * a1 + wre * h1
+        g2 -= wre * h2
+        f00 += w1 * a0 * a0 + w2 * h0 * h0
+        f01 += w1 * a0 * a1 + w2 * h0 * h1
+        f02 += w2 * h0 * h2
+        f11 += w1 * a1 * a1 + w2 * h1 * h1
+        f12 += w2 * h1 * h2
+        f22 += w2 * h2 * h2
+        if d_ref is not None:
+            log_s2 = 2.0 * log(d / d_ref)
+            cost += w1 * (ra * ra + log_s2) + w2 * (re * re + log_s2)
+            k = (w1 * (1.0 - ra * ra) + w2 * (1.0 - re * re)) / d
+            v = 2.0 * (w1 + w2) / (d * d)
+            u0, u1, u2 = dx / d, dy / d, dz / d
+            g0 += k * u0
+            g1 += k * u1
+            g2 += k * u2
+            f00 += v * u0 * u0
+            f01 += v * u0 * u1
+            f02 += v * u0 * u2
+            f11 += v * u1 * u1
+            f12 += v * u1 * u2
+            f22 += v * u2 * u2
         else:
-            out.append((math.nan,) * 3)
+            cost += w1 * (ra * ra) + w2 * (re * re)
+    return (cost if isfinite(cost) else inf, (f00, f01, f02, f11, f12, f22), (g0, g1, g2), sd2)
+
+
+def _residuals(pb, X):
+    """Per station (ra, re, log σ²) at X (robust_model.Data.evaluate without gradients)."""
+    x0, x1, x2 = X
+    d_ref = pb.d_ref
+    out = []
+    for px, py, pz, az, el, ia, ie in pb.rows:
+        dx = x0 - px
+        dy = x1 - py
+        dz = x2 - pz
+        rho2 = dx * dx + dy * dy
+        e_az = az - atan2(dy, dx)
+        e_az -= _TWO_PI * ceil((e_az - pi) / _TWO_PI)
+        e_el = el - atan2(dz, sqrt(rho2))
+        if d_ref is not None:
+            d = sqrt(rho2 + dz * dz)
+            f = d_ref / d
+            out.append(((ia * f) * e_az, (ie * f) * e_el, 2.0 * log(d / d_ref)))
+        else:
+            out.append((ia * e_az, ie * e_el, 0.0))
     return out
 
 
-def _score(pb, X, c2):
-    s = 0.0
-    for (ra, re, *_, log_s2), h in zip(pb.evaluate(X, False), pb.has):
-        qa = ra * ra
-        qe = re * re if h else 0.0
-        n_in = (qa <= c2) + (h and qe <= c2)
-        s += min(qa, c2) + min(qe, c2) + log_s2 * n_in
-    return s if math.isfinite(s) else math.inf
+def _cost(pb, X, wa, we):
+    """robust_consensus._cost of one problem: L(X) = Σ w (r² + log σ²), +inf if not finite."""
+    c = 0.0
+    for (ra, re, log_s2), w1, w2 in zip(_residuals(pb, X), wa, we):
+        c += w1 * (ra * ra + log_s2) + w2 * (re * re + log_s2)
+    return c if isfinite(c) else inf
 
 
 def _inliers(pb, X, c2):
-    ev = pb.evaluate(X, False)
-    wa = [1.0 if e[0] * e[0] <= c2 else 0.0 for e in ev]
-    we = [1.0 if h and e[1] * e[1] <= c2 else 0.0 for e, h in zip(ev, pb.has)]
+    wa, we = [], []
+    for (ra, re, _), h in zip(_residuals(pb, X), pb.has):
+        wa.append(1.0 if ra * ra <= c2 else 0.0)
+        we.append(1.0 if h and re * re <= c2 else 0.0)
     return wa, we
 
 
@@ -268,93 +360,196 @@ def _solvable(wa, we):
     return st >= 2 and sum(we) >= 1 and sum(wa) + sum(we) >= 3
 
 
-def _cost_of(ev, wa, we):
-    c = 0.0
-    for (ra, re, *_, log_s2), w1, w2 in zip(ev, wa, we):
-        c += w1 * (ra * ra + log_s2) + w2 * (re * re + log_s2)
-    return c if math.isfinite(c) else math.inf
-
-
 def _refit(pb, X0, wa, we, iterations=REFIT_ITERATIONS):
     """robust_consensus._refit for one problem (Levenberg-Marquardt on the full likelihood)."""
-    grow = pb.d_ref is not None
     X = tuple(X0)
     lam = 0.0
-    ev = pb.evaluate(X)
-    cost = _cost_of(ev, wa, we)
+    cost, F, g, sd2 = _state(pb, X, wa, we)
+    n = pb.n
     for _ in range(iterations):
-        (f00, f01, f02), (_, f11, f12), (_, _, f22) = _fisher(ev, wa, we)
-        g0 = g1 = g2 = 0.0
-        for (ra, re, ga, ge, u, d, _), w1, w2 in zip(ev, wa, we):
-            a, e = w1 * ra, w2 * re
-            g0 -= a * ga[0] + e * ge[0]
-            g1 -= a * ga[1] + e * ge[1]
-            g2 -= a * ga[2] + e * ge[2]
-            if grow:
-                k = (w1 * (1.0 - ra * ra) + w2 * (1.0 - re * re)) / d
-                v = 2.0 * (w1 + w2) / (d * d)
-                u0, u1, u2 = u
-                g0 += k * u0
-                g1 += k * u1
-                g2 += k * u2
-                f00 += v * u0 * u0
-                f01 += v * u0 * u1
-                f02 += v * u0 * u2
-                f11 += v * u1 * u1
-                f12 += v * u1 * u2
-                f22 += v * u2 * u2
-        Fd = ((f00 + lam * f00, f01, f02), (f01, f11 + lam * f11, f12),
-              (f02, f12, f22 + lam * f22))
+        if not all(map(isfinite, F)):
+            raise Fallback('non-finite information')
+        f00, f01, f02, f11, f12, f22 = F
         try:
-            step = _lu_solve(Fd, ((-g0, -g1, -g2),))[0]
+            s0, s1, s2 = _solve_packed(f00 + lam * f00, f01, f02, f11 + lam * f11, f12,
+                                       f22 + lam * f22, -g[0], -g[1], -g[2])
         except (ZeroDivisionError, OverflowError):
-            step = (0.0, 0.0, 0.0)
-        step = tuple(s if math.isfinite(s) else 0.0 for s in step)
-        Xt = (X[0] + step[0], X[1] + step[1], X[2] + step[2])
-        evt = pb.evaluate(Xt)
-        ct = _cost_of(evt, wa, we)
-        if math.isfinite(ct) and ct <= cost:
-            X, ev, cost = Xt, evt, ct
+            s0 = s1 = s2 = 0.0
+        s0 = s0 if isfinite(s0) else 0.0
+        s1 = s1 if isfinite(s1) else 0.0
+        s2 = s2 if isfinite(s2) else 0.0
+        Xt = (X[0] + s0, X[1] + s1, X[2] + s2)
+        st = _state(pb, Xt, wa, we)
+        ct = st[0]
+        if ct < inf and ct <= cost:          # (ct is +inf where not finite)
+            X = Xt
+            cost, F, g, sd2 = st
             lam = 0.1 * lam * (lam > 1e-6)
         else:
             lam = max(10.0 * lam, 1e-3)
-        scale = math.sqrt(sum(e[5] * e[5] for e in ev) / len(ev))
-        if math.sqrt(sum(s * s for s in step)) <= 1e-10 * scale or lam > 1e10:
+        if sqrt(s0 * s0 + s1 * s1 + s2 * s2) <= 1e-10 * sqrt(sd2 / n) or lam > 1e10:
             break
     return X
 
 
-def _best_candidate(pb, bearings, X_ml, c2):
-    """Step 2: (the best-scoring candidate, the all-station ls fix).
+# --- step 2: consensus candidates ----------------------------------------------------------
 
-    On floats for N ≤ 5; from N = 6 on, the N(N + 1)/2 + 2 candidates are scored by the
-    batch path's own vectorised code on this one problem (one numpy evaluation of all of them
-    costs less than a float loop over them; measured equal at N = 6).
-    """
-    n = pb.n
-    x_ml = X_ml if all(map(math.isfinite, X_ml)) else (math.nan,) * 3
-    if n >= 6:
-        data = Data(bearings, pb.d_ref)
-        cand = _ls_candidates_batch(data, _station_masks(n))
-        cand = np.concatenate([np.array(x_ml, dtype=float)[None, None], cand], axis=1)
-        score = _score_batch(data, np.where(np.isfinite(cand), cand, 0.0), c2)
-        score = np.where(np.all(np.isfinite(cand), axis=-1), score, np.inf)
-        return tuple(cand[0, int(np.argmin(score[0]))].tolist()), tuple(cand[0, 1].tolist())
-    cand = [x_ml] + _ls_candidates(pb, _station_masks(n).tolist())
-    best, best_s = 0, math.inf
+def _station_equations(pb):
+    """Per station the packed pseudo-linear normal equations (a00 … a22, b0, b1, b2)
+    (Wang, Zhang & Wu eq. (4); robust_consensus._ls_candidates)."""
+    out = []
+    for (px, py, pz, az, el, _, _), h in zip(pb.rows, pb.hasf):
+        s, c = sin(az), cos(az)
+        sp, cp = sin(el), cos(el)
+        q0, q1, q2 = h * c * sp, h * s * sp, -h * cp
+        y1 = s * px + (-c) * py + 0.0 * pz
+        y2 = q0 * px + q1 * py + q2 * pz
+        out.append((s * s + q0 * q0, s * (-c) + q0 * q1, s * 0.0 + q0 * q2,
+                    c * c + q1 * q1, (-c) * 0.0 + q1 * q2, 0.0 + q2 * q2,
+                    s * y1 + q0 * y2, (-c) * y1 + q1 * y2, 0.0 * y1 + q2 * y2))
+    return out
+
+
+def _solve_candidate(a00, a01, a02, a11, a12, a22, b0, b1, b2):
+    """The ls fix of one station subset: safe_inverse(A) b as the batch path decides it."""
+    P = _cofactor_inverse(a00, a01, a02, a11, a12, a22)
+    if P is not None:
+        p00, p01, p02, p11, p12, p22 = P
+        return (p00 * b0 + p01 * b1 + p02 * b2, p01 * b0 + p11 * b1 + p12 * b2,
+                p02 * b0 + p12 * b1 + p22 * b2)
+    A = _full(a00, a01, a02, a11, a12, a22)
+    if not _finite3(A):
+        return _NAN3
+    if _clear(A):
+        return _lu_solve(A, ((b0, b1, b2),))[0]
+    if _rank_ok(A):
+        # Ill-conditioned but invertible: LAPACK's inverse, as the batch path.
+        return tuple((np.linalg.inv(np.array(A)) @ np.array([b0, b1, b2])).tolist())
+    return _NAN3
+
+
+def _score(pb, X, c2):
+    """robust_consensus._score of one candidate (+inf if not finite)."""
+    x0, x1, x2 = X
+    d_ref = pb.d_ref
+    s = 0.0
+    for (px, py, pz, az, el, ia, ie), h in zip(pb.rows, pb.has):
+        dx = x0 - px
+        dy = x1 - py
+        dz = x2 - pz
+        rho2 = dx * dx + dy * dy
+        e_az = az - atan2(dy, dx)
+        e_az -= _TWO_PI * ceil((e_az - pi) / _TWO_PI)
+        if d_ref is not None:
+            d = sqrt(rho2 + dz * dz)
+            f = d_ref / d
+            ia *= f
+            ie *= f
+            log_s2 = 2.0 * log(d / d_ref)
+        else:
+            log_s2 = 0.0
+        qa = ia * e_az
+        qa *= qa
+        s += qa + log_s2 if qa <= c2 else c2
+        if h:
+            qe = ie * (el - atan2(dz, sqrt(rho2)))
+            qe *= qe
+            s += qe + log_s2 if qe <= c2 else c2
+    return s if isfinite(s) else inf
+
+
+def _best_candidate_floats(pb, x_ml, c2):
+    eqs = _station_equations(pb)
+    cand = [x_ml]
+    for mask in _station_masks(pb.n).tolist():
+        a = [0.0] * 9
+        for k, e in zip(mask, eqs):
+            if k:
+                a = [x + y for x, y in zip(a, e)]
+        cand.append(_solve_candidate(*a))
+    best, best_s = 0, inf
     for k, C in enumerate(cand):
-        if all(map(math.isfinite, C)):
+        if all(map(isfinite, C)):
             s = _score(pb, C, c2)
             if s < best_s:
                 best, best_s = k, s
     return cand[best], cand[1]
 
 
-def consensus_fit(pb, bearings, X_ml, c2):
+def _best_candidate_arrays(pb, x_ml, c2):
+    n = pb.n
+    masks = _station_masks(n)
+    S = masks @ np.array(_station_equations(pb))               # (K, 9)
+    a00, a01, a02, a11, a12, a22, b0, b1, b2 = S.T
+    with np.errstate(all='ignore'):
+        c00 = a11 * a22 - a12 * a12
+        c01 = a02 * a12 - a01 * a22
+        c02 = a01 * a12 - a02 * a11
+        c11 = a00 * a22 - a02 * a02
+        c12 = a01 * a02 - a00 * a12
+        c22 = a00 * a11 - a01 * a01
+        det = a00 * c00 + a01 * c01 + a02 * c02
+        clear = ((a00 > 0.0) & (c22 > 0.0) & (det > 0.0) & (det < inf)
+                 & ((a00 + a11 + a22) * (c00 + c11 + c22) <= _TRACE_CLEAR * det))
+        i = 1.0 / det
+        cand = np.empty((len(det) + 1, 3))
+        cand[0] = x_ml
+        cand[1:, 0] = (c00 * i) * b0 + (c01 * i) * b1 + (c02 * i) * b2
+        cand[1:, 1] = (c01 * i) * b0 + (c11 * i) * b1 + (c12 * i) * b2
+        cand[1:, 2] = (c02 * i) * b0 + (c12 * i) * b1 + (c22 * i) * b2
+        if not clear.all():
+            for k in np.flatnonzero(~clear).tolist():
+                cand[k + 1] = _solve_candidate(*S[k].tolist())
+        ok = np.isfinite(cand).all(axis=1)
+        X = np.where(ok[:, None], cand, 0.0)
+        pos, az, el, ia, ie, has = pb.arrays()
+        dx = X[:, 0:1] - pos[0]
+        dy = X[:, 1:2] - pos[1]
+        dz = X[:, 2:3] - pos[2]
+        rho2 = dx * dx + dy * dy
+        e_az = az - np.arctan2(dy, dx)
+        e_az -= _TWO_PI * np.ceil((e_az - pi) / _TWO_PI)
+        e_el = el - np.arctan2(dz, np.sqrt(rho2))
+        if pb.d_ref is not None:
+            d = np.sqrt(rho2 + dz * dz)
+            f = pb.d_ref / d
+            qa = (ia * f) * e_az
+            qe = (ie * f) * e_el
+            log_s2 = 2.0 * np.log(d / pb.d_ref)
+        else:
+            qa = ia * e_az
+            qe = ie * e_el
+            log_s2 = 0.0
+        qa *= qa
+        qe *= qe
+        qe = np.where(has, qe, 0.0)
+        n_in = (qa <= c2) + (has & (qe <= c2)).astype(float)
+        s = (np.minimum(qa, c2) + np.minimum(qe, c2) + log_s2 * n_in).sum(axis=-1)
+        s = np.where(np.isfinite(s) & ok, s, np.inf)
+    best = int(np.argmin(s))
+    return tuple(cand[best].tolist()), tuple(cand[1].tolist())
+
+
+def _best_candidate(pb, X_ml, c2):
+    """Step 2: (the best-scoring candidate, the all-station ls fix).
+
+    Candidates: the estimator's fix, the ls fix of all stations, leaving out one station
+    and, for N ≥ 5, every pair (robust_consensus._station_masks); the first lowest MSAC
+    score wins, as the batch path's argmin. On floats for N < 5, as arrays from N = 5 on.
+    """
+    x_ml = X_ml if all(map(isfinite, X_ml)) else _NAN3
+    if pb.n >= _ARRAY_CANDIDATES:
+        return _best_candidate_arrays(pb, x_ml, c2)
+    return _best_candidate_floats(pb, x_ml, c2)
+
+
+# --- step 3: refit -------------------------------------------------------------------------
+
+def consensus_fit(pb, X_ml, c2):
     """robust_consensus.consensus_fit for one problem: (X, wa, we, the all-station ls fix)."""
     n = pb.n
-    X, X_ls = _best_candidate(pb, bearings, X_ml, c2)
-    X = tuple(x if math.isfinite(x) else 0.0 for x in X)
+    X, X_ls = _best_candidate(pb, X_ml, c2)
+    X = tuple(x if isfinite(x) else 0.0 for x in X)
     wa, we = _inliers(pb, X, c2)
     for _ in range(REFIT_ROUNDS):
         if _solvable(wa, we):
@@ -377,28 +572,67 @@ def _prefer_all_bearings(pb, X, wa, we, X_ml, X_ls):
     if all(a == 1.0 for a in wa) and all(e == 1.0 or not h for e, h in zip(we, pb.has)):
         return X, wa, we
     ones, she = [1.0] * pb.n, pb.hasf
-    best, cost = None, math.inf
+    best, cost = None, inf
     for start in (X_ml, X_ls):
-        if all(map(math.isfinite, start)):
+        if all(map(isfinite, start)):
             Xs = _refit(pb, start, ones, she)
-            cs = _cost_of(pb.evaluate(Xs, False), ones, she)
+            cs = _cost(pb, Xs, ones, she)
         else:
-            Xs, cs = _refit(pb, X, ones, she), math.inf
+            Xs, cs = _refit(pb, X, ones, she), inf
         if best is None or cs < cost:
             best, cost = Xs, cs
-    chi2 = sum(e[0] * e[0] + h * e[1] * e[1] for e, h in zip(pb.evaluate(best, False), she))
-    if math.isfinite(cost) and chi2 <= _upper(pb.n + sum(pb.has) - 3):
+    chi2 = sum(ra * ra + h * re * re for (ra, re, _), h in zip(_residuals(pb, best), she))
+    if isfinite(cost) and chi2 <= _upper(pb.n + pb.n_has - 3):
         return best, [1.0] * pb.n, list(she)
     return X, wa, we
 
 
-def _test_inversion(pb, X, wa, we, P, present, z=TEST_INVERSION_Z, iterations=4):
-    """robust_model.test_inversion_covariance for one problem (P finite)."""
-    lo, mid, hi = _eig_extremes(P)
+# --- step 4: assessment --------------------------------------------------------------------
+
+def _fisher_at(pb, X, wa, we):
+    """Σ w g gᵀ packed at X, 1/m² (robust_model.fisher of Data.evaluate's gradients)."""
+    x0, x1, x2 = X
+    d_ref = pb.d_ref
+    f00 = f01 = f02 = f11 = f12 = f22 = 0.0
+    for (px, py, pz, _, _, ia, ie), w1, w2 in zip(pb.rows, wa, we):
+        dx = x0 - px
+        dy = x1 - py
+        dz = x2 - pz
+        rho2 = dx * dx + dy * dy
+        r2 = rho2 + dz * dz
+        rho = sqrt(rho2)
+        if d_ref is not None:
+            f = d_ref / sqrt(r2)
+            ia *= f
+            ie *= f
+        s = ia / rho2
+        t = dz / (rho * r2)
+        a0 = -(dy * s)
+        a1 = dx * s
+        h0 = -(dx * t) * ie
+        h1 = -(dy * t) * ie
+        h2 = (rho / r2) * ie
+        f00 += w1 * a0 * a0 + w2 * h0 * h0
+        f01 += w1 * a0 * a1 + w2 * h0 * h1
+        f02 += w2 * h0 * h2
+        f11 += w1 * a1 * a1 + w2 * h1 * h1
+        f12 += w2 * h1 * h2
+        f22 += w2 * h2 * h2
+    return f00, f01, f02, f11, f12, f22
+
+
+def _test_inversion(pb, X, wa, we, P, u_out, t_max, z=TEST_INVERSION_Z, iterations=4):
+    """robust_model.test_inversion_covariance for one problem (P finite, packed).
+
+    ``u_out`` Σ of the unit lines of sight of the stations with a kept angle (orients the
+    major axis away from them), ``t_max`` 10 × the largest finite station range, m.
+    """
+    M = _full(*P)
+    lo, mid, hi = _eig_extremes(M)
     if not hi - mid > 1e-4 * abs(hi):
         raise Fallback('major axis too close to call')
     # Eigenvector of λ_max: the largest cross product of two rows of P − λ_max I.
-    R = [[P[i][j] - (hi if i == j else 0.0) for j in range(3)] for i in range(3)]
+    R = [[M[i][j] - (hi if i == j else 0.0) for j in range(3)] for i in range(3)]
     best = None
     for i, j in ((0, 1), (0, 2), (1, 2)):
         a, b = R[i], R[j]
@@ -409,86 +643,119 @@ def _test_inversion(pb, X, wa, we, P, present, z=TEST_INVERSION_Z, iterations=4)
     nc, c = best
     if not nc > 0.0:
         raise Fallback('no major axis')
-    nc = math.sqrt(nc)
-    v = [c[0] / nc, c[1] / nc, c[2] / nc]
-    ev = pb.evaluate(X)
-    t_max = 10.0 * max(e[5] if math.isfinite(e[5]) else 0.0 for e in ev)
-    out = [sum(e[4][i] for e, p in zip(ev, present) if p) for i in range(3)]
-    dot = v[0] * out[0] + v[1] * out[1] + v[2] * out[2]
+    nc = sqrt(nc)
+    v0, v1, v2 = c[0] / nc, c[1] / nc, c[2] / nc
+    dot = v0 * u_out[0] + v1 * u_out[1] + v2 * u_out[2]
     if dot == 0.0:
         raise Fallback('major axis orientation')
     if dot < 0.0:
-        v = [-v[0], -v[1], -v[2]]
-    s0 = math.sqrt(max(_quad(v, P, v), 0.0))
+        v0, v1, v2 = -v0, -v1, -v2
+    s0 = sqrt(max(_quad_packed(v0, v1, v2, P), 0.0))
     t = z * s0
     for _ in range(iterations):
-        ev = pb.evaluate((X[0] + t * v[0], X[1] + t * v[1], X[2] + t * v[2]))
-        Pt = _safe_inverse(_fisher(ev, wa, we))
-        st = math.sqrt(max(_quad(v, Pt, v), 0.0)) if _finite3(Pt) else math.inf
-        t = min(z * st, t_max) if math.isfinite(st) else t_max
+        Pt = _safe_inverse_packed(*_fisher_at(pb, (X[0] + t * v0, X[1] + t * v1,
+                                                   X[2] + t * v2), wa, we))
+        st = sqrt(max(_quad_packed(v0, v1, v2, Pt), 0.0)) if Pt is not None else inf
+        t = min(z * st, t_max) if isfinite(st) else t_max
     add = max((t / z) ** 2 - s0 * s0, 0.0)
-    if not math.isfinite(add):
-        return _INF3
-    return tuple(tuple(P[i][j] + add * v[i] * v[j] for j in range(3)) for i in range(3))
-
-
-def _lambda_max(P):
-    return _eig_extremes(P)[2]
+    if not isfinite(add):
+        return None
+    v = (v0, v1, v2)
+    p00, p01, p02, p11, p12, p22 = P
+    return (p00 + add * v[0] * v[0], p01 + add * v[0] * v[1], p02 + add * v[0] * v[2],
+            p11 + add * v[1] * v[1], p12 + add * v[1] * v[2], p22 + add * v[2] * v[2])
 
 
 def assess(pb, X, wa, we, X_ls):
-    """robust.assess for one problem: (P, ok, ν)."""
+    """robust.assess for one problem: (P (nested lists), ok, ν)."""
     grown = pb.d_ref is not None
     max_nu = max_nonlinearity(grown)
-    ev = pb.evaluate(X)
-    P = _safe_inverse(_fisher(ev, wa, we))
-    finite = _finite3(P)
-    chi2 = sum(w1 * e[0] * e[0] + w2 * e[1] * e[1] for e, w1, w2 in zip(ev, wa, we))
+    d_ref = pb.d_ref
+    x0, x1, x2 = X
+    f00 = f01 = f02 = f11 = f12 = f22 = chi2 = 0.0
+    o0 = o1 = o2 = 0.0
+    dmin, dmax = inf, 0.0
+    excluded = []               # (r, gradient) of the excluded angles
+    for (px, py, pz, az, el, ia, ie), w1, w2, h in zip(pb.rows, wa, we, pb.has):
+        dx = x0 - px
+        dy = x1 - py
+        dz = x2 - pz
+        rho2 = dx * dx + dy * dy
+        r2 = rho2 + dz * dz
+        rho = sqrt(rho2)
+        d = sqrt(r2)
+        e_az = az - atan2(dy, dx)
+        e_az -= _TWO_PI * ceil((e_az - pi) / _TWO_PI)
+        e_el = el - atan2(dz, rho)
+        if d_ref is not None:
+            f = d_ref / d
+            ia *= f
+            ie *= f
+        ra = ia * e_az
+        re = ie * e_el
+        s = ia / rho2
+        t = dz / (rho * r2)
+        a0 = -(dy * s)
+        a1 = dx * s
+        h0 = -(dx * t) * ie
+        h1 = -(dy * t) * ie
+        h2 = (rho / r2) * ie
+        f00 += w1 * a0 * a0 + w2 * h0 * h0
+        f01 += w1 * a0 * a1 + w2 * h0 * h1
+        f02 += w2 * h0 * h2
+        f11 += w1 * a1 * a1 + w2 * h1 * h1
+        f12 += w2 * h1 * h2
+        f22 += w2 * h2 * h2
+        chi2 += w1 * ra * ra + w2 * re * re
+        if w1 + w2 > 0:
+            o0 += dx / d
+            o1 += dy / d
+            o2 += dz / d
+            dmin = min(dmin, d)
+        if isfinite(d):
+            dmax = max(dmax, d)
+        if w1 == 0:
+            excluded.append((ra, a0, a1, 0.0))
+        if w2 == 0 and h:
+            excluded.append((re, h0, h1, h2))
+    P = _safe_inverse_packed(f00, f01, f02, f11, f12, f22)
+    finite = P is not None and all(map(isfinite, P))
     n_kept = int(sum(wa) + sum(we))
-    n_all = pb.n + sum(pb.has)
-    present = [w1 + w2 > 0 for w1, w2 in zip(wa, we)]
-    Pf = P if finite else ((0.0,) * 3,) * 3
+    n_all = pb.n + pb.n_has
+    Pf = P if finite else (0.0,) * 6
     cd = outlier_c2(DECISIVE_PROBABILITY)
-    marginal = False
-    for (ra, re, ga, ge, *_), w1, w2, h in zip(ev, wa, we, pb.has):
-        if w1 == 0 and not ra * ra / (1.0 + _quad(ga, Pf, ga)) > cd:
-            marginal = True
-        if w2 == 0 and h and not re * re / (1.0 + _quad(ge, Pf, ge)) > cd:
-            marginal = True
-    if grown and finite:
-        P = _test_inversion(pb, X, wa, we, P, present)
-    elif grown:
-        P = _INF3
-    finite = _finite3(P)
-    nu = math.nan
+    marginal = any(not r * r / (1.0 + _quad_packed(g0, g1, g2, Pf)) > cd
+                   for r, g0, g1, g2 in excluded)
+    if grown:
+        P = _test_inversion(pb, X, wa, we, P, (o0, o1, o2), 10.0 * dmax) if finite else None
+        finite = P is not None
+    nu = nan
     if finite:
-        dmin = min((e[5] for e, p in zip(ev, present) if p), default=math.inf)
-        nu = math.sqrt(max(_lambda_max(P), 0.0)) / dmin
-        nu = nu if math.isfinite(nu) else math.nan
+        nu = sqrt(max(_eig_extremes(_full(*P))[2], 0.0)) / dmin
+        nu = nu if isfinite(nu) else nan
     ok = (chi2 <= _upper(n_kept - 3) and nu <= max_nu
-          and n_all - n_kept <= math.floor((n_all - 3) / 2.0) and not marginal and finite)
+          and n_all - n_kept <= (n_all - 3) // 2 and not marginal and finite)
     if ok:
         ok = not _second_optimum(pb, X, wa, we, P, X_ls)
-    return P, ok, nu
+    return (_full(*P) if finite else [list(r) for r in _INF3]), ok, nu
 
 
 def _second_optimum(pb, X, wa, we, P, ls):
-    """robust_consensus.second_optimum for one problem (X, P finite)."""
-    q = _upper(3, MULTIMODE_PROBABILITY)
-    Pi = _safe_inverse(P)
-    if not all(map(math.isfinite, ls)):
+    """robust_consensus.second_optimum for one problem (X, P finite; P packed)."""
+    if not all(map(isfinite, ls)):
         return False
+    q = _upper(3, MULTIMODE_PROBABILITY)
+    Pi = _safe_inverse_packed(*P)
+    Pi = (inf,) * 6 if Pi is None else Pi
 
     def dist2(Y):
-        dY = (Y[0] - X[0], Y[1] - X[1], Y[2] - X[2])
-        return _quad(dY, Pi, dY)
+        return _quad_packed(Y[0] - X[0], Y[1] - X[1], Y[2] - X[2], Pi)
 
     if not dist2(ls) > q:
         return False
     X2 = _refit(pb, ls, wa, we)
     far = dist2(X2) > q
-    close = (_cost_of(pb.evaluate(X2, False), wa, we)
-             - _cost_of(pb.evaluate(X, False), wa, we)) < q
+    close = _cost(pb, X2, wa, we) - _cost(pb, X, wa, we) < q
     return far and close
 
 
@@ -498,10 +765,10 @@ def refine(bearings, X_ml, d_ref=None):
     ``bearings`` a one-problem BearingSet, ``X_ml`` the estimator's fix (3,) m (NaN allowed),
     ``d_ref`` m for range-grown σ. Raises :class:`Fallback` where the batch path must run.
     """
-    pb = Problem(bearings, d_ref)
     c2 = outlier_c2()
     try:
-        X, wa, we, X_ls = consensus_fit(pb, bearings, tuple(X_ml), c2)
+        pb = Problem(bearings, d_ref)
+        X, wa, we, X_ls = consensus_fit(pb, tuple(X_ml), c2)
         P, ok, nu = assess(pb, X, wa, we, X_ls)
     except (ZeroDivisionError, ValueError, OverflowError) as exc:
         raise Fallback(str(exc)) from exc
