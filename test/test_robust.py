@@ -398,6 +398,32 @@ def test_a_second_likelihood_optimum_makes_the_fix_low_confidence():
     assert robust.second_optimum(data, X, wa, we, res.covariance)[0]
 
 
+def test_an_exclusion_that_does_not_hold_up_keeps_every_angle():
+    # Wang, Zhang & Wu (2006) geometry at 1.5 mrad, a target ~100 km from the third station.
+    # The paper's fix is 232 m from the target, its residual χ² above the 0.999 quantile,
+    # so it goes to the consensus, which drops the third azimuth and lands 6 km off; that
+    # exclusion is not decisive given the fix's own uncertainty. The fix must be the fit of
+    # all the angles (the paper's optimum), low_confidence, with nothing excluded: on both
+    # the one-problem path and the batch path.
+    st = [[30000.0, -10000.0, 100.0], [30000.0, 20000.0, 200.0], [-30000.0, 5000.0, 150.0]]
+    az = [-1.3079956163858633, -1.4047762498633978, -0.7551671248325064]
+    el = [0.08783991355554505, 0.05127811008148017, 0.04564903037848992]
+    truth = np.array([44610.0, -64850.0, 5000.0])
+    one = BearingSet.from_arrays(st, az, el, 1.5e-3, 1.5e-3)
+    paper = locate('mle', one, robust=False)
+    assert paper.status[0] == 'ok'
+    assert np.linalg.norm(paper.position[0] - truth) < 300.0
+    two = BearingSet.from_arrays([st, st], [az, az], [el, el], 1.5e-3, 1.5e-3)
+    for res in (locate('mle', one), locate('mle', two)):
+        assert list(res.status) == ['low_confidence'] * res.position.shape[0]
+        assert not res.excluded.any()
+        # Both are the optimum of the same likelihood: equal within the LM's stopping
+        # resolution (1e-10 of the rms range, ~70 km here).
+        assert np.abs(res.position - paper.position[0]).max() < 1e-4
+        e = res.position[0] - paper.position[0]
+        assert e @ np.linalg.solve(paper.covariance[0], e) < 1e-6
+
+
 def test_second_optimum_check_is_silent_at_moderate_snr():
     # Six stations, constant σ 2°: the likelihood has one optimum over the region, so the
     # check (level 1e-4 per fix) flags none of 300 fixes (expected count ≤ 0.03).

@@ -44,7 +44,11 @@ Zong & Cui 2015 eqs. (3)-(11) (``mle``, ``wmle``):
    (:func:`.robust_consensus.second_optimum`): refitted from the all-station ``ls`` fix,
    it must return inside the ellipsoid of level q (χ²₃ quantile of
    :data:`MULTIMODE_PROBABILITY`) or end with L higher by more than q. Otherwise
-   ``low_confidence`` (position and covariance kept, ``converged`` False).
+   ``low_confidence`` (position and covariance kept, ``converged`` False), except that a
+   fix failing (d) returns to the fit of all the angles from step 3 (its χ² failed the
+   test, so it stays ``low_confidence``, with nothing excluded): the data do not show
+   that the excluded angles are outliers, and a subset fit can lie far from the optimum
+   of all of them (Wang, Zhang & Wu 2006 geometry at 1.5 mrad: 6 km against 0.23 km).
 
 Nonlinearity ν = sqrt(λ_max(P)) / min_k d_k (:func:`region_nonlinearity`): the radius of
 the confidence region seen from the nearest station, relative to its range. The angles are
@@ -130,8 +134,12 @@ from .robust_model import (chi2_band, chi2_upper, CONSISTENCY_PROBABILITY,  # no
 _c2 = outlier_c2
 
 
-def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY, max_nu=None):
+def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY, max_nu=None,
+           decisive=False):
     """Step 4 of the module docstring: (covariance (M, 3, 3), ok (M,), chi2, dof, ν).
+
+    With ``decisive``, a sixth item (M,) bool: every excluded angle is decisive (check (d)
+    below; True where nothing is excluded).
 
     ``ok``: χ² ≤ the χ²_dof ``probability`` quantile, ν ≤ ``max_nu`` (default
     :func:`max_nonlinearity`), at most ⌊(M_meas − 3)/2⌋ angles excluded, every
@@ -166,6 +174,8 @@ def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY, max_nu=None):
     idx = np.flatnonzero(ok)
     if idx.size:
         ok[idx] = ~second_optimum(data.take(idx), X[idx], wa[idx], we[idx], P[idx])
+    if decisive:
+        return P, ok, chi2, dof, nu, ~marginal.any(axis=-1)
     return P, ok, chi2, dof, nu
 
 
@@ -417,8 +427,15 @@ def confident_result(result, bearings, d_ref=None, screen_stats=None):
                            bearings.elevation[idx], bearings.sigma_az[idx],
                            bearings.sigma_el[idx]), d_ref)
     start = np.where(np.all(np.isfinite(pos[idx]), axis=1)[:, None], pos[idx], np.nan)
-    X, wa, we = consensus_fit(data, start)
-    P, ok, _, _, nux = assess(data, X, wa, we)
+    X, wa, we, X_all = consensus_fit(data, start, with_all=True)
+    P, ok, _, _, nux, decisive = assess(data, X, wa, we, decisive=True)
+    back = np.flatnonzero(~decisive & np.all(np.isfinite(X_all), axis=1))
+    if back.size:
+        # Exclusions the fix's own uncertainty does not support: the fit of all the angles
+        # (ML of the full likelihood; low_confidence, as its χ² failed the test).
+        X[back], wa[back], we[back] = X_all[back], 1.0, data.has_el[back]
+        P[back], ok[back], _, _, nux[back] = assess(data.take(back), X[back], wa[back],
+                                                    we[back])
     finite = np.all(np.isfinite(X), axis=1) & np.all(np.isfinite(P), axis=(1, 2))
     # No finite refit (e.g. a target far beyond the baseline): the estimator's own
     # finite fix is kept, as low_confidence, without exclusions.

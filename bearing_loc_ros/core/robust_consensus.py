@@ -177,11 +177,14 @@ def _solvable(data, wa, we):
     return (st >= 2) & (we.sum(axis=-1) >= 1) & ((wa + we).sum(axis=-1) >= 3)
 
 
-def consensus_fit(data, X_ml, c2=None):
+def consensus_fit(data, X_ml, c2=None, with_all=False):
     """Steps 2-3 of the :mod:`.robust` docstring for M problems: (X (M, 3), wa, we (M, N)).
 
     ``X_ml`` (M, 3) is the estimator's own fix (a candidate; NaN allowed). wa, we are the
-    inlier indicators of the azimuths and elevations (1 kept, 0 excluded).
+    inlier indicators of the azimuths and elevations (1 kept, 0 excluded). With
+    ``with_all``, a fourth item X_all (M, 3): the fit of all the angles that
+    :func:`_prefer_all_bearings` tried and rejected for a fit with exclusions (NaN where
+    nothing was excluded or that fit is not finite).
     """
     c2 = outlier_c2() if c2 is None else c2
     M, N = data.az.shape
@@ -212,7 +215,8 @@ def consensus_fit(data, X_ml, c2=None):
         active = active[~same]
         if not active.size:
             break
-    return _prefer_all_bearings(data, X, wa, we, X_ml, cand[:, 1])
+    X, wa, we, X_all = _prefer_all_bearings(data, X, wa, we, X_ml, cand[:, 1])
+    return (X, wa, we, X_all) if with_all else (X, wa, we)
 
 
 def _cost(data, X, wa, we):
@@ -231,13 +235,17 @@ def _prefer_all_bearings(data, X, wa, we, X_ml, X_ls):
     better one kept; if its χ² ≤ the χ²_dof quantile of
     :data:`.robust_model.CONSISTENCY_PROBABILITY` it replaces the fit with exclusions. (At
     low SNR a subset can fit a wrong point closer to the stations, where range-grown σ are
-    small, and exclude the good bearings that contradict it.)
+    small, and exclude the good bearings that contradict it.) Returns (X, wa, we, X_all),
+    X_all (M, 3) the rejected fit of all the angles (NaN where none was rejected or it is
+    not finite), to which :func:`.robust.confident_result` returns when the exclusions do
+    not hold up.
     """
     has = data.has_el
+    X_all = np.full(X.shape, np.nan)
     exc = np.any(wa == 0, axis=-1) | np.any(has & (we == 0), axis=-1)
     idx = np.flatnonzero(exc)
     if not idx.size:
-        return X, wa, we
+        return X, wa, we, X_all
     sub = data.take(idx)
     ones = np.ones_like(sub.az)
     she = sub.has_el.astype(float)
@@ -264,7 +272,9 @@ def _prefer_all_bearings(data, X, wa, we, X_ml, X_ls):
         X[k] = best[use]
         wa[k] = 1.0
         we[k] = has[k].astype(float)
-    return X, wa, we
+    rest = ~use & np.isfinite(cost)
+    X_all[idx[rest]] = best[rest]
+    return X, wa, we, X_all
 
 
 def second_optimum(data, X, wa, we, P, probability=MULTIMODE_PROBABILITY):

@@ -547,7 +547,8 @@ def _best_candidate(pb, X_ml, c2):
 # --- step 3: refit -------------------------------------------------------------------------
 
 def consensus_fit(pb, X_ml, c2):
-    """robust_consensus.consensus_fit for one problem: (X, wa, we, the all-station ls fix)."""
+    """robust_consensus.consensus_fit for one problem: (X, wa, we, the all-station ls fix,
+    the rejected fit of all the angles or None)."""
     n = pb.n
     X, X_ls = _best_candidate(pb, X_ml, c2)
     X = tuple(x if isfinite(x) else 0.0 for x in X)
@@ -565,13 +566,13 @@ def consensus_fit(pb, X_ml, c2):
         X, wa, we = Xa, na, ne
         if same:
             break
-    X, wa, we = _prefer_all_bearings(pb, X, wa, we, X_ml, X_ls)
-    return X, wa, we, X_ls
+    X, wa, we, X_all = _prefer_all_bearings(pb, X, wa, we, X_ml, X_ls)
+    return X, wa, we, X_ls, X_all
 
 
 def _prefer_all_bearings(pb, X, wa, we, X_ml, X_ls):
     if all(a == 1.0 for a in wa) and all(e == 1.0 or not h for e, h in zip(we, pb.has)):
-        return X, wa, we
+        return X, wa, we, None
     ones, she = [1.0] * pb.n, pb.hasf
     best, cost = None, inf
     for start in (X_ml, X_ls):
@@ -584,8 +585,8 @@ def _prefer_all_bearings(pb, X, wa, we, X_ml, X_ls):
             best, cost = Xs, cs
     chi2 = sum(ra * ra + h * re * re for (ra, re, _), h in zip(_residuals(pb, best), she))
     if isfinite(cost) and chi2 <= _upper(pb.n + pb.n_has - 3):
-        return best, [1.0] * pb.n, list(she)
-    return X, wa, we
+        return best, [1.0] * pb.n, list(she), None
+    return X, wa, we, (best if isfinite(cost) else None)
 
 
 # --- step 4: assessment --------------------------------------------------------------------
@@ -668,7 +669,7 @@ def _test_inversion(pb, X, wa, we, P, u_out, t_max, z=TEST_INVERSION_Z, iteratio
 
 
 def assess(pb, X, wa, we, X_ls):
-    """robust.assess for one problem: (P (nested lists), ok, ν)."""
+    """robust.assess for one problem: (P (nested lists), ok, ν, every exclusion decisive)."""
     grown = pb.d_ref is not None
     max_nu = max_nonlinearity(grown)
     d_ref = pb.d_ref
@@ -738,7 +739,7 @@ def assess(pb, X, wa, we, X_ls):
           and n_all - n_kept <= (n_all - 3) // 2 and not marginal and finite)
     if ok:
         ok = not _second_optimum(pb, X, wa, we, P, X_ls)
-    return (_full(*P) if finite else [list(r) for r in _INF3]), ok, nu
+    return (_full(*P) if finite else [list(r) for r in _INF3]), ok, nu, not marginal
 
 
 def _second_optimum(pb, X, wa, we, P, ls):
@@ -769,8 +770,12 @@ def refine(bearings, X_ml, d_ref=None):
     c2 = outlier_c2()
     try:
         pb = Problem(bearings, d_ref)
-        X, wa, we, X_ls = consensus_fit(pb, tuple(X_ml), c2)
-        P, ok, nu = assess(pb, X, wa, we, X_ls)
+        X, wa, we, X_ls, X_all = consensus_fit(pb, tuple(X_ml), c2)
+        P, ok, nu, decisive = assess(pb, X, wa, we, X_ls)
+        if not decisive and X_all is not None and all(map(isfinite, X_all)):
+            # robust.confident_result: back to the fit of all the angles.
+            X, wa, we = X_all, [1.0] * pb.n, list(pb.hasf)
+            P, ok, nu, _ = assess(pb, X, wa, we, X_ls)
     except (ZeroDivisionError, ValueError, OverflowError) as exc:
         raise Fallback(str(exc)) from exc
     return X, P, ok, nu, wa, we
