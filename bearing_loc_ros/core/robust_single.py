@@ -178,10 +178,13 @@ def _full(a00, a01, a02, a11, a12, a22):
     return [[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]]
 
 
-def _cofactor_inverse(a00, a01, a02, a11, a12, a22):
-    """A⁻¹ packed by cofactors when tr(A) tr(adj A) ≤ 1e5 det(A) (A positive definite), else
-    None. That product bounds κ(A), so crlb.safe_inverse's rank test passes and the
-    cofactors agree with LAPACK's inverse to about κ ε."""
+def _cofactors(a00, a01, a02, a11, a12, a22):
+    """(adj A packed, det A, clear) of a symmetric A (floats, or arrays of K matrices).
+
+    clear: A positive definite with tr(A) tr(adj A) ≤ 1e5 det(A). That product bounds κ(A),
+    so crlb.safe_inverse's rank test passes and the cofactors agree with LAPACK's inverse to
+    about κ ε.
+    """
     c00 = a11 * a22 - a12 * a12
     c01 = a02 * a12 - a01 * a22
     c02 = a01 * a12 - a02 * a11
@@ -189,10 +192,17 @@ def _cofactor_inverse(a00, a01, a02, a11, a12, a22):
     c12 = a01 * a02 - a00 * a12
     c22 = a00 * a11 - a01 * a01
     det = a00 * c00 + a01 * c01 + a02 * c02
-    if (a00 > 0.0 and c22 > 0.0 and 0.0 < det < inf
-            and (a00 + a11 + a22) * (c00 + c11 + c22) <= _TRACE_CLEAR * det):
+    clear = ((a00 > 0.0) & (c22 > 0.0) & (det > 0.0) & (det < inf)
+             & ((a00 + a11 + a22) * (c00 + c11 + c22) <= _TRACE_CLEAR * det))
+    return (c00, c01, c02, c11, c12, c22), det, clear
+
+
+def _cofactor_inverse(a00, a01, a02, a11, a12, a22):
+    """A⁻¹ packed by cofactors where :func:`_cofactors` finds it clear, else None."""
+    c, det, clear = _cofactors(a00, a01, a02, a11, a12, a22)
+    if clear:
         i = 1.0 / det
-        return c00 * i, c01 * i, c02 * i, c11 * i, c12 * i, c22 * i
+        return c[0] * i, c[1] * i, c[2] * i, c[3] * i, c[4] * i, c[5] * i
     return None
 
 
@@ -234,17 +244,10 @@ def _quad(v, P, w):
 
 
 def _solve_packed(a00, a01, a02, a11, a12, a22, b0, b1, b2):
-    """A x = b for symmetric A: cofactors where clear (as :func:`_cofactor_inverse`), else
-    Gaussian elimination with partial pivoting (ZeroDivisionError if singular)."""
-    c00 = a11 * a22 - a12 * a12
-    c01 = a02 * a12 - a01 * a22
-    c02 = a01 * a12 - a02 * a11
-    c11 = a00 * a22 - a02 * a02
-    c12 = a01 * a02 - a00 * a12
-    c22 = a00 * a11 - a01 * a01
-    det = a00 * c00 + a01 * c01 + a02 * c02
-    if (a00 > 0.0 and c22 > 0.0 and 0.0 < det < inf
-            and (a00 + a11 + a22) * (c00 + c11 + c22) <= _TRACE_CLEAR * det):
+    """A x = b for symmetric A: cofactors where clear (:func:`_cofactors`), else Gaussian
+    elimination with partial pivoting (ZeroDivisionError if singular)."""
+    (c00, c01, c02, c11, c12, c22), det, clear = _cofactors(a00, a01, a02, a11, a12, a22)
+    if clear:
         return ((c00 * b0 + c01 * b1 + c02 * b2) / det, (c01 * b0 + c11 * b1 + c12 * b2) / det,
                 (c02 * b0 + c12 * b1 + c22 * b2) / det)
     return _lu_solve(_full(a00, a01, a02, a11, a12, a22), ((b0, b1, b2),))[0]
@@ -252,17 +255,16 @@ def _solve_packed(a00, a01, a02, a11, a12, a22, b0, b1, b2):
 
 # --- the likelihood on floats ----------------------------------------------------------------
 
-def _state(pb, X, wa, we):
-    """(L, F packed, ½∇L, Σ d²) at X: robust_consensus._refit's cost, information and gradient.
+def _terms(pb, X):
+    """Per station at X: (ra, re, a0, a1, h0, h1, h2, dx, dy, dz, d).
 
-    L = Σ w (r² + log σ²); F = Σ w g gᵀ (+ Σ 2 (wa + we) u uᵀ / d² with range growth);
-    ½∇L = −Σ w r g (+ Σ (wa (1 − ra²) + we (1 − re²)) u / d with range growth). One pass over
-    the stations (robust_model.Data.evaluate's quantities, not kept).
+    ra, re the whitened residuals, (a0, a1, 0) and (h0, h1, h2) the whitened gradients
+    ga, ge, 1/m, (dx, dy, dz) = X − station and d its range, m: robust_model.Data.evaluate's
+    quantities (σ grown with range when ``pb.d_ref`` is set), one station at a time.
     """
     x0, x1, x2 = X
     d_ref = pb.d_ref
-    cost = f00 = f01 = f02 = f11 = f12 = f22 = g0 = g1 = g2 = sd2 = 0.0
-    for (px, py, pz, az, el, ia, ie), w1, w2 in zip(pb.rows, wa, we):
+    for px, py, pz, az, el, ia, ie in pb.rows:
         dx = x0 - px
         dy = x1 - py
         dz = x2 - pz
@@ -270,7 +272,6 @@ def _state(pb, X, wa, we):
         r2 = rho2 + dz * dz
         rho = sqrt(rho2)
         d = sqrt(r2)
-        sd2 += d * d
         e_az = az - atan2(dy, dx)
         e_az -= _TWO_PI * ceil((e_az - pi) / _TWO_PI)
         e_el = el - atan2(dz, rho)
@@ -278,15 +279,23 @@ def _state(pb, X, wa, we):
             f = d_ref / d
             ia *= f
             ie *= f
-        ra = ia * e_az
-        re = ie * e_el
         s = ia / rho2
         t = dz / (rho * r2)
-        a0 = -(dy * s)
-        a1 = dx * s
-        h0 = -(dx * t) * ie
-        h1 = -(dy * t) * ie
-        h2 = (rho / r2) * ie
+        yield (ia * e_az, ie * e_el, -(dy * s), dx * s, -(dx * t) * ie, -(dy * t) * ie,
+               (rho / r2) * ie, dx, dy, dz, d)
+
+
+def _state(pb, X, wa, we):
+    """(L, F packed, ½∇L, Σ d²) at X: robust_consensus._refit's cost, information and gradient.
+
+    L = Σ w (r² + log σ²); F = Σ w g gᵀ (+ Σ 2 (wa + we) u uᵀ / d² with range growth);
+    ½∇L = −Σ w r g (+ Σ (wa (1 − ra²) + we (1 − re²)) u / d with range growth). One pass over
+    the stations (:func:`_terms`).
+    """
+    d_ref = pb.d_ref
+    cost = f00 = f01 = f02 = f11 = f12 = f22 = g0 = g1 = g2 = sd2 = 0.0
+    for (ra, re, a0, a1, h0, h1, h2, dx, dy, dz, d), w1, w2 in zip(_terms(pb, X), wa, we):
+        sd2 += d * d
         wra = w1 * ra
         wre = w2 * re
         g0 -= wra * a0 + wre * h0
@@ -483,15 +492,7 @@ def _best_candidate_arrays(pb, x_ml, c2):
     S = masks @ np.array(_station_equations(pb))               # (K, 9)
     a00, a01, a02, a11, a12, a22, b0, b1, b2 = S.T
     with np.errstate(all='ignore'):
-        c00 = a11 * a22 - a12 * a12
-        c01 = a02 * a12 - a01 * a22
-        c02 = a01 * a12 - a02 * a11
-        c11 = a00 * a22 - a02 * a02
-        c12 = a01 * a02 - a00 * a12
-        c22 = a00 * a11 - a01 * a01
-        det = a00 * c00 + a01 * c01 + a02 * c02
-        clear = ((a00 > 0.0) & (c22 > 0.0) & (det > 0.0) & (det < inf)
-                 & ((a00 + a11 + a22) * (c00 + c11 + c22) <= _TRACE_CLEAR * det))
+        (c00, c01, c02, c11, c12, c22), det, clear = _cofactors(a00, a01, a02, a11, a12, a22)
         i = 1.0 / det
         cand = np.empty((len(det) + 1, 3))
         cand[0] = x_ml
@@ -593,27 +594,8 @@ def _prefer_all_bearings(pb, X, wa, we, X_ml, X_ls):
 
 def _fisher_at(pb, X, wa, we):
     """Σ w g gᵀ packed at X, 1/m² (robust_model.fisher of Data.evaluate's gradients)."""
-    x0, x1, x2 = X
-    d_ref = pb.d_ref
     f00 = f01 = f02 = f11 = f12 = f22 = 0.0
-    for (px, py, pz, _, _, ia, ie), w1, w2 in zip(pb.rows, wa, we):
-        dx = x0 - px
-        dy = x1 - py
-        dz = x2 - pz
-        rho2 = dx * dx + dy * dy
-        r2 = rho2 + dz * dz
-        rho = sqrt(rho2)
-        if d_ref is not None:
-            f = d_ref / sqrt(r2)
-            ia *= f
-            ie *= f
-        s = ia / rho2
-        t = dz / (rho * r2)
-        a0 = -(dy * s)
-        a1 = dx * s
-        h0 = -(dx * t) * ie
-        h1 = -(dy * t) * ie
-        h2 = (rho / r2) * ie
+    for (_, _, a0, a1, h0, h1, h2, *_), w1, w2 in zip(_terms(pb, X), wa, we):
         f00 += w1 * a0 * a0 + w2 * h0 * h0
         f01 += w1 * a0 * a1 + w2 * h0 * h1
         f02 += w2 * h0 * h2
@@ -672,36 +654,12 @@ def assess(pb, X, wa, we, X_ls):
     """robust.assess for one problem: (P (nested lists), ok, ν, every exclusion decisive)."""
     grown = pb.d_ref is not None
     max_nu = max_nonlinearity(grown)
-    d_ref = pb.d_ref
-    x0, x1, x2 = X
     f00 = f01 = f02 = f11 = f12 = f22 = chi2 = 0.0
     o0 = o1 = o2 = 0.0
     dmin, dmax = inf, 0.0
     excluded = []               # (r, gradient) of the excluded angles
-    for (px, py, pz, az, el, ia, ie), w1, w2, h in zip(pb.rows, wa, we, pb.has):
-        dx = x0 - px
-        dy = x1 - py
-        dz = x2 - pz
-        rho2 = dx * dx + dy * dy
-        r2 = rho2 + dz * dz
-        rho = sqrt(rho2)
-        d = sqrt(r2)
-        e_az = az - atan2(dy, dx)
-        e_az -= _TWO_PI * ceil((e_az - pi) / _TWO_PI)
-        e_el = el - atan2(dz, rho)
-        if d_ref is not None:
-            f = d_ref / d
-            ia *= f
-            ie *= f
-        ra = ia * e_az
-        re = ie * e_el
-        s = ia / rho2
-        t = dz / (rho * r2)
-        a0 = -(dy * s)
-        a1 = dx * s
-        h0 = -(dx * t) * ie
-        h1 = -(dy * t) * ie
-        h2 = (rho / r2) * ie
+    terms = zip(_terms(pb, X), wa, we, pb.has)
+    for (ra, re, a0, a1, h0, h1, h2, dx, dy, dz, d), w1, w2, h in terms:
         f00 += w1 * a0 * a0 + w2 * h0 * h0
         f01 += w1 * a0 * a1 + w2 * h0 * h1
         f02 += w2 * h0 * h2
