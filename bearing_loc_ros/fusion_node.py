@@ -40,6 +40,7 @@ from .fusion_wiring import BearingInputs, FusionOutputs
 from .ros_common import core_parameter_error, declare_schema, keep_last_qos, log_events, \
     main_for, ParameterError
 from .ros_conversions import bearing_from_cdr, bearing_from_msg, ConversionError
+from .spin import LeanExecutor
 
 #: Run-time parameters that change only the display (the others change the core).
 RUNTIME_DISPLAY = ('marker_ray_length', 'ellipsoid_sigma')
@@ -234,12 +235,15 @@ class FusionNode(Node):
         if getattr(self, 'inputs', None) is not None:
             self.inputs.stop_probe()
             self.inputs.destroy_events()
+        if getattr(self, 'outputs', None) is not None:
+            self.outputs.destroy_events()
         return super().destroy_node()
 
     # ------------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self):
         now = self.now_ns() or 0
         self.inputs.poll_events()
+        self.outputs.poll_events()
         self.inputs.count_publishers()
         entries = self.core.diagnostics(now)
         entries[0].values.update(fixes_published=self.fixes_published, mode=self.mode,
@@ -252,7 +256,9 @@ class FusionNode(Node):
         self.outputs.publish_diagnostics(entries, now, self.incompatible_qos)
 
 
-main = main_for(FusionNode)
+# Spun by spin.LeanExecutor: at 10 stations x 10 Hz rclpy's per-callback Tasks cost the
+# node more than its own per-bearing work (docs/benchmarks.md).
+main = main_for(FusionNode, executor=LeanExecutor)
 
 
 if __name__ == '__main__':

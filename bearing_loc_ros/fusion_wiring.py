@@ -16,8 +16,9 @@ import time
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
-from rclpy.event_handler import EventHandler, QoSSubscriptionEventType, \
-    SubscriptionEventCallbacks
+from rclpy.event_handler import EventHandler, PublisherEventCallbacks, QoSPublisherEventType, \
+    QoSSubscriptionEventType, SubscriptionEventCallbacks
+from rclpy.qos import qos_policy_name_from_kind
 from sensor_msgs.msg import NavSatFix
 from visualization_msgs.msg import MarkerArray
 
@@ -37,6 +38,9 @@ MAX_NEW_PER_SCAN = 16
 INCOMPATIBLE_QOS = QoSSubscriptionEventType.RCL_SUBSCRIPTION_REQUESTED_INCOMPATIBLE_QOS
 MESSAGE_LOST = QoSSubscriptionEventType.RCL_SUBSCRIPTION_MESSAGE_LOST
 INCOMPATIBLE_TYPE = QoSSubscriptionEventType.RCL_SUBSCRIPTION_INCOMPATIBLE_TYPE
+#: The publishers' middleware events, read by :meth:`FusionOutputs.poll_events`.
+OFFERED_INCOMPATIBLE_QOS = QoSPublisherEventType.RCL_PUBLISHER_OFFERED_INCOMPATIBLE_QOS
+PUBLISHER_INCOMPATIBLE_TYPE = QoSPublisherEventType.RCL_PUBLISHER_INCOMPATIBLE_TYPE
 
 
 class PolledEvent(EventHandler):
@@ -240,11 +244,16 @@ class FusionOutputs:
 
     ``p``: the node's parameter values; ``accuracy_map``: a core.display.AccuracyMap or
     None; ``ray_length``, ``ellipsoid_sigma``: the run-time display parameters.
+    The publishers' middleware events (a subscriber requesting incompatible QoS, or with
+    another type) are polled like the inputs' (:meth:`poll_events`, before each
+    diagnostics) and logged with rclpy's default warnings: as event handlers they would be
+    two entities per publisher in every wait set.
     """
 
     def __init__(self, node, p, mode, frame_id, geodetic_origin, accuracy_map):
-        pub = node.create_publisher
+        pub = self._publisher
         self.node, self.frame_id, self.geodetic_origin = node, frame_id, geodetic_origin
+        self.events = []
         self.ray_length = p['marker_ray_length']
         self.ellipsoid_sigma = p['ellipsoid_sigma']
         self.fix_pub = pub(PoseWithCovarianceStamped, 'fix', 10)
@@ -264,6 +273,42 @@ class FusionOutputs:
         self.accuracy_map_ms = None     # wall time of the last map computation
         if accuracy_map is not None and mode == MODE_MULTISTATION:
             self.map_pub = pub(OccupancyGrid, 'accuracy_map', keep_last_qos(1, latched=True))
+
+    def _publisher(self, msg_type, topic, qos):
+        """A publisher whose middleware events are polled (:class:`PolledEvent`)."""
+        publisher = self.node.create_publisher(
+            msg_type, topic, qos,
+            event_callbacks=PublisherEventCallbacks(use_default_callbacks=False))
+        name, group = publisher.topic_name, self.node.default_callback_group
+        self.events += [
+            PolledEvent(callback_group=group, callback=partial(callback, name),
+                        event_type=kind, parent_impl=publisher.handle)
+            for kind, callback in ((OFFERED_INCOMPATIBLE_QOS, self._on_incompatible_qos),
+                                   (PUBLISHER_INCOMPATIBLE_TYPE, self._on_incompatible_type))]
+        return publisher
+
+    def poll_events(self):
+        """Read every publisher's middleware events (:class:`PolledEvent`)."""
+        for event in self.events:
+            event.poll()
+
+    def destroy_events(self):
+        """Release the event handles (before the node and its publishers go)."""
+        for event in self.events:
+            event.destroy()
+        self.events.clear()
+
+    def _on_incompatible_qos(self, topic, info):
+        """A subscriber of ``topic`` requests QoS this publisher does not offer."""
+        self.node.get_logger().warning(
+            f"New subscription discovered on topic '{topic}', requesting incompatible QoS. "
+            'No messages will be sent to it. Last incompatible policy: '
+            f'{qos_policy_name_from_kind(info.last_policy_kind)}')
+
+    def _on_incompatible_type(self, topic, info):
+        """A subscriber of ``topic`` has another message type."""
+        self.node.get_logger().warning(
+            f"Incompatible type on topic '{topic}', no messages will be sent to it.")
 
     def publish_epochs(self, epochs, station_timeout):
         """Publish the epochs' fixes first (the latency-critical output), then the rest

@@ -41,8 +41,11 @@ def core_parameter_error(exc, default_name):
 INTERNAL_ERROR = 70
 
 
-def run_node(node_factory, args=None):
+def run_node(node_factory, args=None, executor=None):
     """Run a node the ros2/demos way; return the process exit code.
+
+    ``executor``: the executor class to spin with (built after ``rclpy.init``, shut down
+    after the node is destroyed), or None for rclpy's global executor.
 
     Start-up: ``node_factory()`` builds the node (parameters, configuration); a
     :class:`ParameterError` (or ValueError) raised there is a configuration error, printed
@@ -59,6 +62,7 @@ def run_node(node_factory, args=None):
               flush=True)
         return 1
     node = None
+    spinner = None
     code = 0
     try:
         try:
@@ -66,7 +70,8 @@ def run_node(node_factory, args=None):
         except ValueError as exc:
             print(f'error: {exc}', file=sys.stderr, flush=True)
             return 1
-        rclpy.spin(node)
+        spinner = executor() if executor is not None else None
+        rclpy.spin(node, spinner)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception:  # noqa: B902 - a bug in a callback: report it as one, not as config
@@ -76,14 +81,17 @@ def run_node(node_factory, args=None):
     finally:
         if node is not None:
             node.destroy_node()
+        if spinner is not None:
+            spinner.shutdown()
         rclpy.try_shutdown()
     return code
 
 
-def main_for(node_cls):
-    """Return a console-script ``main(args=None)`` that runs ``node_cls`` via run_node."""
+def main_for(node_cls, executor=None):
+    """Return a console-script ``main(args=None)`` that runs ``node_cls`` via run_node
+    (spun by an ``executor`` class, default rclpy's global executor)."""
     def main(args=None):
-        sys.exit(run_node(node_cls, args))
+        sys.exit(run_node(node_cls, args, executor))
     return main
 
 

@@ -13,7 +13,7 @@ from rcl_interfaces.srv import SetParameters
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import NavSatFix
@@ -27,6 +27,7 @@ from bearing_loc_ros.core.simulation import load_scenario, simulate
 from bearing_loc_ros.fusion_node import FusionNode
 from bearing_loc_ros.ros_conversions import (bearing_from_msg, bearing_to_msg, fix_from_msg,
                                              ns_to_time, time_to_ns)
+from bearing_loc_ros.spin import LeanExecutor
 from ros_helpers import GHOST_PUBLISHERS, REPO, spin_until
 
 pytestmark = pytest.mark.ros
@@ -41,9 +42,11 @@ _ns = itertools.count(1)
 
 
 class Harness:
-    """A FusionNode plus a test node publishing bearings and /clock and recording outputs."""
+    """A FusionNode plus a test node publishing bearings and /clock and recording outputs,
+    both spun by ``executor`` (a class; the node process uses spin.LeanExecutor)."""
 
-    def __init__(self, ctx, stations=('s1', 's2', 's3'), **params):
+    def __init__(self, ctx, stations=('s1', 's2', 's3'), executor=SingleThreadedExecutor,
+                 **params):
         self.ns = f'fn{next(_ns)}'
         self.ctx = ctx
         params.setdefault('stations', list(stations))
@@ -55,7 +58,7 @@ class Harness:
                      if not (k == 'stations' and not v)]
         self.fusion = FusionNode(context=ctx, namespace=self.ns, parameter_overrides=overrides)
         self.node = rclpy.create_node('harness', namespace=self.ns, context=ctx)
-        self.ex = SingleThreadedExecutor(context=ctx)
+        self.ex = executor(context=ctx)
         self.ex.add_node(self.fusion)
         self.ex.add_node(self.node)
         self.clock_pub = self.node.create_publisher(Clock, '/clock', 10)
@@ -136,8 +139,12 @@ def truth_bearing(station, t_ns, target=TARGET, sigma=1e-3, frame='map'):
                    frame_id=frame)
 
 
-def test_fix_navsat_markers_and_diagnostics(harness):
-    h = harness(geodetic_origin=list(ORIGIN), ellipsoid_sigma=1.0)
+EXECUTORS = pytest.mark.parametrize('executor', [SingleThreadedExecutor, LeanExecutor])
+
+
+@EXECUTORS
+def test_fix_navsat_markers_and_diagnostics(harness, executor):
+    h = harness(geodetic_origin=list(ORIGIN), ellipsoid_sigma=1.0, executor=executor)
     h.set_clock(100 * S)
     h.send_round(100 * S)
     stamp, pos, cov = fix_from_msg(h.fixes[-1])
@@ -312,8 +319,9 @@ def test_station_joins_through_discovery(harness, probe):
     h.node.destroy_publisher(other)
 
 
-def test_time_going_backwards_clears_the_buffers(harness):
-    h = harness(trigger='timer', max_latency=0.2)
+@EXECUTORS
+def test_time_going_backwards_clears_the_buffers(harness, executor):
+    h = harness(trigger='timer', max_latency=0.2, executor=executor)
     for k in (500, 501):
         h.set_clock(k * S)
         h.send_round(k * S, wait_fix=False)
@@ -331,11 +339,12 @@ def test_time_going_backwards_clears_the_buffers(harness):
     assert [fix_from_msg(m)[0] for m in h.fixes] == [500 * S, 501 * S, 11 * S, 12 * S]
 
 
-def test_live_fixes_equal_the_offline_replay(harness):
+@EXECUTORS
+def test_live_fixes_equal_the_offline_replay(harness, executor):
     # The bag-process contract: the node's fixes are FusionCore's for the same arrivals.
     sc = load_scenario(os.path.join(REPO, 'config', 'scenarios', 'seed000.yaml'))
     sim = simulate(sc, duration=20.0, seed=1)
-    h = harness(stations=[s.id for s in sc.stations])
+    h = harness(stations=[s.id for s in sc.stations], executor=executor)
     for e in sim.bearings:
         if h.t != e.publish_ns:
             h.set_clock(e.publish_ns)
@@ -376,6 +385,24 @@ def test_best_effort_publisher_needs_best_effort_qos(harness):
     h2.set_clock(100 * S)
     h2.send_round(100 * S)
     assert h2.fusion.core.last_epoch.stations == ['s1', 's2', 's3']
+
+
+def test_incompatible_fix_subscriber_is_reported_from_polled_events(harness):
+    # The publishers' QoS events are polled before each diagnostics (not in the wait set):
+    # a subscriber asking for transient-local fixes (fix is volatile) is still reported.
+    h = harness(executor=LeanExecutor)
+    assert not list(h.fusion.outputs.fix_pub.event_handlers)
+    seen = []
+    for event in h.fusion.outputs.events:
+        event.callback = (lambda cb: lambda info: (seen.append(info.total_count), cb(info)))(
+            event.callback)
+    latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                         durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    sub = h.node.create_subscription(PoseWithCovarianceStamped, 'fix', lambda m: None, latched)
+    h.diag()
+    assert h.spin(lambda: seen == [1], timeout=3.0), seen
+    assert h.fusion.outputs.fix_pub.get_subscription_count() == 1     # the harness's own
+    h.node.destroy_subscription(sub)
 
 
 def test_stations_parameter_changes_at_run_time(harness):

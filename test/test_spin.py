@@ -1,0 +1,185 @@
+"""spin.LeanExecutor: rclpy's single-threaded semantics, synchronous callbacks run directly.
+
+Each test steps the executor with spin_once, as rclpy's executor tests do. A test node on a
+second, plain SingleThreadedExecutor plays the other side (publisher, parameter client) so
+that the executor under test sees no client of its own (with one it is rclpy's)."""
+
+from geometry_msgs.msg import PoseWithCovarianceStamped
+import pytest
+from rcl_interfaces.srv import GetParameters
+import rclpy
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import deserialize_message
+from rclpy.task import Future
+
+from bearing_loc_ros import ros_common
+from bearing_loc_ros.spin import LeanExecutor
+
+pytestmark = pytest.mark.ros
+
+RELIABLE = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+BEST_EFFORT = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+
+
+class Pair:
+    """``node`` on a LeanExecutor and ``peer`` on rclpy's executor, stepped in turn."""
+
+    def __init__(self, ctx, name):
+        self.node = rclpy.create_node(name, namespace='/lean_' + name, context=ctx)
+        self.peer = rclpy.create_node(name + '_peer', namespace='/lean_' + name, context=ctx)
+        self.ex = LeanExecutor(context=ctx)
+        self.ex.add_node(self.node)
+        self.peer_ex = SingleThreadedExecutor(context=ctx)
+        self.peer_ex.add_node(self.peer)
+        self.tasks = 0
+        make_handler = self.ex._make_handler
+
+        def counting(*args):
+            self.tasks += 1
+            return make_handler(*args)
+        self.ex._make_handler = counting      # rclpy Tasks made by the executor under test
+
+    def spin(self, predicate, steps=200):
+        for _ in range(steps):
+            self.ex.spin_once(timeout_sec=0.02)
+            self.peer_ex.spin_once(timeout_sec=0.0)
+            if predicate():
+                return True
+        return False
+
+    def close(self):
+        for ex, node in ((self.ex, self.node), (self.peer_ex, self.peer)):
+            ex.shutdown()
+            node.destroy_node()
+
+
+@pytest.fixture
+def pair(ros, request):
+    p = Pair(ros, request.node.name.replace('[', '_').replace(']', ''))
+    yield p
+    p.close()
+
+
+def test_subscriptions_timers_and_services_run_directly(pair):
+    typed, raw, ticks = [], [], []
+    pair.node.create_subscription(PoseWithCovarianceStamped, 'typed', typed.append, RELIABLE)
+    pair.node.create_subscription(PoseWithCovarianceStamped, 'raw',
+                                  lambda data, info: raw.append((data, info)), RELIABLE,
+                                  raw=True)
+    pair.node.create_timer(0.01, lambda: ticks.append(1))
+    pair.node.declare_parameter('answer', 42)
+    pubs = [pair.peer.create_publisher(PoseWithCovarianceStamped, t, RELIABLE)
+            for t in ('typed', 'raw')]
+    assert pair.spin(lambda: all(p.get_subscription_count() for p in pubs))
+    msg = PoseWithCovarianceStamped()
+    msg.pose.pose.position.x = 1.5
+    for p in pubs:
+        p.publish(msg)
+    assert pair.spin(lambda: typed and raw and len(ticks) >= 3)
+    assert typed[0].pose.pose.position.x == 1.5
+    data, info = raw[0]
+    assert type(data) is bytes
+    assert deserialize_message(data, PoseWithCovarianceStamped).pose.pose.position.x == 1.5
+    assert info['publication_sequence_number'] >= 1
+    # A parameter service of the node (asked by the peer's client).
+    cli = pair.peer.create_client(GetParameters, '/lean_' + pair.node.get_name()
+                                  + '/' + pair.node.get_name() + '/get_parameters')
+    assert pair.spin(cli.service_is_ready)
+    fut = cli.call_async(GetParameters.Request(names=['answer']))
+    assert pair.spin(fut.done)
+    assert fut.result().values[0].integer_value == 42
+    assert pair.tasks == 0, 'plain callbacks must not go through rclpy Tasks'
+
+
+def test_coroutine_callback_runs_as_an_rclpy_task(pair):
+    gate, order = Future(), []
+
+    async def on_msg(msg):
+        order.append('start')
+        order.append(await gate)
+
+    pair.node.create_subscription(PoseWithCovarianceStamped, 'co', on_msg, RELIABLE)
+    pub = pair.peer.create_publisher(PoseWithCovarianceStamped, 'co', RELIABLE)
+    assert pair.spin(lambda: pub.get_subscription_count())
+    pub.publish(PoseWithCovarianceStamped())
+    assert pair.spin(lambda: order == ['start'])
+    assert pair.ex._tasks, 'the awaiting callback is a pending rclpy Task'
+    gate.set_result('resumed')
+    assert pair.spin(lambda: order == ['start', 'resumed'])
+    assert pair.spin(lambda: not pair.ex._tasks)
+    assert pair.tasks == 1
+
+
+def test_middleware_event_handlers_still_fire(pair):
+    # A waitable (the subscription's incompatible-QoS event) in the executor's wait set.
+    events = []
+    pair.node.create_subscription(
+        PoseWithCovarianceStamped, 'qos', lambda m: None, RELIABLE,
+        event_callbacks=SubscriptionEventCallbacks(incompatible_qos=events.append))
+    pair.peer.create_publisher(PoseWithCovarianceStamped, 'qos', BEST_EFFORT)
+    assert pair.spin(lambda: events)
+    assert events[0].total_count == 1
+
+
+def test_callback_exception_propagates_from_spin_once(pair):
+    def boom():
+        raise ValueError('boom in a timer')
+    pair.node.create_timer(0.001, boom)
+    with pytest.raises(ValueError, match='boom in a timer'):
+        pair.spin(lambda: False, steps=50)
+
+
+def test_entity_destroyed_by_an_earlier_callback_is_skipped(pair):
+    # The timer runs first in a wake-up and destroys a subscription that is ready too.
+    got = []
+    sub = pair.node.create_subscription(PoseWithCovarianceStamped, 'gone', got.append,
+                                        RELIABLE)
+    pub = pair.peer.create_publisher(PoseWithCovarianceStamped, 'gone', RELIABLE)
+    assert pair.spin(lambda: pub.get_subscription_count())
+    destroyed = []
+
+    def destroy():
+        if not destroyed:
+            destroyed.append(pair.node.destroy_subscription(sub))
+    pub.publish(PoseWithCovarianceStamped())
+    pair.peer_ex.spin_once(timeout_sec=0.0)
+    pair.node.create_timer(0.001, destroy)
+    assert pair.spin(lambda: destroyed)
+    pair.spin(lambda: False, steps=5)
+    assert destroyed == [True] and len(got) <= 1
+
+
+def test_context_shutdown_ends_the_spin():
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node('lean_shutdown', context=ctx)
+    ex = LeanExecutor(context=ctx)
+    ex.add_node(node)
+    node.create_timer(0.01, lambda: rclpy.shutdown(context=ctx))
+    try:
+        with pytest.raises(ExternalShutdownException):
+            for _ in range(100):
+                ex.spin_once(timeout_sec=0.05)
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+class _Failing(Node):
+    def __init__(self):
+        super().__init__('lean_failing')
+        self.create_timer(0.01, self._boom)
+
+    def _boom(self):
+        raise ValueError('boom in a callback')
+
+
+def test_run_node_with_the_lean_executor_reports_internal_errors(capsys):
+    assert ros_common.run_node(_Failing, args=[], executor=LeanExecutor) == \
+        ros_common.INTERNAL_ERROR
+    err = capsys.readouterr().err
+    assert 'internal error' in err and 'boom in a callback' in err
