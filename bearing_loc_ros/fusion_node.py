@@ -257,7 +257,7 @@ class FusionNode(Node):
 
 
 # Spun by spin.LeanExecutor: at 10 stations x 10 Hz rclpy's per-callback Tasks cost the
-# node more than its own per-bearing work (docs/benchmarks.md).
+# node as much as its own per-bearing work (docs/benchmarks.md).
 main = main_for(FusionNode, executor=LeanExecutor)
 
 

@@ -98,25 +98,23 @@ class LeanExecutor(SingleThreadedExecutor):
             ready_subs = set(wait_set.get_ready_entities('subscription'))
             ready_services = set(wait_set.get_ready_entities('service'))
             ready_waitables = [p for p in pairs if p[1].is_ready(wait_set)]
-        for t in timers:
-            if t.handle.pointer in ready_timers:
-                self._run(t, self._take_timer, self._call_timer)
-        for s in subs:
-            if s.handle.pointer in ready_subs:
-                self._run(s, self._take_subscription, self._call_subscription)
-        for s in services:
-            if s.handle.pointer in ready_services:
-                self._run(s, self._take_service, self._call_service)
+        ready = [(t, self._take_timer, self._call_timer) for t in timers
+                 if t.handle.pointer in ready_timers]
+        ready += [(s, self._take_subscription, self._call_subscription) for s in subs
+                  if s.handle.pointer in ready_subs]
+        ready += [(s, self._take_service, self._call_service) for s in services
+                  if s.handle.pointer in ready_services]
+        for entity, take, call in ready:
+            if self._tasks:     # a coroutine is pending: the rest is left to rclpy's spin_once
+                return          # (still ready), which keeps its callback group's exclusion
+            if inspect.iscoroutinefunction(entity.callback):
+                self._run_task(entity, None, take)
+            else:
+                call(entity)
         for node, waitable in ready_waitables:
+            if self._tasks:
+                return
             self._run_task(waitable, node, self._take_waitable)
-
-    def _run(self, entity, take, call):
-        """Run a ready entity's callback: directly (``call(entity)``) when it is a plain
-        function, else as rclpy does (``take`` in a Task)."""
-        if inspect.iscoroutinefunction(entity.callback):
-            self._run_task(entity, None, take)
-        else:
-            call(entity)
 
     def _run_task(self, entity, node, take):
         """Run ``entity`` the way rclpy's executor does: a Task over ``take`` (rclpy's own

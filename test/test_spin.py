@@ -4,6 +4,8 @@ Each test steps the executor with spin_once, as rclpy's executor tests do. A tes
 second, plain SingleThreadedExecutor plays the other side (publisher, parameter client) so
 that the executor under test sees no client of its own (with one it is rclpy's)."""
 
+import time
+
 from geometry_msgs.msg import PoseWithCovarianceStamped
 import pytest
 from rcl_interfaces.srv import GetParameters
@@ -111,6 +113,33 @@ def test_coroutine_callback_runs_as_an_rclpy_task(pair):
     assert pair.spin(lambda: order == ['start', 'resumed'])
     assert pair.spin(lambda: not pair.ex._tasks)
     assert pair.tasks == 1
+
+
+def test_pending_coroutine_holds_back_its_callback_group(pair):
+    # As with rclpy's executor: while a coroutine callback of the default (mutually
+    # exclusive) group awaits, a plain callback of that group ready in the same wake-up
+    # waits for it.
+    gate, order = Future(), []
+
+    async def first(msg):
+        order.append('first')
+        order.append(await gate)
+
+    pair.node.create_subscription(PoseWithCovarianceStamped, 'a', first, RELIABLE)
+    pair.node.create_subscription(PoseWithCovarianceStamped, 'b',
+                                  lambda m: order.append('second'), RELIABLE)
+    pubs = [pair.peer.create_publisher(PoseWithCovarianceStamped, t, RELIABLE)
+            for t in ('a', 'b')]
+    assert pair.spin(lambda: all(p.get_subscription_count() for p in pubs))
+    for p in pubs:
+        p.publish(PoseWithCovarianceStamped())
+    time.sleep(0.3)         # both delivered before the executor wakes: one wake-up
+    assert pair.spin(lambda: 'first' in order)
+    pair.spin(lambda: False, steps=10)
+    assert order == ['first']
+    gate.set_result('resumed')
+    assert pair.spin(lambda: len(order) == 3)
+    assert order == ['first', 'resumed', 'second']
 
 
 def test_middleware_event_handlers_still_fire(pair):
