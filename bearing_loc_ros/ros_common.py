@@ -41,6 +41,15 @@ def core_parameter_error(exc, default_name):
 INTERNAL_ERROR = 70
 
 
+class Finished(Exception):
+    """Raised by a callback to end its node normally: :func:`run_node` returns exit code 0.
+
+    A node that is done (the simulator with ``exit_when_done``) ends the spin this way
+    instead of shutting its context down from inside the callback, which can leave rclpy's
+    executor waiting for ever (ros2/rclpy issues 944 and 1646).
+    """
+
+
 def run_node(node_factory, args=None, executor=None):
     """Run a node the ros2/demos way; return the process exit code.
 
@@ -52,8 +61,8 @@ def run_node(node_factory, args=None, executor=None):
     as one line ``error: <message>`` on stderr, exit code 1 (bad configuration fails loudly
     and early, like joy_teleop). Running: an exception escaping a callback during the spin
     is not a configuration error: it is printed with its traceback as ``internal error``,
-    and the node exits with :data:`INTERNAL_ERROR` (70, EX_SOFTWARE). Ctrl-C and external
-    shutdown end the spin cleanly with exit code 0.
+    and the node exits with :data:`INTERNAL_ERROR` (70, EX_SOFTWARE). Ctrl-C, external
+    shutdown and :class:`Finished` end the spin cleanly with exit code 0.
     """
     try:
         rclpy.init(args=args)
@@ -72,7 +81,7 @@ def run_node(node_factory, args=None, executor=None):
             return 1
         spinner = executor() if executor is not None else None
         rclpy.spin(node, spinner)
-    except (KeyboardInterrupt, ExternalShutdownException):
+    except (KeyboardInterrupt, ExternalShutdownException, Finished):
         pass
     except Exception:  # noqa: B902 - a bug in a callback: report it as one, not as config
         print('internal error: unexpected exception in a running node (not a configuration '

@@ -26,7 +26,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from .core.simulation import bearing_topic, load_scenario, NS_PER_S, simulate, truth_topic
-from .ros_common import declare_schema, main_for, ParameterError
+from .ros_common import declare_schema, Finished, main_for, ParameterError
 from .ros_conversions import bearing_to_msg, ns_to_time, truth_to_msg
 from .scenarios import resolve_scenario, ScenarioNotFoundError
 
@@ -172,7 +172,7 @@ class SimulatorNode(Node):
                 self.get_logger().warning('not every subscriber acknowledged the last messages '
                                           f'within {ACK_TIMEOUT:g} s')
                 break
-        self.context.try_shutdown()
+        raise Finished('simulation done')
 
 
 main = main_for(SimulatorNode)

@@ -212,3 +212,20 @@ def test_run_node_with_the_lean_executor_reports_internal_errors(capsys):
         ros_common.INTERNAL_ERROR
     err = capsys.readouterr().err
     assert 'internal error' in err and 'boom in a callback' in err
+
+
+class _Done(Node):
+    def __init__(self):
+        super().__init__('spin_test_done')
+        self.create_timer(0.01, self._finish)
+
+    def _finish(self):
+        raise ros_common.Finished('done')
+
+
+@pytest.mark.parametrize('executor', [None, LeanExecutor])
+def test_run_node_ends_normally_when_a_callback_is_finished(executor, capsys):
+    # A node that is done raises Finished from its callback (the simulator's exit_when_done):
+    # exit code 0, no error printed, on rclpy's executor and on the lean one.
+    assert ros_common.run_node(_Done, args=[], executor=executor) == 0
+    assert 'error' not in capsys.readouterr().err
