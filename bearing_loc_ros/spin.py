@@ -107,14 +107,26 @@ class LeanExecutor(SingleThreadedExecutor):
         for entity, take, call in ready:
             if self._tasks:     # a coroutine is pending: the rest is left to rclpy's spin_once
                 return          # (still ready), which keeps its callback group's exclusion
+            if not self._still_running():
+                return
             if inspect.iscoroutinefunction(entity.callback):
                 self._run_task(entity, None, take)
             else:
                 call(entity)
         for node, waitable in ready_waitables:
-            if self._tasks:
+            if self._tasks or not self._still_running():
                 return
             self._run_task(waitable, node, self._take_waitable)
+
+    def _still_running(self):
+        """False once the executor is shut down; ExternalShutdownException once the context
+        is (a callback of this batch, another thread or Ctrl-C may have done it): no further
+        callback of the batch runs, as rclpy checks before each callback."""
+        if self._is_shutdown:
+            return False
+        if not self._context.ok():
+            raise ExternalShutdownException()
+        return True
 
     def _run_task(self, entity, node, take):
         """Run ``entity`` the way rclpy's executor does: a Task over ``take`` (rclpy's own
@@ -127,18 +139,27 @@ class LeanExecutor(SingleThreadedExecutor):
         if task.done():
             task.result()   # raises the callback's exception, as rclpy's spin_once does
 
+    # An entity destroyed by an earlier callback of the same batch raises InvalidHandle when
+    # entered: it is skipped, as rclpy's _take_* methods skip it.
+
     @staticmethod
     def _call_timer(timer):
-        with timer.handle:
-            if not timer.handle.is_timer_ready():     # cancelled since the wait (rclpy's check)
-                return
-            timer.handle.call_timer()
+        try:
+            with timer.handle:
+                if not timer.handle.is_timer_ready():  # cancelled since the wait (rclpy's check)
+                    return
+                timer.handle.call_timer()
+        except InvalidHandle:
+            return
         timer.callback()
 
     @staticmethod
     def _call_subscription(sub):
-        with sub.handle:
-            taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        try:
+            with sub.handle:
+                taken = sub.handle.take_message(sub.msg_type, sub.raw)
+        except InvalidHandle:
+            return
         if taken is None:
             return
         if sub._callback_type is MESSAGE_ONLY:
@@ -148,7 +169,10 @@ class LeanExecutor(SingleThreadedExecutor):
 
     @staticmethod
     def _call_service(srv):
-        with srv.handle:
-            request, header = srv.handle.service_take_request(srv.srv_type.Request)
+        try:
+            with srv.handle:
+                request, header = srv.handle.service_take_request(srv.srv_type.Request)
+        except InvalidHandle:
+            return
         if header is not None:
             srv.send_response(srv.callback(request, srv.srv_type.Response()), header)

@@ -161,24 +161,68 @@ def test_callback_exception_propagates_from_spin_once(pair):
         pair.spin(lambda: False, steps=50)
 
 
-def test_entity_destroyed_by_an_earlier_callback_is_skipped(pair):
-    # The timer runs first in a wake-up and destroys a subscription that is ready too.
+def _own_context(name):
+    """A node with a publisher and a subscription of topic 'x' on a LeanExecutor of its
+    own context, discovery done: (ctx, node, executor, publisher, subscription, received)."""
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node(name, context=ctx)
     got = []
-    sub = pair.node.create_subscription(PoseWithCovarianceStamped, 'gone', got.append,
-                                        RELIABLE)
-    pub = pair.peer.create_publisher(PoseWithCovarianceStamped, 'gone', RELIABLE)
-    assert pair.spin(lambda: pub.get_subscription_count())
+    pub = node.create_publisher(PoseWithCovarianceStamped, 'x', RELIABLE)
+    sub = node.create_subscription(PoseWithCovarianceStamped, 'x', got.append, RELIABLE)
+    ex = LeanExecutor(context=ctx)
+    ex.add_node(node)
+    for _ in range(100):
+        if pub.get_subscription_count():
+            break
+        ex.spin_once(timeout_sec=0.02)
+    return ctx, node, ex, pub, sub, got
+
+
+def _ready_together(node, pub, timer_callback):
+    """A message pending on 'x' and a timer due, both before the next wait: the executor
+    sees them in one wake-up, and runs the timer first."""
+    pub.publish(PoseWithCovarianceStamped())
+    time.sleep(0.2)
+    node.create_timer(0.001, timer_callback)
+    time.sleep(0.05)
+
+
+def test_entity_destroyed_by_an_earlier_callback_is_skipped():
+    # The timer destroys the subscription whose message is ready in the same wake-up: the
+    # subscription is skipped (rclpy's _take_* skip it too), the spin goes on.
+    ctx, node, ex, pub, sub, got = _own_context('lean_destroyed')
     destroyed = []
 
     def destroy():
         if not destroyed:
-            destroyed.append(pair.node.destroy_subscription(sub))
-    pub.publish(PoseWithCovarianceStamped())
-    pair.peer_ex.spin_once(timeout_sec=0.0)
-    pair.node.create_timer(0.001, destroy)
-    assert pair.spin(lambda: destroyed)
-    pair.spin(lambda: False, steps=5)
-    assert destroyed == [True] and len(got) <= 1
+            destroyed.append(node.destroy_subscription(sub))
+    try:
+        _ready_together(node, pub, destroy)
+        for _ in range(5):
+            ex.spin_once(timeout_sec=0.05)
+        assert destroyed == [True] and got == []
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+def test_no_callback_of_the_batch_runs_after_the_context_is_shut_down():
+    # The timer shuts the context down while a subscription is ready in the same wake-up:
+    # its callback must not run (it would publish on a dead context), and the spin ends
+    # with ExternalShutdownException, as rclpy's does.
+    ctx, node, ex, pub, _, got = _own_context('lean_shutdown_batch')
+    try:
+        _ready_together(node, pub, lambda: ctx.try_shutdown())
+        with pytest.raises(ExternalShutdownException):
+            for _ in range(20):
+                ex.spin_once(timeout_sec=0.05)
+        assert got == []
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
 
 
 def test_context_shutdown_ends_the_spin():
