@@ -17,7 +17,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import OccupancyGrid, Odometry
 from rclpy.event_handler import EventHandler, PublisherEventCallbacks, QoSPublisherEventType, \
-    QoSSubscriptionEventType, SubscriptionEventCallbacks
+    QoSSubscriptionEventType, SubscriptionEventCallbacks, UnsupportedEventTypeError
 from rclpy.qos import qos_policy_name_from_kind
 from sensor_msgs.msg import NavSatFix
 from visualization_msgs.msg import MarkerArray
@@ -59,6 +59,20 @@ class PolledEvent(EventHandler):
         info = self.take_data()
         if info is not None and info.total_count_change > 0:
             self.callback(info)
+
+
+def polled_events(node, handle, kinds):
+    """:class:`PolledEvent` of each (event type, callback) in ``kinds`` on the subscription or
+    publisher ``handle``; an event type the middleware does not support is left out (as
+    rclpy leaves out its default handlers for it)."""
+    out = []
+    for kind, callback in kinds:
+        try:
+            out.append(PolledEvent(callback_group=node.default_callback_group,
+                                   callback=callback, event_type=kind, parent_impl=handle))
+        except UnsupportedEventTypeError:
+            continue
+    return out
 
 
 class BearingInputs:
@@ -108,13 +122,10 @@ class BearingInputs:
         sub = self.subs[station] = self.node.create_subscription(
             PoseWithCovarianceStamped, topic, deliver, self.qos,
             event_callbacks=SubscriptionEventCallbacks(use_default_callbacks=False), raw=True)
-        group = self.node.default_callback_group
-        self.events[station] = [
-            PolledEvent(callback_group=group, callback=partial(callback, station),
-                        event_type=kind, parent_impl=sub.handle)
-            for kind, callback in ((INCOMPATIBLE_QOS, self._on_incompatible_qos),
-                                   (MESSAGE_LOST, self._on_message_lost),
-                                   (INCOMPATIBLE_TYPE, self._on_incompatible_type))]
+        self.events[station] = polled_events(self.node, sub.handle, (
+            (INCOMPATIBLE_QOS, partial(self._on_incompatible_qos, station)),
+            (MESSAGE_LOST, partial(self._on_message_lost, station)),
+            (INCOMPATIBLE_TYPE, partial(self._on_incompatible_type, station))))
         self.single_publisher[station] = False
 
     def unsubscribe(self, station):
@@ -279,12 +290,10 @@ class FusionOutputs:
         publisher = self.node.create_publisher(
             msg_type, topic, qos,
             event_callbacks=PublisherEventCallbacks(use_default_callbacks=False))
-        name, group = publisher.topic_name, self.node.default_callback_group
-        self.events += [
-            PolledEvent(callback_group=group, callback=partial(callback, name),
-                        event_type=kind, parent_impl=publisher.handle)
-            for kind, callback in ((OFFERED_INCOMPATIBLE_QOS, self._on_incompatible_qos),
-                                   (PUBLISHER_INCOMPATIBLE_TYPE, self._on_incompatible_type))]
+        name = publisher.topic_name
+        self.events += polled_events(self.node, publisher.handle, (
+            (OFFERED_INCOMPATIBLE_QOS, partial(self._on_incompatible_qos, name)),
+            (PUBLISHER_INCOMPATIBLE_TYPE, partial(self._on_incompatible_type, name))))
         return publisher
 
     def poll_events(self):

@@ -606,3 +606,32 @@ def test_publisher_churn_causes_no_outage_and_memory_is_bounded(harness):
     assert h.fusion.inputs.probe.failures == 0
     assert rss[-1] - rss[0] < 0.05 * rss[0], rss
     assert py[-1] - py[0] < PY_CHURN_BOUND, py
+
+
+def test_an_event_type_the_middleware_lacks_is_left_out(monkeypatch):
+    # rclpy leaves out its default handlers of an event type the RMW does not support; the
+    # polled events do the same instead of failing the node's start-up.
+    from rclpy.event_handler import UnsupportedEventTypeError
+    from bearing_loc_ros import fusion_wiring
+    real = fusion_wiring.PolledEvent
+
+    def unsupported(**kw):
+        if kw['event_type'] == fusion_wiring.PUBLISHER_INCOMPATIBLE_TYPE:
+            raise UnsupportedEventTypeError('not supported by this middleware')
+        return real(**kw)
+    monkeypatch.setattr(fusion_wiring, 'PolledEvent', unsupported)
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = rclpy.create_node('lacks_event', context=ctx)
+    try:
+        pub = node.create_publisher(PoseWithCovarianceStamped, 'out', 10)
+        events = fusion_wiring.polled_events(node, pub.handle, (
+            (fusion_wiring.OFFERED_INCOMPATIBLE_QOS, lambda info: None),
+            (fusion_wiring.PUBLISHER_INCOMPATIBLE_TYPE, lambda info: None)))
+        assert [e.event_type for e in events] == [fusion_wiring.OFFERED_INCOMPATIBLE_QOS]
+        for e in events:
+            e.poll()
+            e.destroy()
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
