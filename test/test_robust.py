@@ -463,3 +463,26 @@ def test_lambda_max_of_huge_or_tiny_covariances_is_lapacks():
         assert _lambda_max(m.tolist()) == pytest.approx(np.linalg.eigvalsh(m)[-1], rel=1e-12)
     assert math.isnan(_lambda_max([[1e300, 0.0, 1e300], [0.0, math.inf, 0.0],
                                    [1e300, 0.0, 1.0]]))
+
+
+def test_a_singular_problem_does_not_change_the_refit_of_the_others_in_its_batch():
+    # np.linalg.solve raises for the whole batch when one information matrix is singular;
+    # the other problems' refit must still be what each gives alone (bit for bit).
+    from bearing_loc_ros.core import robust_consensus
+    st = [[x, 0.0, 0.0] for x in (-3000.0, -1800.0, -600.0, 600.0, 1800.0, 3000.0)]
+    truth = np.array([[400.0, 4000.0, 200.0], [-900.0, 2500.0, -100.0]])
+    az, el = azimuth_elevation(truth[:, None, :] - np.array(st))
+    rng = np.random.default_rng(3)
+    s = math.radians(1.0)
+    bs = BearingSet.from_arrays([st, st], az + s * rng.standard_normal(az.shape),
+                                el + s * rng.standard_normal(el.shape), s, s)
+    for d_ref in (None, 1000.0):
+        data = robust.Data(bs, d_ref)
+        X0 = truth + 300.0
+        wa = np.ones((2, 6))
+        we = np.ones((2, 6))
+        wa[1] = we[1] = 0.0            # no angle kept: a zero information matrix
+        both = robust_consensus._refit(data, X0, wa, we)
+        alone = robust_consensus._refit(data.take([0]), X0[:1], wa[:1], we[:1])
+        assert np.array_equal(both[0], alone[0])
+        assert np.linalg.norm(alone[0] - X0[0]) > 1.0     # it did move

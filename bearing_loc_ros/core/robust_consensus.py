@@ -137,7 +137,7 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
             try:
                 step = -np.linalg.solve(Fd, grad[..., None])[..., 0]
             except np.linalg.LinAlgError:
-                step = -np.einsum('mij,mj->mi', safe_inverse(Fd), grad)
+                step = -_solve_rows(Fd, grad)
         step = np.where(np.isfinite(step), step, 0.0)
         Xt = X + step
         ct, rat, ret, gat, get, ut, dt = parts(Xt)
@@ -162,6 +162,22 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
         if np.all(done):
             break
     return X
+
+
+def _solve_rows(A, b):
+    """A x = b for (M, 3, 3) A, (M, 3) b, problem by problem, as each alone would be solved.
+
+    The batch ``np.linalg.solve`` raises for all M when one A is singular; each problem then
+    gets what its own call gives (``solve``, or x = safe_inverse(A) b where it raises), so
+    that no problem's refit depends on the others of its batch.
+    """
+    x = np.empty(b.shape)
+    for m in range(A.shape[0]):
+        try:
+            x[m] = np.linalg.solve(A[m:m + 1], b[m:m + 1, :, None])[0, :, 0]
+        except np.linalg.LinAlgError:
+            x[m] = safe_inverse(A[m:m + 1])[0] @ b[m]
+    return x
 
 
 def _inliers(data, X, c2):
