@@ -340,3 +340,22 @@ def test_tma_results_are_fix_results_and_only_registry_names_are_accepted():
             with pytest.raises(ValueError, match="unknown TMA estimator.*'tma_ctls'"):
                 call()
         assert set(r.single(0)) >= {'t', 'velocity', 'covariance', 'reason', 'range'}
+
+
+def test_a_singular_step_system_is_solved_alone_without_changing_the_others():
+    # The Levenberg-Marquardt step of tma_mle: where one problem's system is singular the
+    # batch solve raises, and each problem is then solved as it would be alone.
+    from bearing_loc_ros.core.tma import mle as tma_mle
+    rng = np.random.default_rng(0)
+    J = rng.standard_normal((3, 8, 5))
+    A = np.swapaxes(J, -1, -2) @ J
+    A[1] = 0.0
+    A[1, 0, 0] = 2.0                                   # rank 1: singular
+    b = rng.standard_normal((3, 5))
+    with pytest.raises(np.linalg.LinAlgError):
+        np.linalg.solve(A, b[..., None])
+    for m in (0, 2):
+        x = tma_mle._solve_alone(A[m], b[m])
+        assert np.array_equal(x, np.linalg.solve(A[m:m + 1], b[m:m + 1, :, None])[0, :, 0])
+    x1 = tma_mle._solve_alone(A[1], b[1])
+    assert np.allclose(x1, np.linalg.lstsq(A[1], b[1], rcond=None)[0])

@@ -15,6 +15,15 @@ from .observability import finish
 from .sums import batch_sums
 
 
+def _solve_alone(a, b):
+    """x of a x = b for one (5, 5) system as ``np.linalg.solve`` gives it for that system
+    alone, or the least-squares x where a is singular."""
+    try:
+        return np.linalg.solve(a[None], b[None, :, None])[0, :, 0]
+    except np.linalg.LinAlgError:
+        return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
 def _options(options, fn=None):
     """Options merged over the defaults of :data:`TMA_OPTIONS`, each value validated."""
     return (fn or tma_mle).spec.parse(options)
@@ -132,8 +141,10 @@ def tma_mle(bearings, times, speed, **options):
         try:
             step = -np.linalg.solve(A, Jte[..., None])[..., 0]
         except np.linalg.LinAlgError:
-            step = np.stack([-np.linalg.lstsq(a, b_, rcond=None)[0]
-                             for a, b_ in zip(A, Jte)])
+            # One singular row makes the batch call raise: each row is solved as it would
+            # be alone (least squares only where its own matrix is singular), so no row's
+            # step depends on the others of the batch.
+            step = -np.stack([_solve_alone(a, b_) for a, b_ in zip(A, Jte)])
         p_new = p0[r] + step[:, :3]
         s_new = s[r] + np.einsum('mij,mj->mi', E, step[:, 3:])
         s_new /= np.linalg.norm(s_new, axis=-1, keepdims=True)
