@@ -290,7 +290,8 @@ def _state(pb, X, wa, we):
 
     L = Σ w (r² + log σ²); F = Σ w g gᵀ (+ Σ 2 (wa + we) u uᵀ / d² with range growth);
     ½∇L = −Σ w r g (+ Σ (wa (1 − ra²) + we (1 − re²)) u / d with range growth). One pass over
-    the stations (:func:`_terms`).
+    the stations (:func:`_terms`): the refit's inner loop, so Σ w g gᵀ is accumulated here
+    with the rest rather than by a second pass of :func:`_fisher_at`.
     """
     d_ref = pb.d_ref
     cost = f00 = f01 = f02 = f11 = f12 = f22 = g0 = g1 = g2 = sd2 = 0.0
@@ -654,18 +655,11 @@ def assess(pb, X, wa, we, X_ls):
     """robust.assess for one problem: (P (nested lists), ok, ν, every exclusion decisive)."""
     grown = pb.d_ref is not None
     max_nu = max_nonlinearity(grown)
-    f00 = f01 = f02 = f11 = f12 = f22 = chi2 = 0.0
-    o0 = o1 = o2 = 0.0
+    chi2 = o0 = o1 = o2 = 0.0
     dmin, dmax = inf, 0.0
     excluded = []               # (r, gradient) of the excluded angles
     terms = zip(_terms(pb, X), wa, we, pb.has)
     for (ra, re, a0, a1, h0, h1, h2, dx, dy, dz, d), w1, w2, h in terms:
-        f00 += w1 * a0 * a0 + w2 * h0 * h0
-        f01 += w1 * a0 * a1 + w2 * h0 * h1
-        f02 += w2 * h0 * h2
-        f11 += w1 * a1 * a1 + w2 * h1 * h1
-        f12 += w2 * h1 * h2
-        f22 += w2 * h2 * h2
         chi2 += w1 * ra * ra + w2 * re * re
         if w1 + w2 > 0:
             o0 += dx / d
@@ -678,7 +672,7 @@ def assess(pb, X, wa, we, X_ls):
             excluded.append((ra, a0, a1, 0.0))
         if w2 == 0 and h:
             excluded.append((re, h0, h1, h2))
-    P = _safe_inverse_packed(f00, f01, f02, f11, f12, f22)
+    P = _safe_inverse_packed(*_fisher_at(pb, X, wa, we))
     finite = P is not None and all(map(isfinite, P))
     n_kept = int(sum(wa) + sum(we))
     n_all = pb.n + pb.n_has
