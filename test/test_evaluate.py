@@ -288,3 +288,18 @@ def test_track_crlb_statistics():
     assert s['crlb_rms'] == pytest.approx(math.sqrt(np.mean(np.trace(C, axis1=1, axis2=2))))
     assert s['ratio'] == pytest.approx(s['rmse'] / s['crlb_rms'])
     assert s['mean_predicted'] == pytest.approx(2.0 * s['crlb_rms'])
+
+
+def test_confidently_wrong_uses_the_quantile_of_the_nees_degrees_of_freedom():
+    from bearing_loc_ros.core import chisq
+    assert ev.CONFIDENT_WRONG_NEES == pytest.approx(float(chisq.ppf(0.9999, 3)), rel=1e-7)
+    assert ev.CONFIDENT_WRONG_NEES_2D == pytest.approx(float(chisq.ppf(0.9999, 2)), rel=1e-7)
+    # NEES 19.5: above the χ²₂ 0.9999 quantile (18.4), below the χ²₃ one (21.1).
+    e = math.sqrt(19.5)
+    flat = np.diag([1.0, 1.0, 0.0])               # horizontal fix, altitude stated exactly
+    lvl = ev.noise_levels([1.0], 'joint')[0]
+    for cov, wrong in ((flat, 1.0), (np.eye(3), 0.0)):
+        s = ev.error_statistics('x', 'joint', lvl, np.zeros((1, 3)),
+                                fix([[e, 0.0, 0.0]], [cov]), np.array([np.eye(3)]), 0.1)
+        assert s.nees_ok == pytest.approx(19.5)
+        assert s.confident_wrong_fraction == wrong

@@ -29,8 +29,9 @@ Statistics over the trials m whose estimate converged (error e_m = X̂_m − X_m
   RMSE; ``rmse_all``, the RMSE over every trial with a finite estimate whatever its
   status (``ok``, ``low_confidence``, ``max_iterations``...), the fraction of each
   estimator status, and among the ``ok`` fixes (a consumer's trusted fixes): their RMSE,
-  mean NEES and the fraction whose NEES exceeds the χ²₃ quantile 0.9999 (21.1), a
-  confidently wrong fix.
+  mean NEES and the fraction whose NEES exceeds the 0.9999 quantile of χ² with the NEES's
+  degrees of freedom (21.1 for χ²₃; 18.4 for χ²₂, the horizontal fix of an exactly stated
+  altitude), a confidently wrong fix.
 
 Simulated elevations are clipped to |ψ| ≤ π/2 − 1e-9 (core.simulation.MAX_ELEVATION), as in
 the simulator: at large σ a Gaussian draw can cross the zenith, and the clipped value is
@@ -297,8 +298,11 @@ def error_statistics(estimator, sweep, level, truth, result, crlb_cov, elapsed_s
         bias_vector=[float(v) for v in bias_vec])
 
 
-#: NEES above which an ``ok`` fix is confidently wrong: the χ²₃ quantile 0.9999.
+#: NEES above which an ``ok`` fix is confidently wrong: the χ²₃ quantile 0.9999 (a NEES
+#: with 2 degrees of freedom, :func:`nees_values`, uses its χ²₂ quantile
+#: :data:`CONFIDENT_WRONG_NEES_2D`).
 CONFIDENT_WRONG_NEES = 21.107513
+CONFIDENT_WRONG_NEES_2D = 18.420681
 
 
 def _tail_statistics(truth, est, result, M):
@@ -309,9 +313,11 @@ def _tail_statistics(truth, est, result, M):
     e_all = est[finite] - truth[finite]
     ok = finite & (status == 'ok')
     e = est[ok] - truth[ok]
-    nees = (nees_values(e, np.asarray(result.position_covariance, dtype=float)[ok])[0]
-            if ok.any() else np.zeros(0))
-    nees = nees[np.isfinite(nees)]
+    nees, dof = (nees_values(e, np.asarray(result.position_covariance, dtype=float)[ok])
+                 if ok.any() else (np.zeros(0), np.zeros(0, dtype=int)))
+    finite_nees = np.isfinite(nees)
+    nees, dof = nees[finite_nees], dof[finite_nees]
+    wrong = nees > np.where(dof == 2, CONFIDENT_WRONG_NEES_2D, CONFIDENT_WRONG_NEES)
     n_ok, n_lc = int(ok.sum()), int(np.count_nonzero(status == 'low_confidence'))
     return dict(
         rmse_all=float(np.sqrt(np.mean(np.sum(e_all ** 2, axis=1)))) if e_all.size else nan,
@@ -320,8 +326,7 @@ def _tail_statistics(truth, est, result, M):
         other_fraction=(M - n_ok - n_lc) / M if M else nan,
         rmse_ok=float(np.sqrt(np.mean(np.sum(e ** 2, axis=1)))) if n_ok else nan,
         nees_ok=float(nees.mean()) if nees.size else nan,
-        confident_wrong_fraction=(float(np.count_nonzero(nees > CONFIDENT_WRONG_NEES)) / n_ok
-                                  if n_ok else nan))
+        confident_wrong_fraction=float(np.count_nonzero(wrong)) / n_ok if n_ok else nan)
 
 
 def noisy_bearings(trials, sigma_az, sigma_el, rng, outliers=None):
