@@ -263,3 +263,53 @@ def test_one_newton_iteration_serves_2d_and_3d():
     x = solve2(A, np.array([[3.0, 4.0], [1.0, 1.0]]))
     np.testing.assert_allclose(x[0], [1.0, 1.0])
     assert np.isnan(x[1]).all()          # det < 0: not positive definite
+
+
+def test_mle_is_robust_by_default_in_the_plane_as_in_3d():
+    bs = az_only(np.random.default_rng(2))
+    default = registry.solve('mle', bs, target_altitude=TARGET[2])
+    assert default.excluded is not None                    # the robust path ran
+    assert registry.solve('mle', bs, target_altitude=TARGET[2], robust=False).excluded is None
+    assert registry.solve('wmle', bs, target_altitude=TARGET[2]).excluded is None
+
+
+def test_three_azimuths_never_blame_one_of_them():
+    # Any two of three azimuths intersect exactly: with one 30° off the data cannot tell
+    # which one is wrong. The fix is the fit of all three, low_confidence, nothing excluded.
+    bs = az_only()
+    bs.azimuth[0, 1] += np.radians(30.0)
+    plain = registry.solve('mle', bs, target_altitude=TARGET[2], robust=False)
+    res = registry.solve('mle', bs, target_altitude=TARGET[2])
+    assert res.status[0] == 'low_confidence' and not res.excluded.any()
+    np.testing.assert_array_equal(res.position, plain.position)
+
+
+def test_a_decisive_outlier_among_five_azimuths_is_excluded():
+    stations = np.array([[0.0, 0.0, 0.0], [20e3, 0.0, 0.0], [20e3, 20e3, 0.0],
+                         [-5e3, 25e3, 0.0], [0.0, 40e3, 0.0]])
+    bs = az_only(np.random.default_rng(4), stations=stations)
+    bs.azimuth[0, 3] += np.radians(30.0)
+    res = registry.solve('mle', bs, target_altitude=TARGET[2])
+    assert res.status[0] == 'ok'
+    np.testing.assert_array_equal(res.excluded[0, :, 0], np.arange(5) == 3)
+    err = res.position[0, :2] - TARGET[:2]
+    assert err @ np.linalg.solve(res.covariance[0, :2, :2], err) < 13.8     # χ²₂ 99.9 %
+
+
+def test_a_banana_region_is_low_confidence_and_every_ok_fix_has_a_small_nu():
+    # σ 4° on the Wang, Zhang & Wu stations, azimuth only (config/scenarios/
+    # seed000_azimuth_only.yaml): ν of the calm fixes spreads over 0.1-0.4.
+    from bearing_loc_ros.core.horizontal_robust import nonlinearity
+    from bearing_loc_ros.core.robust_model import MAX_REGION_NONLINEARITY
+    st = np.array([[30e3, -10e3, 100.0], [30e3, 20e3, 200.0], [-30e3, 5e3, 150.0]])
+    rng = np.random.default_rng(8)
+    targets = np.column_stack([rng.uniform(40e3, 60e3, 400), rng.uniform(-20e3, 30e3, 400),
+                               np.full(400, 5000.0)])
+    bs = simulate_bearings(targets, st, np.radians(4.0), rng=rng)
+    res = registry.solve('mle', bs, target_altitude=5000.0)
+    nu = nonlinearity(res.position, res.covariance, bs.positions)
+    ok = res.status == 'ok'
+    assert 0.1 * len(ok) < np.count_nonzero(ok) < 0.9 * len(ok)
+    assert np.all(nu[ok] <= MAX_REGION_NONLINEARITY)
+    assert np.all((res.status == 'ok') | (res.status == 'low_confidence'))
+    assert not res.excluded.any()                   # three azimuths: nothing is blamed

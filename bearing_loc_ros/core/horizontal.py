@@ -39,7 +39,7 @@ from . import horizontal_estimators as _h
 from . import horizontal_ml as _ml
 from .bearings import BearingSet, simulate_bearings as _simulate
 from .crlb import fisher_information
-from .estimator_spec import DIMENSIONS, ROBUST
+from .estimator_spec import DIMENSIONS, ROBUST, ROBUST_ON
 from .estimators import DEFAULT_ESTIMATOR, locate as locate_3d, ls as ls_3d
 from .fix import FixResult
 
@@ -105,7 +105,8 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
         use_elevations: use the measured elevations (range information given z₀).
         options: estimator options (see :mod:`.horizontal_estimators`); ``mle`` and ``wmle``
             also take ``robust`` (:mod:`.horizontal_robust`: screen, pairwise consensus,
-            refit without outlier bearings, status ok or low_confidence, ``excluded``).
+            refit without outlier bearings, status ok or low_confidence, ``excluded``),
+            default true for ``mle`` and false for ``wmle``, as in 3D.
 
     Returns a FixResult (core.fix) with ``solve`` = ``'horizontal'``: position (M, 3) with
     z = z₀ (or its posterior), covariance (M, 3, 3) (z block σ_z² for azimuth-only sets).
@@ -115,7 +116,8 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
     method = _method(method)
     options = dict(options)
     given = 'robust' in options
-    robust = options.pop('robust', ROBUST.default)
+    # The 3D namesakes' defaults: ``mle`` robust (the default estimator), ``wmle`` opt-in.
+    robust = options.pop('robust', ROBUST_ON.default if method == 'mle' else ROBUST.default)
     if method in ROBUST_ESTIMATORS:
         robust = ROBUST.validate(robust)
     elif given:
@@ -165,9 +167,10 @@ def _robust(method, bearings, res, p, options):
 
 def screen_passed(bearings, res, p, d_ref=None):
     """(M,) bool: fixes that pass the robust screen (:mod:`.horizontal_robust` step 1),
-    vectorised over problems: status ok, every d² ≤ c² and Σ d² at most the χ²_dof quantile
-    (dof = used angles − 2); those are kept as they are, the others go to the consensus."""
-    from .horizontal_robust import _c2, chi2_upper
+    vectorised over problems: status ok, every d² ≤ c², Σ d² at most the χ²_dof quantile
+    (dof = used angles − 2) and ν ≤ max_nonlinearity (:func:`.horizontal_robust.nonlinearity`);
+    those are kept as they are, the others go to :func:`.horizontal_robust.robust_fix`."""
+    from .horizontal_robust import _c2, chi2_upper, max_nonlinearity, nonlinearity
     from .conventions import azimuth_elevation
     X = np.asarray(res.position, dtype=float)
     ok = (np.asarray(res.status) == 'ok') & np.all(np.isfinite(X), axis=1)
@@ -181,8 +184,12 @@ def screen_passed(bearings, res, p, d_ref=None):
                        / (np.where(p.use_el, bearings.sigma_el, 1.0) * f) ** 2, 0.0)
     d2 = d2 + d2e
     n_angles = bearings.N + np.count_nonzero(p.use_el, axis=1)
-    return ok & np.all(d2 <= _c2(), axis=1) & (d2.sum(axis=1)
-                                               <= chi2_upper(np.maximum(n_angles - 2, 1)))
+    nu = nonlinearity(Xs, np.asarray(res.covariance, dtype=float)[:, :3, :3],
+                      bearings.positions)
+    with np.errstate(invalid='ignore'):
+        calm_nu = nu <= max_nonlinearity(d_ref is not None)
+    return (ok & np.all(d2 <= _c2(), axis=1) & calm_nu
+            & (d2.sum(axis=1) <= chi2_upper(np.maximum(n_angles - 2, 1))))
 
 
 def _subset(bearings, idx):

@@ -24,8 +24,32 @@ With c² the χ²₁ quantile of :data:`~bearing_loc_ros.core.robust.OUTLIER_PRO
    The covariance is the estimator's own over the inliers (full likelihood of the kept
    bearings). Excluded bearings are reported in ``excluded`` (both angles).
 4. **Assess.** ``ok`` when the inliers' χ² is at most the χ²_dof quantile of
-   CONSISTENCY_PROBABILITY and at most half the bearings were excluded; otherwise
-   ``low_confidence`` (position and covariance kept, ``converged`` False).
+   CONSISTENCY_PROBABILITY and the nonlinearity ν (below) is at most
+   :func:`~bearing_loc_ros.core.robust_model.max_nonlinearity`; otherwise
+   ``low_confidence`` (position and covariance kept, ``converged`` False). An exclusion is
+   decisive when the bearing is an outlier also given the fix's own uncertainty: its
+   whitened residuals r (k = 1 or 2 angles) against their predictive covariance,
+   rᵀ (I + G P Gᵀ)⁻¹ r with G the whitened gradients and P the refit's covariance, exceed
+   c², the level that excluded it (the 3D test of :mod:`.robust`, check (d), which asks for
+   the stricter χ²₁ quantile of DECISIVE_PROBABILITY among its few stations; a window of
+   hundreds of bearings holds many outliers between the two levels, and its small P leaves
+   their residuals as they are). A refit whose exclusions are not all decisive, or are more
+   than a minority of the redundant angles (at most ⌊(M − 2)/2⌋ of the M used angles: with
+   three azimuths none, since any two of them intersect exactly and the data cannot tell
+   which one is wrong), is dropped: the estimator's fit of every bearing is returned as
+   ``low_confidence`` with nothing excluded (the data do not show that the bearings were
+   outliers, and the fit of a subset can lie far from the fit of all of them).
+
+Nonlinearity ν = sqrt(λ_max(P_xy)) / min_k ρ_k (:func:`nonlinearity`): the radius of the
+horizontal confidence region seen from the nearest station with a kept bearing, relative to
+its horizontal range ρ_k. Azimuths are functions of (x − x_k, y − y_k) / ρ_k, so over the
+region their second-order terms are ν times the first-order ones (the 3D ν of
+:mod:`.robust`, in the plane of the solve); with ν large the region is a banana elongated in
+range and the covariance understates its tail. The screen (step 1) keeps a fix only when
+its ν passes too; a calm fix (residuals and χ² pass) with a large ν is ``low_confidence``
+with nothing excluded. Measured on the Wang, Zhang & Wu (2006) stations with azimuth-only
+receivers (config/scenarios/seed000_azimuth_only.yaml, 10,000 trials per σ): docs/
+estimators.md, "Horizontal fixes at low SNR".
 
 Units: m, rad; ENU, azimuth θ CCW from East, elevation ψ above the horizontal.
 """
@@ -37,6 +61,7 @@ import numpy as np
 from .conventions import azimuth_elevation, wrap_angle
 from .fix import FixResult, STATUS_LOW_CONFIDENCE, STATUS_OK
 from .robust import _c2, chi2_upper, CONSISTENCY_PROBABILITY
+from .robust_model import max_nonlinearity
 
 #: Bearings (evenly spread over the set) whose pairwise intersections are candidates.
 MAX_PAIR_BEARINGS = 16
@@ -69,7 +94,8 @@ def screen_one(bs, result, use_el, d_ref=None):
     The test of core/horizontal.py ``screen_passed`` for M = 1: status ok, every whitened
     residual d_j² ≤ c² and Σ d_j² ≤ the χ²_dof quantile of CONSISTENCY_PROBABILITY (dof =
     used angles − 2), d_j² as in the module docstring (azimuth residual wrapped to (−π, π],
-    σ grown by d/d_ref for ``wmle``). None when a statistic lies within
+    σ grown by d/d_ref for ``wmle``), and ν ≤ max_nonlinearity (:func:`nonlinearity`,
+    every station kept). None when a statistic lies within
     :data:`SCREEN_MARGIN` (relative) of its threshold: the caller then runs the vectorised
     test, whose residuals may differ from these in the last bits.
     """
@@ -82,11 +108,13 @@ def screen_one(bs, result, use_el, d_ref=None):
     atan2, sqrt, pi = math.atan2, math.sqrt, math.pi
     total = 0.0
     n_angles = 0
+    rho_min = math.inf
     for (px, py, pz), az, el, saz, sel, used in zip(
             bs.positions[0].tolist(), bs.azimuth[0].tolist(), bs.elevation[0].tolist(),
             bs.sigma_az[0].tolist(), bs.sigma_el[0].tolist(), use_el.tolist()):
         dx, dy, dz = x - px, y - py, z - pz
         rho = math.hypot(dx, dy)
+        rho_min = min(rho_min, rho)
         if d_ref is not None:
             f = sqrt(dx * dx + dy * dy + dz * dz) / d_ref
             saz, sel = saz * f, sel * f
@@ -106,7 +134,83 @@ def screen_one(bs, result, use_el, d_ref=None):
     upper = float(chi2_upper(max(n_angles - 2, 1)))
     if abs(total - upper) <= SCREEN_MARGIN * upper:
         return None
-    return total <= upper
+    if not total <= upper:
+        return False
+    (a, b, _), (_, c, _), _ = result.covariance[0].tolist()
+    lam = 0.5 * (a + c) + sqrt(0.25 * (a - c) ** 2 + b * b)
+    nu = sqrt(lam) / rho_min if lam >= 0.0 and rho_min > 0.0 else math.nan
+    limit = max_nonlinearity(d_ref is not None)
+    if not math.isfinite(nu):
+        return False
+    if abs(nu - limit) <= SCREEN_MARGIN * limit:
+        return None
+    return nu <= limit
+
+
+def nonlinearity(X, P, positions, kept=None):
+    """ν (M,) of horizontal fixes (module docstring): sqrt(λ_max(P_xy)) / min_k ρ_k.
+
+    X (M, 3) m, P (M, 3, 3) m², station positions (M, N, 3) m, ``kept`` (M, N) bool: the
+    stations with a kept bearing (default all). λ_max of the 2 × 2 block in closed form,
+    (a + c)/2 + sqrt(((a − c)/2)² + b²). NaN where P or X is not finite.
+    """
+    X = np.asarray(X, dtype=float)
+    P = np.asarray(P, dtype=float)
+    a, b, c = P[:, 0, 0], P[:, 0, 1], P[:, 1, 1]
+    with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
+        lam = 0.5 * (a + c) + np.sqrt(0.25 * (a - c) ** 2 + b * b)
+        rho = np.hypot(X[:, None, 0] - positions[..., 0], X[:, None, 1] - positions[..., 1])
+        if kept is not None:
+            rho = np.where(kept, rho, np.inf)
+        nu = np.sqrt(lam) / rho.min(axis=-1)
+    return np.where(np.isfinite(nu) & (lam >= 0.0), nu, np.nan)
+
+
+def decisive(bs, X, P, excluded, use_el, d_ref=None):
+    """True when every excluded bearing is an outlier also given the fix's uncertainty.
+
+    Bearing j with k used angles (azimuth; elevation where ``use_el``), whitened residuals
+    r (k,) at X and whitened gradients G (k, 3) (∂θ/∂X = (−Δy, Δx, 0)/ρ², ∂ψ/∂X =
+    (−Δx Δz/(ρ d²), −Δy Δz/(ρ d²), ρ/d²), over σ grown by d/d_ref for ``wmle``): decisive
+    when rᵀ (I + G P Gᵀ)⁻¹ r exceeds c², the exclusion level (module docstring, step 4).
+    ``bs`` one problem, X (3,) m, P (3, 3) m², ``excluded`` and ``use_el`` (N,) bool. True
+    when nothing is excluded; False where P is not finite.
+    """
+    idx = np.flatnonzero(excluded)
+    if idx.size == 0:
+        return True
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(X))):
+        return False
+    d = X[None, :] - bs.positions[0][idx]
+    rho2 = d[:, 0] ** 2 + d[:, 1] ** 2
+    rho = np.sqrt(rho2)
+    r2 = rho2 + d[:, 2] ** 2
+    f = 1.0 if d_ref is None else np.sqrt(r2) / d_ref
+    az_hat, el_hat = azimuth_elevation(d)
+    s_az = bs.sigma_az[0][idx] * f
+    ga = np.stack([-d[:, 1] / rho2, d[:, 0] / rho2, np.zeros(idx.size)], axis=-1) / s_az[:, None]
+    ra = wrap_angle(bs.azimuth[0][idx] - az_hat) / s_az
+    el = use_el[idx]
+    c2 = _c2()
+    for j in range(idx.size):
+        G, r = [ga[j]], [ra[j]]
+        if el[j]:
+            s_el = bs.sigma_el[0][idx[j]] * (f if np.ndim(f) == 0 else f[j])
+            t = d[j, 2] / (rho[j] * r2[j])
+            G.append(np.array([-d[j, 0] * t, -d[j, 1] * t, rho[j] / r2[j]]) / s_el)
+            r.append((bs.elevation[0][idx[j]] - el_hat[j]) / s_el)
+        G, r = np.array(G), np.array(r)
+        S = np.eye(len(r)) + G @ P @ G.T
+        q = float(r @ np.linalg.solve(S, r))
+        if not q > c2:
+            return False
+    return True
+
+
+def _low_confidence(result):
+    """``result`` (one problem) with status ``low_confidence`` and ``converged`` False."""
+    return FixResult(result.position, result.covariance, result.iterations,
+                     np.zeros(1, dtype=bool), np.array([STATUS_LOW_CONFIDENCE]), result.method)
 
 
 def pair_candidates(bs, z0):
@@ -149,11 +253,14 @@ def robust_fix(solve, bs, result, z0, use_el, d_ref=None):
     x = np.asarray(result.position[0], dtype=float)
     n_angles = N + int(np.count_nonzero(use_el))
     excluded = np.zeros(N, dtype=bool)
+    limit = max_nonlinearity(d_ref is not None)
     if str(result.status[0]) == STATUS_OK and np.all(np.isfinite(x)):
         saz, sel = _sigmas(bs, x, d_ref)
         d2 = residuals2(bs, x[None], saz, sel, use_el)[0]
         if np.all(d2 <= c2) and d2.sum() <= chi2_upper(max(n_angles - 2, 1)):
-            return result, excluded
+            # Calm: no outlier to look for; ok when the region is well described.
+            nu = nonlinearity(x[None], result.covariance[:1, :3, :3], bs.positions)[0]
+            return (result if nu <= limit else _low_confidence(result)), excluded
     cands = pair_candidates(bs, z0)
     if np.all(np.isfinite(x)):
         cands = np.vstack([x[None], cands])
@@ -185,8 +292,18 @@ def robust_fix(solve, bs, result, z0, use_el, d_ref=None):
     n_kept = int(np.count_nonzero(kept)) + int(np.count_nonzero(use_el & kept))
     s_az, s_el = _sigmas(bs, x, d_ref)
     d2 = residuals2(bs, x[None], s_az, s_el, use_el)[0]
+    P = np.asarray(res.covariance[0, :3, :3], dtype=float)
+    if (n_angles - n_kept > (n_angles - 2) // 2
+            or not decisive(bs, x, P, excluded, use_el, d_ref)):
+        # The data do not identify the excluded bearings as outliers (more than a minority
+        # of the redundant angles, or not outliers given the fix's own uncertainty): the
+        # estimator's fit of every bearing, low_confidence, nothing excluded.
+        if np.all(np.isfinite(result.position)):
+            return _low_confidence(result), np.zeros(N, dtype=bool)
+        return result, np.zeros(N, dtype=bool)
+    nu = nonlinearity(x[None], P[None], bs.positions, kept[None])[0]
     consistent = (d2[kept].sum() <= chi2_upper(max(n_kept - 2, 1), CONSISTENCY_PROBABILITY)
-                  and np.count_nonzero(excluded) <= N // 2)
+                  and nu <= limit)
     status = np.array(res.status, dtype=object)
     conv = np.array(res.converged, dtype=bool)
     if str(status[0]) == STATUS_OK and not consistent:
