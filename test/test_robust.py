@@ -348,6 +348,42 @@ def test_test_inversion_widens_only_the_major_axis():
     assert np.all(np.abs(np.einsum('mi,mi->m', u, V[:, :, 2])) > 1 - 1e-6)
 
 
+def test_range_grown_status_looks_at_the_region_of_a_confidently_wrong_fix():
+    # wmle robust: the covariance is widened to the test-inversion level TEST_INVERSION_Z,
+    # while ν (which decides ok) is taken over the region out to the confidently wrong
+    # level STATUS_REGION_Z = sqrt(χ²₃ 0.9999 quantile), which is wider.
+    from bearing_loc_ros.core.crlb import safe_inverse
+    assert robust.STATUS_REGION_Z == pytest.approx(math.sqrt(Q9999), rel=1e-9)
+    tr = trials('config/scenarios/seed003.yaml', 300)
+    b = noisy(tr, math.radians(1.0), 17)
+    res = locate('wmle', b, robust=True, reference_range=1000.0)
+    fixed = np.isin(res.status, ('ok', 'low_confidence')) & np.isfinite(res.nonlinearity)
+    idx = np.flatnonzero(fixed)
+    data = robust.Data(b, 1000.0).take(idx)
+    X = res.position[idx]
+    wa = 1.0 - res.excluded[idx, :, 0]
+    we = b.has_elevation[idx] & ~res.excluded[idx, :, 1]
+    _, _, ga, ge, _, d, _ = data.evaluate(X)
+    P0 = safe_inverse(robust.fisher(ga, ge, wa, we))
+    cov = robust.test_inversion_covariance(data, X, wa, we, P0)
+    np.testing.assert_allclose(res.covariance[idx], cov, rtol=1e-9,
+                               atol=1e-9 * np.abs(cov).max())
+    present = (wa + we) > 0
+    wide = robust.region_nonlinearity(
+        robust.test_inversion_covariance(data, X, wa, we, P0, z=robust.STATUS_REGION_Z),
+        d, present)
+    np.testing.assert_allclose(res.nonlinearity[idx], wide, rtol=1e-9)
+    narrow = robust.region_nonlinearity(cov, d, present)
+    limit = robust.MAX_REGION_NONLINEARITY_GROWN
+    # (Where the region has no far side both are capped at 10 × the largest range, and ν is
+    # far above the limit in both.)
+    assert np.all((wide >= narrow) | (np.minimum(wide, narrow) > 10 * limit))
+    assert np.all(res.nonlinearity[res.status == 'ok'] <= limit)
+    # The wider region decides: fixes whose covariance alone would pass are held back.
+    assert np.count_nonzero((narrow <= limit) & (wide > limit)) >= 10
+    assert np.all(res.status[idx[wide > limit]] == 'low_confidence')
+
+
 def test_an_honest_three_station_network_is_never_scaled():
     # Wang, Zhang & Wu (2006) section 4 track: three honest stations (σ = 3 mrad as claimed).
     # With three stations the others' fix is weak (J P_(−k) Jᵀ up to ~100× the claimed

@@ -31,7 +31,11 @@ DECISIVE_PROBABILITY = 1.0 - 1e-6
 #: fix (χ²₃ quantile 21.1: the level of a confidently wrong fix).
 MULTIMODE_PROBABILITY = 0.9999
 #: Level z of the test-inversion covariance along the range axis (range-grown σ).
-TEST_INVERSION_Z = 2.0
+TEST_INVERSION_Z = 1.5
+#: Level z of the test-inversion region whose nonlinearity ν decides whether a fix with
+#: range-grown σ is ``ok``: the Mahalanobis radius of a confidently wrong fix, the square
+#: root of the χ²₃ quantile of MULTIMODE_PROBABILITY (4.59).
+STATUS_REGION_Z = float(np.sqrt(_chi2.ppf(MULTIMODE_PROBABILITY, 3)))
 #: Rounds of inlier recomputation and refit.
 REFIT_ROUNDS = 3
 #: Levenberg-Marquardt iterations per refit.

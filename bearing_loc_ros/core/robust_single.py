@@ -38,7 +38,8 @@ import numpy as np
 from .robust_consensus import _station_masks
 from .robust_model import (_upper_cached, CONSISTENCY_PROBABILITY, DECISIVE_PROBABILITY,
                            max_nonlinearity, MULTIMODE_PROBABILITY, outlier_c2,
-                           REFIT_ITERATIONS, REFIT_ROUNDS, TEST_INVERSION_Z)
+                           REFIT_ITERATIONS, REFIT_ROUNDS, STATUS_REGION_Z,
+                           TEST_INVERSION_Z)
 
 _TWO_PI = 2.0 * pi
 _RCOND = 1e-12
@@ -680,12 +681,16 @@ def assess(pb, X, wa, we, X_ls):
     cd = outlier_c2(DECISIVE_PROBABILITY)
     marginal = any(not r * r / (1.0 + _quad_packed(g0, g1, g2, Pf)) > cd
                    for r, g0, g1, g2 in excluded)
+    Ps = P
     if grown:
-        P = _test_inversion(pb, X, wa, we, P, (o0, o1, o2), 10.0 * dmax) if finite else None
+        P0, u_out = P, (o0, o1, o2)
+        P = _test_inversion(pb, X, wa, we, P0, u_out, 10.0 * dmax) if finite else None
         finite = P is not None
+        Ps = (_test_inversion(pb, X, wa, we, P0, u_out, 10.0 * dmax, z=STATUS_REGION_Z)
+              if finite else None)
     nu = nan
-    if finite:
-        nu = sqrt(max(_eig_extremes(_full(*P))[2], 0.0)) / dmin
+    if finite and Ps is not None:
+        nu = sqrt(max(_eig_extremes(_full(*Ps))[2], 0.0)) / dmin
         nu = nu if isfinite(nu) else nan
     ok = (chi2 <= _upper(n_kept - 3) and nu <= max_nu
           and n_all - n_kept <= (n_all - 3) // 2 and not marginal and finite)
