@@ -19,11 +19,13 @@ product of the subset masks with the stations' packed equations, solved by cofac
 κ(A) ≤ 1e5: crlb.safe_inverse's rank test certainly passes and the result agrees with
 LAPACK's to about κ ε); other matrices are decided as crlb.safe_inverse decides them, by
 eigenvalues of the characteristic cubic (Smith 1961) where clear, else by LAPACK. Statuses,
-exclusions and convergence flags are the batch path's; positions agree within the refit's
-stopping resolution (it stops at steps below 1e-10 of the rms station range, and rounding
-decides on which step; measured against the batch path on the same input, 13,785 random
-problems of 3-10 stations: ≤ 3.1e-9 of the range for ``ok`` fixes, ≤ 2.4e-8 for
-``low_confidence`` ones; tested at 1e-7), covariances within 5e-7 of their largest entry.
+exclusions and convergence flags are the batch path's; positions agree within the
+resolution at which the likelihood tells points apart (measured against the batch path on
+the same input, 13,785 random problems of 3-10 stations: ≤ 3.1e-9 of the range for ``ok``
+fixes, ≤ 2.4e-8 for ``low_confidence`` ones, whose flat likelihood changes by rounding
+only over 1e-8 of their σ; on the seed scenarios ≤ 9.5e-10 and ≤ 1.1e-8,
+bench/one_fix_agreement.py; tested at 1e-7), covariances within 5e-7 of their largest
+entry.
 
 Where the floats cannot follow the batch path to rounding (a division by zero, a log of
 zero, a rank test or major axis too close to call, a non-finite Fisher information),
