@@ -313,3 +313,33 @@ def test_a_banana_region_is_low_confidence_and_every_ok_fix_has_a_small_nu():
     assert np.all(nu[ok] <= MAX_REGION_NONLINEARITY)
     assert np.all((res.status == 'ok') | (res.status == 'low_confidence'))
     assert not res.excluded.any()                   # three azimuths: nothing is blamed
+
+
+def test_a_mixed_batch_keeps_the_exclusions_of_its_horizontal_problems():
+    from bearing_loc_ros.core.horizontal import locate
+    st = np.array([[0, 0, 0], [20e3, 0, 0], [20e3, 20e3, 0.], [0, 20e3, 0]])
+    T = np.array([[10e3, 5e3, 3000.], [10e3, 5e3, 3000.]])
+    bs = simulate_bearings(T, st, 0.01, 0.01, has_elevation=True, rng=np.random.default_rng(0))
+    bs.elevation[1], bs.sigma_el[1] = np.nan, np.nan          # problem 1: azimuth only
+    bs.azimuth[1, 2] += 0.5                                     # an outlier there
+    mixed = locate('mle', bs, target_altitude=3000.0)
+    alone = locate('mle', bs.problem(1), target_altitude=3000.0)
+    assert list(mixed.solve) == ['3d', 'horizontal']
+    np.testing.assert_array_equal(mixed.excluded[1], alone.excluded[0])
+    assert mixed.excluded[1, 2, 0] and mixed.status[1] == alone.status[0]
+    assert np.isnan(mixed.nonlinearity[1]) or mixed.nonlinearity[1] == alone.nonlinearity[0]
+
+
+def test_decisive_with_a_station_under_the_fix_is_false_without_a_warning():
+    import warnings
+    from bearing_loc_ros.core.horizontal_robust import decisive
+    st = np.array([[0.0, 0.0, 0.0], [20e3, 0.0, 0.0], [20e3, 20e3, 0.0], [-5e3, 25e3, 0.0]])
+    bs = az_only(np.random.default_rng(1), stations=st)
+    x = np.array([10e3, 30e3, 500.0])
+    bs.positions[0, 3, :2] = x[:2]
+    excluded = np.arange(4) == 3
+    with warnings.catch_warnings():
+        warnings.simplefilter('error')
+        assert decisive(bs, x, np.eye(3), excluded, np.zeros(4, bool)) is False
+        assert decisive(bs, x, np.eye(3), ~excluded & (np.arange(4) == 0),
+                        np.zeros(4, bool)) in (True, False)

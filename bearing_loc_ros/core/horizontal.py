@@ -285,6 +285,18 @@ def locate(method, bearings, dimension='auto', target_altitude=None, target_alti
         arr = np.empty((M,) + a3.shape[1:], dtype=np.result_type(a3, ah))
         arr[i_3], arr[i_h] = a3, ah
         merged[name] = arr
+    # Robust results of either side: exclusions (nothing excluded where a side has none) and
+    # ν (NaN where a side has none).
+    for name, shape, fill in (('excluded', (bearings.N, 2), False),
+                              ('nonlinearity', (), np.nan)):
+        parts = [(getattr(r, name), idx) for r, idx in ((out, i_3), (rh, i_h))]
+        if all(a is None for a, _ in parts):
+            continue
+        arr = np.full((M,) + shape, fill, dtype=bool if fill is False else float)
+        for a, idx in parts:
+            if a is not None:
+                arr[idx] = a
+        merged[name] = arr
     return FixResult(method=method, **merged)
 
 

@@ -181,6 +181,12 @@ def decisive(bs, X, P, excluded, use_el, d_ref=None):
         return True
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(X))):
         return False
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        # A station under the fix (ρ = 0) gives a non-finite q: not decisive.
+        return _decisive(bs, X, P, idx, use_el, d_ref)
+
+
+def _decisive(bs, X, P, idx, use_el, d_ref):
     d = X[None, :] - bs.positions[0][idx]
     rho2 = d[:, 0] ** 2 + d[:, 1] ** 2
     rho = np.sqrt(rho2)
@@ -201,7 +207,10 @@ def decisive(bs, X, P, excluded, use_el, d_ref=None):
             r.append((bs.elevation[0][idx[j]] - el_hat[j]) / s_el)
         G, r = np.array(G), np.array(r)
         S = np.eye(len(r)) + G @ P @ G.T
-        q = float(r @ np.linalg.solve(S, r))
+        try:
+            q = float(r @ np.linalg.solve(S, r))
+        except np.linalg.LinAlgError:
+            return False
         if not q > c2:
             return False
     return True
