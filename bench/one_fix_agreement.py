@@ -3,9 +3,10 @@
 A call with one problem (the fusion node, ``bearing_loc locate`` on one problem) runs the
 estimators and the robust steps on Python floats (core/ml_single.py, core/robust_single.py);
 a batch runs them on arrays. This script solves the same noisy bearings both ways and prints,
-per scenario and σ, the number of status differences and the largest position difference
-relative to the rms station range, for ``ok`` and for ``low_confidence`` fixes, and for the
-latter also relative to the fix's own σ (square root of the largest covariance eigenvalue).
+per scenario and σ, the number of status differences, the largest relative difference of the
+nonlinearity ν where the robust steps ran, and the largest position difference relative to
+the rms station range, for ``ok`` and for ``low_confidence`` fixes, and for the latter also
+relative to the fix's own σ (square root of the largest covariance eigenvalue).
 
 Scenarios: Zong & Cui (2015) (config/scenarios/seed003.yaml, σ grows with range; ``wmle``
 robust), six stations with constant σ (six_station_const.yaml; ``mle``, robust by default)
@@ -36,7 +37,7 @@ CASES = (('config/scenarios/seed003.yaml', 'wmle', {'robust': True}, (0.5, 1, 2,
 
 def compare(path, name, opts, sigma_deg, trials, seed):
     """(status differences, max rel. diff ok, max rel. diff low_confidence, the same in σ,
-    number of ok fixes, number of low_confidence fixes)."""
+    number of ok fixes, number of low_confidence fixes, max rel. diff of ν)."""
     tr = ev.trials_from_scenario(load_scenario(resolve_scenario(path)), trials, 0)
     if name == 'wmle':
         opts = dict(opts, reference_range=tr.reference_range() or 1000.0)
@@ -46,7 +47,7 @@ def compare(path, name, opts, sigma_deg, trials, seed):
     b.sigma_az = np.full_like(b.sigma_az, s)
     b.sigma_el = np.where(b.has_elevation, s, np.nan)
     batch = locate(name, b, **opts)
-    diff, ok, lc, lc_sigma = 0, 0.0, 0.0, 0.0
+    diff, ok, lc, lc_sigma, nu = 0, 0.0, 0.0, 0.0, 0.0
     n_ok = int(np.count_nonzero(batch.status == 'ok'))
     n_lc = int(np.count_nonzero(batch.status == 'low_confidence'))
     for m in range(b.M):
@@ -54,6 +55,11 @@ def compare(path, name, opts, sigma_deg, trials, seed):
         if one.status[0] != batch.status[m]:
             diff += 1
             continue
+        a, b_nu = one.nonlinearity[0], batch.nonlinearity[m]
+        if np.isnan(a) != np.isnan(b_nu):
+            nu = np.inf
+        elif not np.isnan(a):
+            nu = max(nu, abs(a - b_nu) / b_nu)
         if not np.all(np.isfinite(one.position[0])):
             continue
         dx = np.max(np.abs(one.position[0] - batch.position[m]))
@@ -63,7 +69,7 @@ def compare(path, name, opts, sigma_deg, trials, seed):
         elif batch.status[m] == 'low_confidence':
             lc = max(lc, dx / scale)
             lc_sigma = max(lc_sigma, dx / np.sqrt(np.linalg.eigvalsh(batch.covariance[m])[-1]))
-    return diff, ok, lc, lc_sigma, n_ok, n_lc
+    return diff, ok, lc, lc_sigma, n_ok, n_lc, nu
 
 
 def main():
@@ -72,16 +78,17 @@ def main():
     a = ap.parse_args()
     print(f'{a.trials} problems per row; position differences: max over coordinates, '
           'relative to the rms station range (and to the fix\'s own σ)')
-    print('| scenario | estimator | σ | status differences | ok fixes | low_confidence fixes |')
-    print('|---|---|---|---:|---|---|')
+    print('| scenario | estimator | σ | status differences | ν | ok fixes | '
+          'low_confidence fixes |')
+    print('|---|---|---|---:|---:|---|---|')
     for path, name, opts, sigmas in CASES:
         for k, sd in enumerate(sigmas):
-            diff, ok, lc, lcs, n_ok, n_lc = compare(path, name, opts, sd, a.trials, k)
+            diff, ok, lc, lcs, n_ok, n_lc, nu = compare(path, name, opts, sd, a.trials, k)
             label = name + (' robust' if opts.get('robust') else '')
             ok_text = f'{n_ok}: {ok:.1e}' if n_ok else '0'
             lc_text = f'{n_lc}: {lc:.1e} ({lcs:.1e} of its σ)' if n_lc else '0'
-            print(f'| {os.path.basename(path)} | {label} | {sd:.3f}° | {diff} | {ok_text} | '
-                  f'{lc_text} |', flush=True)
+            print(f'| {os.path.basename(path)} | {label} | {sd:.3f}° | {diff} | {nu:.1e} | '
+                  f'{ok_text} | {lc_text} |', flush=True)
 
 
 if __name__ == '__main__':
