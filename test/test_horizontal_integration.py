@@ -308,6 +308,7 @@ def test_a_banana_region_is_low_confidence_and_every_ok_fix_has_a_small_nu():
     bs = simulate_bearings(targets, st, np.radians(4.0), rng=rng)
     res = registry.solve('mle', bs, target_altitude=5000.0)
     nu = nonlinearity(res.position, res.covariance, bs.positions)
+    np.testing.assert_allclose(res.nonlinearity, nu, rtol=1e-12)     # reported with the fix
     ok = res.status == 'ok'
     assert 0.1 * len(ok) < np.count_nonzero(ok) < 0.9 * len(ok)
     assert np.all(nu[ok] <= MAX_REGION_NONLINEARITY)

@@ -134,15 +134,24 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
 
 def _robust(method, bearings, res, p, options):
     """Problem by problem :func:`.horizontal_robust.robust_fix`; FixResult with ``excluded``."""
-    from .horizontal_robust import robust_fix, screen_one
+    from .horizontal_robust import nonlinearity, robust_fix, screen_one
     from .estimator_spec import DEFAULT_REFERENCE_RANGE
     d_ref = (options.get('reference_range', DEFAULT_REFERENCE_RANGE) if method == 'wmle'
              else None)
     names = ('position', 'covariance', 'iterations', 'converged', 'status')
+
+    def nu_of(fields, excluded):
+        # ν of every ok or low_confidence fix over the stations it kept (NaN otherwise).
+        nu = nonlinearity(fields['position'], fields['covariance'][:, :3, :3],
+                          bearings.positions, ~excluded[:, :, 0])
+        return np.where(np.isin(fields['status'], ('ok', 'low_confidence')), nu, np.nan)
+
     if bearings.M == 1 and screen_one(bearings, res, p.use_el[0], d_ref):
         # One fix that passes the screen (decided on floats): kept as it is.
-        return FixResult(method=method, excluded=np.zeros((1, bearings.N, 2), dtype=bool),
-                         **{k: np.array(getattr(res, k)) for k in names})
+        fields = {k: np.array(getattr(res, k)) for k in names}
+        excluded = np.zeros((1, bearings.N, 2), dtype=bool)
+        return FixResult(method=method, excluded=excluded,
+                         nonlinearity=nu_of(fields, excluded), **fields)
     fields = {k: np.array(getattr(res, k)) for k in names}
     fields['status'] = fields['status'].astype(object)
     excluded = np.zeros((bearings.M, bearings.N, 2), dtype=bool)
@@ -162,7 +171,8 @@ def _robust(method, bearings, res, p, options):
         excluded[m, :, 0] = ex
         excluded[m, :, 1] = ex & bearings.has_elevation[m]
     fields['status'] = fields['status'].astype(str)
-    return FixResult(method=method, excluded=excluded, **fields)
+    return FixResult(method=method, excluded=excluded, nonlinearity=nu_of(fields, excluded),
+                     **fields)
 
 
 def screen_passed(bearings, res, p, d_ref=None):
