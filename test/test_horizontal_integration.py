@@ -344,3 +344,45 @@ def test_decisive_with_a_station_under_the_fix_is_false_without_a_warning():
         assert decisive(bs, x, np.eye(3), excluded, np.zeros(4, bool)) is False
         assert decisive(bs, x, np.eye(3), ~excluded & (np.arange(4) == 0),
                         np.zeros(4, bool)) in (True, False)
+
+
+def _range_grown_azimuths(sigma_ref, n, noise_seed):
+    """Zong & Cui (2015) section 3 trials (config/scenarios/seed003.yaml: σ grows with range,
+    d_ref 1000 m), azimuths only, bearings stating σ_ref."""
+    import math
+    from bearing_loc_ros.core import evaluation as ev
+    from bearing_loc_ros.core.simulation import load_scenario
+    from bearing_loc_ros.scenarios import resolve_scenario
+    tr = ev.trials_from_scenario(load_scenario(resolve_scenario('seed003')), n, 0)
+    s = math.radians(sigma_ref)
+    f = tr.sigma_factor()
+    b = ev.noisy_bearings(tr, s * f, s * f, np.random.default_rng(noise_seed))
+    nan = np.full_like(b.elevation, np.nan)
+    return tr, BearingSet(b.positions, b.azimuth, nan, np.full_like(b.sigma_az, s), nan)
+
+
+def test_range_grown_wmle_in_the_plane_is_never_confidently_short():
+    # Azimuths only with σ growing with range: a fix that lands near the stations (where σ
+    # is small) looks precise. Its covariance is widened to the test-inversion level and it is
+    # ok only when the region is an ellipse out to 4.59σ, also along the direction in which
+    # the near stations' σ grow. Trial 260 at σ_ref 5° landed 0.5 km from the stations, the
+    # truth 5 km out, with a stated σ of 65 m (NEES 601).
+    tr, bs = _range_grown_azimuths(5.0, 2000, 100)
+    m = 260
+    one = registry.solve('wmle', bs.problem(m), target_altitude=tr.targets[m, 2], robust=True,
+                         reference_range=1000.0)
+    assert one.status[0] == 'low_confidence' and one.nonlinearity[0] > 0.1
+    tr, bs = _range_grown_azimuths(3.0, 600, 7)
+    res = registry.solve('wmle', bs, target_altitude=tr.targets[:, 2], robust=True,
+                         reference_range=1000.0)
+    plain = registry.solve('wmle', bs, target_altitude=tr.targets[:, 2], robust=False,
+                           reference_range=1000.0)
+    ok = res.status == 'ok'
+    e = (res.position - tr.targets)[:, :2]
+    nees = np.einsum('mi,mij,mj->m', e, np.linalg.inv(res.covariance[:, :2, :2]), e)
+    assert np.count_nonzero(ok & (nees > 18.42)) == 0
+    assert np.all(res.nonlinearity[ok] <= 0.1)
+    # The covariance is the estimator's widened along one axis, never narrowed.
+    same = np.all(res.position == plain.position, axis=1)
+    D = res.covariance[same, :2, :2] - plain.covariance[same, :2, :2]
+    assert np.all(np.linalg.eigvalsh(D) > -1e-9 * np.abs(plain.covariance[same]).max())

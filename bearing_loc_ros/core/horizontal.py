@@ -141,12 +141,13 @@ def _robust(method, bearings, res, p, options):
     names = ('position', 'covariance', 'iterations', 'converged', 'status')
 
     def nu_of(fields, excluded):
-        # ν of every ok or low_confidence fix over the stations it kept (NaN otherwise).
+        # ν of every ok or low_confidence fix over the stations it kept (NaN otherwise), where
+        # robust_fix did not report the ν its status took.
         nu = nonlinearity(fields['position'], fields['covariance'][:, :3, :3],
                           bearings.positions, ~excluded[:, :, 0])
         return np.where(np.isin(fields['status'], ('ok', 'low_confidence')), nu, np.nan)
 
-    if bearings.M == 1 and screen_one(bearings, res, p.use_el[0], d_ref):
+    if bearings.M == 1 and d_ref is None and screen_one(bearings, res, p.use_el[0], d_ref):
         # One fix that passes the screen (decided on floats): kept as it is.
         fields = {k: np.array(getattr(res, k)) for k in names}
         excluded = np.zeros((1, bearings.N, 2), dtype=bool)
@@ -156,7 +157,11 @@ def _robust(method, bearings, res, p, options):
     fields['status'] = fields['status'].astype(object)
     excluded = np.zeros((bearings.M, bearings.N, 2), dtype=bool)
     opts = {k: v for k, v in options.items() if k != 'initial'}
-    for m in np.flatnonzero(~screen_passed(bearings, res, p, d_ref)).tolist():
+    # Range-grown σ: every fix is assessed (its covariance is widened, robust_fix).
+    todo = (np.ones(bearings.M, dtype=bool) if d_ref is not None
+            else ~screen_passed(bearings, res, p, d_ref))
+    assessed = np.full(bearings.M, np.nan)      # ν as robust_fix's status took it
+    for m in np.flatnonzero(todo).tolist():
         bs = bearings.problem(m)
         z0, sz, use_el = float(p.z0[m]), float(p.sz[m]), p.use_el[m]
 
@@ -165,14 +170,16 @@ def _robust(method, bearings, res, p, options):
             return ESTIMATORS[method](q, initial=x0, **opts)
 
         one = FixResult(*(fields[k][m:m + 1] for k in names), method)
-        out, ex = robust_fix(solve, bs, one, z0, use_el, d_ref)
+        out, ex = robust_fix(solve, bs, one, z0, use_el, d_ref, sz)
         for k in fields:
             fields[k][m] = getattr(out, k)[0]
+        if out.nonlinearity is not None:
+            assessed[m] = out.nonlinearity[0]
         excluded[m, :, 0] = ex
         excluded[m, :, 1] = ex & bearings.has_elevation[m]
     fields['status'] = fields['status'].astype(str)
-    return FixResult(method=method, excluded=excluded, nonlinearity=nu_of(fields, excluded),
-                     **fields)
+    nu = np.where(np.isnan(assessed), nu_of(fields, excluded), assessed)
+    return FixResult(method=method, excluded=excluded, nonlinearity=nu, **fields)
 
 
 def screen_passed(bearings, res, p, d_ref=None):

@@ -40,6 +40,14 @@ With c² the χ²₁ quantile of :data:`~bearing_loc_ros.core.robust.OUTLIER_PRO
    ``low_confidence`` with nothing excluded (the data do not show that the bearings were
    outliers, and the fit of a subset can lie far from the fit of all of them).
 
+Range-grown σ (``wmle``): every fix is assessed (no screen). The covariance is widened by
+:func:`test_inversion` to the level :data:`~bearing_loc_ros.core.robust_model.TEST_INVERSION_Z`
+and ν is taken over the region at
+:data:`~bearing_loc_ros.core.robust_model.STATUS_REGION_Z` (the 3D rule of :mod:`.robust`),
+the larger of ν along the major axis and along ∇ Σ_k log ρ_k: without elevations a fix that
+lands near the stations, where σ(d) is small, has a small round covariance while its region
+runs outward, away from the nearest stations.
+
 Nonlinearity ν = sqrt(λ_max(P_xy)) / min_k ρ_k (:func:`nonlinearity`): the radius of the
 horizontal confidence region seen from the nearest station with a kept bearing, relative to
 its horizontal range ρ_k. Azimuths are functions of (x − x_k, y − y_k) / ρ_k, so over the
@@ -61,7 +69,7 @@ import numpy as np
 from .conventions import azimuth_elevation, wrap_angle
 from .fix import FixResult, STATUS_LOW_CONFIDENCE, STATUS_OK
 from .robust import _c2, chi2_upper, CONSISTENCY_PROBABILITY
-from .robust_model import max_nonlinearity
+from .robust_model import max_nonlinearity, STATUS_REGION_Z, TEST_INVERSION_Z
 
 #: Bearings (evenly spread over the set) whose pairwise intersections are candidates.
 MAX_PAIR_BEARINGS = 16
@@ -216,6 +224,94 @@ def _decisive(bs, X, P, idx, use_el, d_ref):
     return True
 
 
+def test_inversion(bs, X, P, kept, use_el, d_ref, sigma_z=0.0, z=TEST_INVERSION_Z,
+                   iterations=4, outward=False):
+    """P (3, 3) widened along the major axis of its x-y block to the far side of the
+    test-inversion region of level ``z``, m² (range-grown σ; :mod:`.robust`'s
+    ``test_inversion_covariance`` in the plane of the solve).
+
+    With σ_j = σ_ref,j d_j / d_ref the covariance P(X) of the horizontal solve (the bound
+    of :func:`.horizontal_crlb.horizontal_crlb` at X with the stations' σ at X and the
+    stated altitude's σ_z) grows with range. Along the major axis v of P_xy (oriented away
+    from the kept stations) the far boundary t of {X: (X̂ − X)ᵀ P(X)⁻¹ (X̂ − X) ≤ z²} solves
+    t = z s(X̂ + t v), s² = vᵀ P_xy(X) v, by four fixed-point steps from t = z s(X̂), t at
+    most 10 times the largest station range; the variance along v becomes
+    max(s(X̂)², (t/z)²). With ``outward`` the same along u = ∇ Σ_k log ρ_k / |∇ Σ_k log ρ_k|
+    (ρ_k the horizontal ranges from the kept stations) instead of v: the direction in which
+    the σ(d) of the nearest stations grow fastest. ``bs`` one problem, X (3,) m, ``kept`` and
+    ``use_el`` (N,) bool. A matrix of +inf where P or the widening is not finite.
+    """
+    from .horizontal_crlb import horizontal_crlb
+    P = np.asarray(P, dtype=float)
+    bad = np.full((3, 3), np.inf)
+    if not (np.all(np.isfinite(P)) and np.all(np.isfinite(X)) and np.any(kept)):
+        return bad
+    pos = bs.positions[0][kept]
+    sa, se = bs.sigma_az[0][kept], bs.sigma_el[0][kept]
+    has_el = use_el[kept]
+    lam, V = np.linalg.eigh(P[:2, :2])
+    v = np.array([V[0, 1], V[1, 1], 0.0])
+    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
+        h = X[None, :2] - pos[:, :2]
+        out = (h / np.hypot(h[:, 0], h[:, 1])[:, None]).sum(axis=0)
+        if outward:
+            g = (h / (h[:, 0] ** 2 + h[:, 1] ** 2)[:, None]).sum(axis=0)
+            v = np.array([g[0], g[1], 0.0]) / np.hypot(g[0], g[1])
+        elif v[:2] @ out < 0.0:
+            v = -v
+        t_max = 10.0 * float(np.max(np.linalg.norm(pos - X[None, :], axis=1)))
+        s0 = float(np.sqrt(max(v[:2] @ P[:2, :2] @ v[:2], 0.0)))
+        t = z * s0
+        for _ in range(iterations):
+            Xt = X + t * v
+            f = np.linalg.norm(pos - Xt[None, :], axis=1) / d_ref
+            Pt = horizontal_crlb(Xt, pos[None], sa * f, se * f, has_el, sigma_z)[0]
+            st = float(np.sqrt(max(v[:2] @ Pt[:2, :2] @ v[:2], 0.0)))
+            t = min(z * st, t_max) if np.isfinite(st) else t_max
+        add = max((t / z) ** 2 - s0 * s0, 0.0)
+    if not np.isfinite(add):
+        return bad
+    return P + add * np.outer(v, v)
+
+
+def _grown_assessment(bs, X, P, kept, use_el, d_ref, sigma_z):
+    """(covariance widened to TEST_INVERSION_Z, ν of the region at STATUS_REGION_Z) of a fix
+    with range-grown σ (module docstring)."""
+    cov = test_inversion(bs, X, P, kept, use_el, d_ref, sigma_z)
+    nu = max(nonlinearity(X[None], test_inversion(bs, X, P, kept, use_el, d_ref, sigma_z,
+                                                  z=STATUS_REGION_Z, outward=o)[None],
+                          bs.positions, kept[None])[0] for o in (False, True))
+    return cov, (nu if np.all(np.isfinite(cov)) else np.nan)
+
+
+def _assessed(fix, bs, kept, use_el, d_ref, sigma_z):
+    """(``fix`` with its covariance widened for range-grown σ, its ν): ν as the status
+    takes it (:func:`_grown_assessment` for range-grown σ, else :func:`nonlinearity`)."""
+    x = np.asarray(fix.position[0], dtype=float)
+    P = np.asarray(fix.covariance[0, :3, :3], dtype=float)
+    if d_ref is None:
+        return fix, nonlinearity(x[None], P[None], bs.positions, kept[None])[0]
+    cov, nu = _grown_assessment(bs, x, P, kept, use_el, d_ref, sigma_z)
+    c = np.array(fix.covariance, dtype=float)
+    c[0, :3, :3] = cov
+    return FixResult(fix.position, c, fix.iterations, fix.converged, fix.status,
+                     fix.method), nu
+
+
+def _with_nu(fix, nu, ok=True):
+    """``fix`` (one problem) carrying ``nonlinearity`` ν; ``low_confidence`` unless ``ok``."""
+    if not ok:
+        fix = _low_confidence(fix)
+    return FixResult(fix.position, fix.covariance, fix.iterations, fix.converged, fix.status,
+                     fix.method, nonlinearity=np.array([nu], dtype=float))
+
+
+def _not_assessed(result):
+    """A fix that failed the screen and has no refit: ``low_confidence`` if it is ``ok``
+    (it failed the residual tests), else as it is."""
+    return _low_confidence(result) if str(result.status[0]) == STATUS_OK else result
+
+
 def _low_confidence(result):
     """``result`` (one problem) with status ``low_confidence`` and ``converged`` False."""
     return FixResult(result.position, result.covariance, result.iterations,
@@ -249,13 +345,14 @@ def _sigmas(bs, X, d_ref):
     return bs.sigma_az[0] * f, bs.sigma_el[0] * f
 
 
-def robust_fix(solve, bs, result, z0, use_el, d_ref=None):
+def robust_fix(solve, bs, result, z0, use_el, d_ref=None, sigma_z=0.0):
     """Screened / consensus / refitted horizontal fix of one problem (module docstring).
 
     ``solve(subset_bearings, initial)`` runs the estimator on a one-problem BearingSet and
     returns its FixResult; ``result`` is its fix of all of ``bs``; z₀ (m) the stated
-    altitude; ``use_el`` (N,) the elevations used; ``d_ref`` the ``wmle`` reference range (m)
-    or None. Returns (FixResult of one problem, excluded (N,) bool).
+    altitude and ``sigma_z`` its σ (m); ``use_el`` (N,) the elevations used; ``d_ref`` the
+    ``wmle`` reference range (m) or None. Returns (FixResult of one problem, excluded (N,)
+    bool).
     """
     N = bs.N
     c2 = _c2()
@@ -268,13 +365,13 @@ def robust_fix(solve, bs, result, z0, use_el, d_ref=None):
         d2 = residuals2(bs, x[None], saz, sel, use_el)[0]
         if np.all(d2 <= c2) and d2.sum() <= chi2_upper(max(n_angles - 2, 1)):
             # Calm: no outlier to look for; ok when the region is well described.
-            nu = nonlinearity(x[None], result.covariance[:1, :3, :3], bs.positions)[0]
-            return (result if nu <= limit else _low_confidence(result)), excluded
+            fix, nu = _assessed(result, bs, ~excluded, use_el, d_ref, sigma_z)
+            return _with_nu(fix, nu, nu <= limit), excluded
     cands = pair_candidates(bs, z0)
     if np.all(np.isfinite(x)):
         cands = np.vstack([x[None], cands])
     if cands.shape[0] == 0:
-        return result, excluded
+        return _not_assessed(result), excluded
     saz, sel = bs.sigma_az[0], bs.sigma_el[0]
     if d_ref is not None:
         f = np.linalg.norm(cands[:, None, :] - bs.positions[0][None], axis=-1) / d_ref
@@ -296,7 +393,7 @@ def robust_fix(solve, bs, result, z0, use_el, d_ref=None):
             break
         x = xn
     if res is None:
-        return result, np.zeros(N, dtype=bool)
+        return _not_assessed(result), np.zeros(N, dtype=bool)
     kept = ~excluded
     n_kept = int(np.count_nonzero(kept)) + int(np.count_nonzero(use_el & kept))
     s_az, s_el = _sigmas(bs, x, d_ref)
@@ -307,15 +404,12 @@ def robust_fix(solve, bs, result, z0, use_el, d_ref=None):
         # The data do not identify the excluded bearings as outliers (more than a minority
         # of the redundant angles, or not outliers given the fix's own uncertainty): the
         # estimator's fit of every bearing, low_confidence, nothing excluded.
+        none = np.zeros(N, dtype=bool)
         if np.all(np.isfinite(result.position)):
-            return _low_confidence(result), np.zeros(N, dtype=bool)
-        return result, np.zeros(N, dtype=bool)
-    nu = nonlinearity(x[None], P[None], bs.positions, kept[None])[0]
+            fix, nu = _assessed(result, bs, ~none, use_el, d_ref, sigma_z)
+            return _with_nu(fix, nu, ok=False), none
+        return result, none
+    res, nu = _assessed(res, bs, kept, use_el, d_ref, sigma_z)
     consistent = (d2[kept].sum() <= chi2_upper(max(n_kept - 2, 1), CONSISTENCY_PROBABILITY)
                   and nu <= limit)
-    status = np.array(res.status, dtype=object)
-    conv = np.array(res.converged, dtype=bool)
-    if str(status[0]) == STATUS_OK and not consistent:
-        status[0], conv[0] = STATUS_LOW_CONFIDENCE, False
-    return FixResult(res.position, res.covariance, res.iterations, conv, status.astype(str),
-                     res.method), excluded
+    return _with_nu(res, nu, str(res.status[0]) != STATUS_OK or consistent), excluded
