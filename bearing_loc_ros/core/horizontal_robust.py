@@ -241,46 +241,57 @@ def test_inversion(bs, X, P, kept, use_el, d_ref, sigma_z=0.0, z=TEST_INVERSION_
     the σ(d) of the nearest stations grow fastest. ``bs`` one problem, X (3,) m, ``kept`` and
     ``use_el`` (N,) bool. A matrix of +inf where P or the widening is not finite.
     """
+    return _test_inversions(bs, X, P, kept, use_el, d_ref, sigma_z, ((z, outward),),
+                            iterations)[0]
+
+
+def _test_inversions(bs, X, P, kept, use_el, d_ref, sigma_z, specs, iterations=4):
+    """:func:`test_inversion` for several (z, outward) ``specs`` at once: (K, 3, 3).
+
+    The K fixed-point iterations run side by side, one bound evaluation of K points per step.
+    """
     from .horizontal_crlb import horizontal_crlb
     P = np.asarray(P, dtype=float)
-    bad = np.full((3, 3), np.inf)
+    K = len(specs)
+    bad = np.full((K, 3, 3), np.inf)
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(X)) and np.any(kept)):
         return bad
     pos = bs.positions[0][kept]
     sa, se = bs.sigma_az[0][kept], bs.sigma_el[0][kept]
     has_el = use_el[kept]
-    lam, V = np.linalg.eigh(P[:2, :2])
-    v = np.array([V[0, 1], V[1, 1], 0.0])
+    _, V = np.linalg.eigh(P[:2, :2])
     with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
         h = X[None, :2] - pos[:, :2]
-        out = (h / np.hypot(h[:, 0], h[:, 1])[:, None]).sum(axis=0)
-        if outward:
-            g = (h / (h[:, 0] ** 2 + h[:, 1] ** 2)[:, None]).sum(axis=0)
-            v = np.array([g[0], g[1], 0.0]) / np.hypot(g[0], g[1])
-        elif v[:2] @ out < 0.0:
-            v = -v
+        major = V[:, 1] * (-1.0 if V[:, 1] @ (h / np.hypot(h[:, 0], h[:, 1])[:, None]).sum(
+            axis=0) < 0.0 else 1.0)
+        g = (h / (h[:, 0] ** 2 + h[:, 1] ** 2)[:, None]).sum(axis=0)
+        up = g / np.hypot(g[0], g[1])
+        v = np.array([[*(up if o else major), 0.0] for _, o in specs])      # (K, 3)
+        z = np.array([zk for zk, _ in specs], dtype=float)
         t_max = 10.0 * float(np.max(np.linalg.norm(pos - X[None, :], axis=1)))
-        s0 = float(np.sqrt(max(v[:2] @ P[:2, :2] @ v[:2], 0.0)))
+        s0 = np.sqrt(np.maximum(np.einsum('ki,ij,kj->k', v[:, :2], P[:2, :2], v[:, :2]), 0.0))
         t = z * s0
         for _ in range(iterations):
-            Xt = X + t * v
-            f = np.linalg.norm(pos - Xt[None, :], axis=1) / d_ref
-            Pt = horizontal_crlb(Xt, pos[None], sa * f, se * f, has_el, sigma_z)[0]
-            st = float(np.sqrt(max(v[:2] @ Pt[:2, :2] @ v[:2], 0.0)))
-            t = min(z * st, t_max) if np.isfinite(st) else t_max
-        add = max((t / z) ** 2 - s0 * s0, 0.0)
-    if not np.isfinite(add):
-        return bad
-    return P + add * np.outer(v, v)
+            Xt = X[None, :] + t[:, None] * v
+            f = np.linalg.norm(pos[None] - Xt[:, None, :], axis=-1) / d_ref        # (K, N)
+            Pt = horizontal_crlb(Xt, np.broadcast_to(pos, (K,) + pos.shape), sa * f, se * f,
+                                 np.broadcast_to(has_el, f.shape), sigma_z)
+            st = np.sqrt(np.maximum(np.einsum('ki,kij,kj->k', v[:, :2], Pt[:, :2, :2],
+                                              v[:, :2]), 0.0))
+            t = np.where(np.isfinite(st), np.minimum(z * st, t_max), t_max)
+        add = np.maximum((t / z) ** 2 - s0 * s0, 0.0)
+    out = P[None] + add[:, None, None] * np.einsum('ki,kj->kij', v, v)
+    return np.where(np.isfinite(add)[:, None, None], out, bad)
 
 
 def _grown_assessment(bs, X, P, kept, use_el, d_ref, sigma_z):
     """(covariance widened to TEST_INVERSION_Z, ν of the region at STATUS_REGION_Z) of a fix
     with range-grown σ (module docstring)."""
-    cov = test_inversion(bs, X, P, kept, use_el, d_ref, sigma_z)
-    nu = max(nonlinearity(X[None], test_inversion(bs, X, P, kept, use_el, d_ref, sigma_z,
-                                                  z=STATUS_REGION_Z, outward=o)[None],
-                          bs.positions, kept[None])[0] for o in (False, True))
+    cov, major, out = _test_inversions(
+        bs, X, P, kept, use_el, d_ref, sigma_z,
+        ((TEST_INVERSION_Z, False), (STATUS_REGION_Z, False), (STATUS_REGION_Z, True)))
+    nu = nonlinearity(np.stack([X, X]), np.stack([major, out]), np.stack([bs.positions[0]] * 2),
+                      np.stack([kept, kept])).max()
     return cov, (nu if np.all(np.isfinite(cov)) else np.nan)
 
 
