@@ -391,3 +391,25 @@ def test_range_grown_wmle_in_the_plane_is_never_confidently_short():
     same = np.all(res.position == plain.position, axis=1)
     D = res.covariance[same, :2, :2] - plain.covariance[same, :2, :2]
     assert np.all(np.linalg.eigvalsh(D) > -1e-9 * np.abs(plain.covariance[same]).max())
+
+
+@pytest.mark.parametrize('estimator', ['mle', 'wmle'])
+def test_robust_horizontal_fixes_end_ok_low_confidence_or_degenerate(estimator):
+    # σ 15° on the stations of the banana test: some iterations end on the likelihood's pole
+    # at a station (max_iterations) or run off. As in 3D, the robust solve leaves no
+    # max_iterations or diverged fix: a finite one is low_confidence, else degenerate; and
+    # it never loses a finite fix the estimator had.
+    st = np.array([[30e3, -10e3, 100.0], [30e3, 20e3, 200.0], [-30e3, 5e3, 150.0]])
+    rng = np.random.default_rng(9)
+    targets = np.column_stack([rng.uniform(40e3, 60e3, 600), rng.uniform(-20e3, 30e3, 600),
+                               np.full(600, 5000.0)])
+    bs = simulate_bearings(targets, st, np.radians(15.0), rng=rng)
+    plain = registry.solve(estimator, bs, target_altitude=5000.0, robust=False)
+    assert np.isin(plain.status, ('max_iterations', 'diverged')).any()    # the case exists
+    res = registry.solve(estimator, bs, target_altitude=5000.0, robust=True)
+    assert set(res.status) <= {'ok', 'low_confidence', 'degenerate_geometry'}
+    finite = np.all(np.isfinite(res.position), axis=1)
+    assert np.all(finite[res.status != 'degenerate_geometry'])
+    assert not np.any(finite[res.status == 'degenerate_geometry'])
+    assert np.all(finite[np.all(np.isfinite(plain.position), axis=1)])
+    assert np.all(res.converged == (res.status == 'ok'))

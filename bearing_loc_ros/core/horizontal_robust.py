@@ -39,6 +39,9 @@ With c² the χ²₁ quantile of :data:`~bearing_loc_ros.core.robust.OUTLIER_PRO
    which one is wrong), is dropped: the estimator's fit of every bearing is returned as
    ``low_confidence`` with nothing excluded (the data do not show that the bearings were
    outliers, and the fit of a subset can lie far from the fit of all of them).
+   As in 3D, no fix is left ``max_iterations`` or ``diverged``: a finite one is
+   ``low_confidence`` (at σ ≈ 10-15° an azimuth-only iteration can end on a station, the
+   pole of that station's bearing), else ``degenerate_geometry``.
 
 Range-grown σ (``wmle``): every fix is assessed (no screen). The covariance is widened by
 :func:`test_inversion` to the level :data:`~bearing_loc_ros.core.robust_model.TEST_INVERSION_Z`
@@ -67,7 +70,7 @@ import math
 import numpy as np
 
 from .conventions import azimuth_elevation, wrap_angle
-from .fix import FixResult, STATUS_LOW_CONFIDENCE, STATUS_OK
+from .fix import FixResult, STATUS_DEGENERATE, STATUS_LOW_CONFIDENCE, STATUS_OK
 from .robust import _c2, chi2_upper, CONSISTENCY_PROBABILITY
 from .robust_model import max_nonlinearity, STATUS_REGION_Z, TEST_INVERSION_Z
 
@@ -318,9 +321,18 @@ def _with_nu(fix, nu, ok=True):
 
 
 def _not_assessed(result):
-    """A fix that failed the screen and has no refit: ``low_confidence`` if it is ``ok``
-    (it failed the residual tests), else as it is."""
-    return _low_confidence(result) if str(result.status[0]) == STATUS_OK else result
+    """The estimator's fix of one problem, without a refit to assess: ``low_confidence``
+    where its position is finite (it failed the screen, or its iteration did not converge:
+    ``max_iterations`` at the likelihood's pole on a station, ``diverged``), else
+    ``degenerate_geometry`` (no usable fix; NaN position, infinite covariance), as the 3D
+    :func:`~bearing_loc_ros.core.robust.confident_result` leaves it."""
+    if np.all(np.isfinite(result.position)):
+        return _low_confidence(result)
+    if str(result.status[0]) == STATUS_DEGENERATE:
+        return result
+    return FixResult(np.full_like(result.position, np.nan),
+                     np.full_like(result.covariance, np.inf), result.iterations,
+                     np.zeros(1, dtype=bool), np.array([STATUS_DEGENERATE]), result.method)
 
 
 def _low_confidence(result):
@@ -397,12 +409,11 @@ def robust_fix(solve, bs, result, z0, use_el, d_ref=None, sigma_z=0.0):
             break
         if np.count_nonzero(inl) < 2:
             break
-        excluded = ~inl
-        res = solve(bs.subset(inl), x)
-        xn = np.asarray(res.position[0], dtype=float)
+        fit = solve(bs.subset(inl), x)
+        xn = np.asarray(fit.position[0], dtype=float)
         if not np.all(np.isfinite(xn)):
-            break
-        x = xn
+            break           # the last finite refit stands
+        res, excluded, x = fit, ~inl, xn
     if res is None:
         return _not_assessed(result), np.zeros(N, dtype=bool)
     kept = ~excluded
@@ -419,8 +430,9 @@ def robust_fix(solve, bs, result, z0, use_el, d_ref=None, sigma_z=0.0):
         if np.all(np.isfinite(result.position)):
             fix, nu = _assessed(result, bs, ~none, use_el, d_ref, sigma_z)
             return _with_nu(fix, nu, ok=False), none
-        return result, none
+        return _not_assessed(result), none
     res, nu = _assessed(res, bs, kept, use_el, d_ref, sigma_z)
     consistent = (d2[kept].sum() <= chi2_upper(max(n_kept - 2, 1), CONSISTENCY_PROBABILITY)
                   and nu <= limit)
-    return _with_nu(res, nu, str(res.status[0]) != STATUS_OK or consistent), excluded
+    # A refit whose iteration did not converge (max_iterations, diverged) is low_confidence.
+    return _with_nu(res, nu, str(res.status[0]) == STATUS_OK and consistent), excluded
