@@ -99,15 +99,27 @@ def _score(data, X, c2):
     return np.where(np.isfinite(s), s, np.inf)
 
 
+#: A refit step is taken when L does not increase by more than ACCEPT_TOL (1 + |L|): L's
+#: rounding near its minimum (whitened angle differences lose a few ulp of 1/σ each). A
+#: strict L_new ≤ L stops the iteration wherever rounding first rejects a step, up to ~1e-7
+#: of the fix's σ short of the optimum; the batch and one-problem paths round differently,
+#: so they stopped at different points (1e-8 of the range apart at σ_ref 2°, Zong & Cui
+#: scenario). With the tolerance both iterate on to the step criterion.
+ACCEPT_TOL = 1e-12
+#: A refit stops when its step is below STEP_TOL of the rms station range.
+STEP_TOL = 1e-10
+
+
 def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
     """Levenberg-Marquardt on L(X) = Σ w_j (r_j² + log σ_j²) over M problems -> X (M, 3).
 
     Fisher scoring step: (F + λ diag F) Δ = −½∇L with F = Σ w_j g_j g_jᵀ (+ Σ w_j 2 u uᵀ/d²,
     the information of σ(d) under range growth), ½∇L = Σ_j w_j [−r_j g_j + (1 − r_j²) u_k/d_k]
     with range growth (the σ(d) and log σ(d) derivatives) and −Σ w_j r_j g_j without. A step
-    is taken when L does not increase; λ ×10 on rejection, ÷10 on acceptance. A problem
-    stops when its step is below 1e-10 of its rms range or λ > 1e10 (each problem on its
-    own: the result does not depend on the other problems of the batch).
+    is taken when L does not increase beyond its rounding (:data:`ACCEPT_TOL`); λ ×10 on
+    rejection, ÷10 on acceptance. A problem stops when its step is below :data:`STEP_TOL`
+    of its rms range or λ > 1e10 (each problem on its own: the result does not depend on
+    the other problems of the batch).
     """
     grow = data.d_ref is not None
     X = X0.copy()
@@ -141,7 +153,7 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
         step = np.where(np.isfinite(step), step, 0.0)
         Xt = X + step
         ct, rat, ret, gat, get, ut, dt = parts(Xt)
-        acc = np.isfinite(ct) & (ct <= cost) & ~done
+        acc = np.isfinite(ct) & (ct <= cost + ACCEPT_TOL * (1.0 + np.abs(cost))) & ~done
         if acc.all():
             X, cost, ra, re, ga, ge, u, d = Xt, ct, rat, ret, gat, get, ut, dt
         elif acc.any():
@@ -158,7 +170,7 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
         # rms range and step length (np.mean and np.linalg.norm's operations, without
         # their Python overhead)
         scale = np.sqrt((d * d).sum(axis=-1) / d.shape[-1])
-        done |= (np.sqrt((step * step).sum(axis=-1)) <= 1e-10 * scale) | (lam > 1e10)
+        done |= (np.sqrt((step * step).sum(axis=-1)) <= STEP_TOL * scale) | (lam > 1e10)
         if np.all(done):
             break
     return X
