@@ -122,11 +122,12 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
     the other problems of the batch).
     """
     grow = data.d_ref is not None
-    X = X0.copy()
+    out = np.array(X0, dtype=float)
+    live = np.arange(out.shape[0])          # the problems still iterating (rows of X …)
+    X = out.copy()
     lam = np.zeros(X.shape[0])
-    done = np.zeros(X.shape[0], dtype=bool)
 
-    def parts(X):
+    def parts(data, X, wa, we):
         ra, re, ga, ge, u, d, log_s2 = data.evaluate(X)
         if grow:
             cost = (wa * (ra * ra + log_s2) + we * (re * re + log_s2)).sum(axis=-1)
@@ -134,7 +135,7 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
             cost = (wa * (ra * ra) + we * (re * re)).sum(axis=-1)
         return cost, ra, re, ga, ge, u, d
 
-    cost, ra, re, ga, ge, u, d = parts(X)
+    cost, ra, re, ga, ge, u, d = parts(data, X, wa, we)
     cost = np.where(np.isfinite(cost), cost, np.inf)
     for _ in range(iterations):
         F = fisher(ga, ge, wa, we)
@@ -152,8 +153,8 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
                 step = -_solve_rows(Fd, grad)
         step = np.where(np.isfinite(step), step, 0.0)
         Xt = X + step
-        ct, rat, ret, gat, get, ut, dt = parts(Xt)
-        acc = np.isfinite(ct) & (ct <= cost + ACCEPT_TOL * (1.0 + np.abs(cost))) & ~done
+        ct, rat, ret, gat, get, ut, dt = parts(data, Xt, wa, we)
+        acc = np.isfinite(ct) & (ct <= cost + ACCEPT_TOL * (1.0 + np.abs(cost)))
         if acc.all():
             X, cost, ra, re, ga, ge, u, d = Xt, ct, rat, ret, gat, get, ut, dt
         elif acc.any():
@@ -165,15 +166,26 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
             if grow:
                 u = np.where(acc[:, None, None], ut, u)
             d = np.where(acc[:, None], dt, d)
-        lam = np.where(done, lam,
-                       np.where(acc, 0.1 * lam * (lam > 1e-6), np.maximum(10.0 * lam, 1e-3)))
+        lam = np.where(acc, 0.1 * lam * (lam > 1e-6), np.maximum(10.0 * lam, 1e-3))
         # rms range and step length (np.mean and np.linalg.norm's operations, without
         # their Python overhead)
         scale = np.sqrt((d * d).sum(axis=-1) / d.shape[-1])
-        done |= (np.sqrt((step * step).sum(axis=-1)) <= STEP_TOL * scale) | (lam > 1e10)
-        if np.all(done):
-            break
-    return X
+        stop = (np.sqrt((step * step).sum(axis=-1)) <= STEP_TOL * scale) | (lam > 1e10)
+        if stop.any():
+            # Finished problems leave the arrays: the others iterate on alone (each row's
+            # arithmetic is its own, so the result is the same).
+            out[live[stop]] = X[stop]
+            go = ~stop
+            if not go.any():
+                return out
+            live = live[go]
+            X, cost, lam, ra, re, ga, ge, d = (X[go], cost[go], lam[go], ra[go], re[go],
+                                               ga[go], ge[go], d[go])
+            u = u[go] if grow else u
+            wa, we = wa[go], we[go]
+            data = data.take(go)
+    out[live] = X
+    return out
 
 
 def _solve_rows(A, b):
