@@ -134,7 +134,7 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
 
 def _robust(method, bearings, res, p, options):
     """Problem by problem :func:`.horizontal_robust.robust_fix`; FixResult with ``excluded``."""
-    from .horizontal_robust import nonlinearity, robust_fix, screen_one
+    from .horizontal_robust import nonlinearity, robust_fix, screen_one_nu
     from .estimator_spec import DEFAULT_REFERENCE_RANGE
     d_ref = (options.get('reference_range', DEFAULT_REFERENCE_RANGE) if method == 'wmle'
              else None)
@@ -147,12 +147,14 @@ def _robust(method, bearings, res, p, options):
                           bearings.positions, ~excluded[:, :, 0])
         return np.where(np.isin(fields['status'], ('ok', 'low_confidence')), nu, np.nan)
 
-    if bearings.M == 1 and d_ref is None and screen_one(bearings, res, p.use_el[0], d_ref):
-        # One fix that passes the screen (decided on floats): kept as it is.
-        fields = {k: np.array(getattr(res, k)) for k in names}
-        excluded = np.zeros((1, bearings.N, 2), dtype=bool)
-        return FixResult(method=method, excluded=excluded,
-                         nonlinearity=nu_of(fields, excluded), **fields)
+    if bearings.M == 1 and d_ref is None:
+        calm, nu = screen_one_nu(bearings, res, p.use_el[0], d_ref)
+        if calm:
+            # One fix that passes the screen (decided on floats): kept as it is, with the
+            # ν the screen took.
+            fields = {k: np.array(getattr(res, k)) for k in names}
+            return FixResult(method=method, excluded=np.zeros((1, bearings.N, 2), dtype=bool),
+                             nonlinearity=np.array([nu]), **fields)
     fields = {k: np.array(getattr(res, k)) for k in names}
     fields['status'] = fields['status'].astype(object)
     excluded = np.zeros((bearings.M, bearings.N, 2), dtype=bool)

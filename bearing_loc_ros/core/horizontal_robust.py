@@ -100,7 +100,13 @@ SCREEN_MARGIN = 1e-9
 
 
 def screen_one(bs, result, use_el, d_ref=None):
-    """Step 1 (the screen) of a one-problem fix on Python floats: True, False or None.
+    """Step 1 (the screen) of a one-problem fix on Python floats: True, False or None
+    (:func:`screen_one_nu` without its ν)."""
+    return screen_one_nu(bs, result, use_el, d_ref)[0]
+
+
+def screen_one_nu(bs, result, use_el, d_ref=None):
+    """Step 1 (the screen) of a one-problem fix on Python floats: (True, False or None, ν).
 
     The test of core/horizontal.py ``screen_passed`` for M = 1: status ok, every whitened
     residual d_j² ≤ c² and Σ d_j² ≤ the χ²_dof quantile of CONSISTENCY_PROBABILITY (dof =
@@ -108,13 +114,16 @@ def screen_one(bs, result, use_el, d_ref=None):
     σ grown by d/d_ref for ``wmle``), and ν ≤ max_nonlinearity (:func:`nonlinearity`,
     every station kept). None when a statistic lies within
     :data:`SCREEN_MARGIN` (relative) of its threshold: the caller then runs the vectorised
-    test, whose residuals may differ from these in the last bits.
+    test, whose residuals may differ from these in the last bits. ν is the fix's
+    :func:`nonlinearity` over every station (the same operations on floats, tested) where
+    the decision is True, else NaN.
     """
+    nan = math.nan
     if str(result.status[0]) != STATUS_OK:
-        return False
+        return False, nan
     x, y, z = result.position[0].tolist()
     if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
-        return False
+        return False, nan
     c2 = _c2()
     atan2, sqrt, pi = math.atan2, math.sqrt, math.pi
     total = 0.0
@@ -136,26 +145,26 @@ def screen_one(bs, result, use_el, d_ref=None):
             d2 += ((el - atan2(dz, rho)) / sel) ** 2
             n_angles += 1
         if not math.isfinite(d2):
-            return None
+            return None, nan
         if abs(d2 - c2) <= SCREEN_MARGIN * c2:
-            return None
+            return None, nan
         if d2 > c2:
-            return False
+            return False, nan
         total += d2
     upper = float(chi2_upper(max(n_angles - 2, 1)))
     if abs(total - upper) <= SCREEN_MARGIN * upper:
-        return None
+        return None, nan
     if not total <= upper:
-        return False
+        return False, nan
     (a, b, _), (_, c, _), _ = result.covariance[0].tolist()
     lam = 0.5 * (a + c) + sqrt(0.25 * (a - c) ** 2 + b * b)
     nu = sqrt(lam) / rho_min if lam >= 0.0 and rho_min > 0.0 else math.nan
     limit = max_nonlinearity(d_ref is not None)
     if not math.isfinite(nu):
-        return False
+        return False, nan
     if abs(nu - limit) <= SCREEN_MARGIN * limit:
-        return None
-    return nu <= limit
+        return None, nan
+    return (True, nu) if nu <= limit else (False, nan)
 
 
 def nonlinearity(X, P, positions, kept=None):
