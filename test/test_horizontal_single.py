@@ -78,7 +78,8 @@ def test_one_problem_path_gives_the_batch_paths_results(method):
                 cases.append((bs, z0, sz, False, {}))
     for bs, z0 in _problems(rng, 6, 4):
         cases.append((bs, z0, 10.0, True, {'max_iterations': 1}))
-        # The robust solve turns a fix that did not converge into low_confidence.
+        # Without robust the status max_iterations stays (the robust solve makes it
+        # low_confidence), so both paths are compared on it too.
         cases.append((bs, z0, 10.0, True, {'max_iterations': 1, 'robust': False}))
         cases.append((bs, z0, 10.0, True, {'initial': [3e4, -2e4, 900.0], 'tolerance': 1e-6}))
         cases.append((bs, z0, 0.0, True, {'initial': [3e4, -2e4]}))

@@ -130,7 +130,7 @@ Modules: :mod:`.robust_model` (residuals, Fisher information, nonlinearity, χ²
 :mod:`.robust_consensus` (steps 2-3) and this one (steps 1 and 4, :func:`confident_result`);
 every public name is importable from here. One problem per call (the fusion node, ``bearing_loc
 locate`` on one problem) runs steps 2-4 on Python floats (:mod:`.robust_single`, the same
-statuses and exclusions as the batch path, positions to 1e-8 of the range at most),
+statuses and exclusions as the batch path, positions within about 1e-8 of the range),
 falling back to the arrays where floats cannot follow them.
 """
 

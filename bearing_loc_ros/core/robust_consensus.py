@@ -99,12 +99,13 @@ def _score(data, X, c2):
     return np.where(np.isfinite(s), s, np.inf)
 
 
-#: A refit step is taken when L does not increase by more than ACCEPT_TOL (1 + |L|): L's
-#: rounding near its minimum (whitened angle differences lose a few ulp of 1/σ each). A
-#: strict L_new ≤ L stops the iteration wherever rounding first rejects a step, up to ~1e-7
-#: of the fix's σ short of the optimum; the batch and one-problem paths round differently,
-#: so they stopped at different points (1e-8 of the range apart at σ_ref 2°, Zong & Cui
-#: scenario). With the tolerance both iterate on to the step criterion.
+#: A refit step is taken when L does not increase by more than ACCEPT_TOL (1 + |L|): above
+#: the rounding of L near its minimum (whitened angle differences lose a few ulp of 1/σ
+#: each), far below any change of L that matters. A strict L_new ≤ L stops the iteration
+#: wherever rounding first rejects a step, up to ~1e-7 of the fix's σ short of the optimum;
+#: the batch and one-problem paths round differently, so they stopped at different points
+#: (1e-8 of the range apart at σ_ref 2°, Zong & Cui scenario). With the tolerance both
+#: iterate on to the step criterion.
 ACCEPT_TOL = 1e-12
 #: A refit stops when its step is below STEP_TOL of the rms station range.
 STEP_TOL = 1e-10

@@ -38,10 +38,12 @@ TEST_INVERSION_Z = 1.5
 STATUS_REGION_Z = float(np.sqrt(_chi2.ppf(MULTIMODE_PROBABILITY, 3)))
 #: Rounds of inlier recomputation and refit.
 REFIT_ROUNDS = 3
-#: Levenberg-Marquardt iterations per refit: a fix whose region is far from an ellipse
-#: (ν of 3 and more) converges slowly, and at 40 some stopped short of the optimum (1.5e-9 of
-#: the range on the Zong & Cui scenario at σ_ref 3°). A converged fix needs 3-10.
-REFIT_ITERATIONS = 100
+#: Levenberg-Marquardt iterations per refit. A fix whose region is far from an ellipse (ν of
+#: 3 and more) converges slowly and can end at this cap. It is not raised: with range-grown
+#: σ the full likelihood has no lower bound at a station (along the station's own bearing
+#: its residual stays 0 while log σ² → −∞), and more iterations let such a refit run on
+#: toward the station.
+REFIT_ITERATIONS = 40
 
 
 @lru_cache(maxsize=16)
