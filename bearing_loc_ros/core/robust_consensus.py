@@ -124,6 +124,8 @@ def _refit(data, X0, wa, we, iterations=REFIT_ITERATIONS):
     """
     grow = data.d_ref is not None
     out = np.array(X0, dtype=float)
+    if not out.shape[0]:
+        return out
     live = np.arange(out.shape[0])          # the problems still iterating (rows of X …)
     X = out.copy()
     lam = np.zeros(X.shape[0])
