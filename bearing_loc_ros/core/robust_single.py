@@ -22,10 +22,11 @@ eigenvalues of the characteristic cubic (Smith 1961) where clear, else by LAPACK
 exclusions and convergence flags are the batch path's; both refits accept a step within
 the rounding of the cost (robust_consensus.ACCEPT_TOL) and so iterate to the same optimum
 (measured against the batch path on the same input, 13,720 random problems of 3-10
-stations, bench/one_fix_agreement.py --random: ≤ 1e-15 of the range for ``ok`` fixes, ≤ 8.5e-9 for ``low_confidence`` ones,
-whose refit can end at its iteration cap on a region far from an ellipse; on the seed
-scenarios ≤ 5e-16 and ≤ 1.5e-9, bench/one_fix_agreement.py; tested at 1e-9), covariances
-within 3e-8 of their largest entry.
+stations, bench/one_fix_agreement.py --random: ≤ 1e-15 of the range for ``ok`` fixes,
+≤ 8.5e-9 for ``low_confidence`` ones, whose refit can end at its iteration cap on a region
+far from an ellipse; on the seed scenarios ≤ 5e-16 and ≤ 1.5e-9,
+bench/one_fix_agreement.py; tested at 1e-9), covariances within 3e-8 of their largest
+entry.
 
 Where the floats cannot follow the batch path to rounding (a division by zero, a log of
 zero, a rank test or major axis too close to call, a non-finite Fisher information),
