@@ -9,7 +9,8 @@ call. Everything is measured in this one run, so the ratios compare like with li
 * One fix: ``locate(name, bearings)`` with a one-problem BearingSet (validation included, as
   the fusion node and ``bearing_loc locate`` call it), for N = 3, 4, 6, 10 bearings, for every
   estimator and the variants ``mle plain`` (``robust=False``), ``wmle robust`` and the
-  horizontal solve (known target altitude, σ_z = 10 m) of ``mle`` without and with ``robust``:
+  horizontal solve (known target altitude, σ_z = 10 m) of ``mle`` without and with ``robust``
+  and of ``wmle`` with ``robust``:
   median
   and 90th percentile per call over ``--problems`` problems (each call timed alone, best of 3
   calls in a row; the estimators take turns problem by problem, so load changes hit all
@@ -54,6 +55,7 @@ VARIANTS = {
     'wmle robust': ('wmle', {'robust': True}, False),
     'mle horizontal': ('mle', {}, True),
     'mle horizontal robust': ('mle', {'robust': True}, True),
+    'wmle horizontal robust': ('wmle', {'robust': True}, True),
 }
 #: Rows of the batch table (the robust ``wmle`` refits every fix: one-fix table only).
 BATCH = ('mle', 'mle plain', 'wmle', 'ctls_am', 'ctls', 'ls', 'tls', 'mle horizontal')

@@ -413,3 +413,27 @@ def test_robust_horizontal_fixes_end_ok_low_confidence_or_degenerate(estimator):
     assert not np.any(finite[res.status == 'degenerate_geometry'])
     assert np.all(finite[np.all(np.isfinite(plain.position), axis=1)])
     assert np.all(res.converged == (res.status == 'ok'))
+
+
+@pytest.mark.parametrize('sigma_z', [0.0, 25.0])
+def test_float_bound_along_an_axis_is_the_horizontal_crlb(sigma_z):
+    # The robust wmle assessment evaluates the horizontal bound on floats, point by point.
+    from bearing_loc_ros.core.horizontal_robust import _bound_sigma_along
+    rng = np.random.default_rng(23)
+    st = np.column_stack([rng.uniform(-20e3, 20e3, (5, 2)), rng.uniform(0.0, 200.0, 5)])
+    has = np.array([True, False, True, False, True])
+    sa, se = np.full(5, 0.01), np.where(has, 0.02, np.nan)
+    rows = list(zip(st.tolist(), sa.tolist(), se.tolist(), has.tolist()))
+    for _ in range(50):
+        X = np.array([*rng.uniform(-30e3, 30e3, 2), rng.uniform(500.0, 8e3)])
+        v = rng.normal(size=2)
+        v /= np.hypot(*v)
+        f = np.linalg.norm(st - X, axis=1) / 1000.0
+        P = horizontal_crlb(X, st, sa * f, se * f, has, sigma_z)[0, :2, :2]
+        np.testing.assert_allclose(_bound_sigma_along(*X, v.tolist(), rows, 1000.0, sigma_z),
+                                   np.sqrt(v @ P @ v), rtol=1e-12)
+    # A station under the point: no finite bound.
+    assert _bound_sigma_along(*st[0, :2], 3000.0, [1.0, 0.0], rows, 1000.0, sigma_z) == np.inf
+    # Collinear stations and point, azimuths only: the horizontal block is singular.
+    line = [((0.0, 0.0, 0.0), 0.01, np.nan, False), ((1000.0, 0.0, 0.0), 0.01, np.nan, False)]
+    assert _bound_sigma_along(5000.0, 0.0, 0.0, [1.0, 0.0], line, 1000.0, sigma_z) == np.inf
