@@ -180,7 +180,8 @@ def _robust(method, bearings, res, p, options):
         excluded[m, :, 0] = ex
         excluded[m, :, 1] = ex & bearings.has_elevation[m]
     fields['status'] = fields['status'].astype(str)
-    nu = np.where(np.isnan(assessed), nu_of(fields, excluded), assessed)
+    missing = np.isnan(assessed)
+    nu = np.where(missing, nu_of(fields, excluded), assessed) if missing.any() else assessed
     return FixResult(method=method, excluded=excluded, nonlinearity=nu, **fields)
 
 
