@@ -301,13 +301,14 @@ def _bound_sigma_along(x, y, z, v, rows, d_ref, sigma_z):
 
     :func:`.horizontal_crlb.horizontal_crlb` of one point on Python floats (the Fisher
     information of the angles, Zong & Cui 2015 eq. (7), the z prior by the Schur complement
-    and :func:`.horizontal_crlb.inverse2` with its rank test), for the fixed-point steps of
-    :func:`_test_inversions`: a bound evaluation per step costs a few µs per station instead
-    of the array calls' fixed overhead. ``v`` (2,) unit vector; ``rows`` per kept station
-    ((px, py, pz), σ_θ,ref, σ_ψ,ref (NaN without elevation), elevation used). +inf where the
-    bound is not finite (singular horizontal block, a station under the point).
+    and the 2 × 2 inverse with its rank test, :func:`.horizontal_single.inverse2`), for the
+    fixed-point steps of :func:`_test_inversions`: a bound evaluation per step costs a few
+    µs per station instead of the array calls' fixed overhead. ``v`` (2,) unit vector;
+    ``rows`` per kept station ((px, py, pz), σ_θ,ref, σ_ψ,ref (NaN without elevation),
+    elevation used). +inf where the bound is not finite (singular horizontal block, a
+    station under the point).
     """
-    from .horizontal_crlb import RCOND
+    from .horizontal_single import inverse2
     sqrt = math.sqrt
     x, y, z = float(x), float(y), float(z)     # (float arithmetic raises where numpy warns)
     a00 = a01 = a02 = a11 = a12 = a22 = 0.0         # Σ w_θ g_θ g_θᵀ
@@ -340,15 +341,10 @@ def _bound_sigma_along(x, y, z, v, rows, d_ref, sigma_z):
             s, q0, q1 = j22 + 1.0, 0.0, 0.0
         else:
             s, q0, q1 = j22 + 1.0 / sigma_z ** 2, j02, j12
-        a, b, d = j00 - q0 * q0 / s, j01 - q0 * q1 / s, j11 - q1 * q1 / s
-        tr, det = a + d, a * d - b * b
-        lmax = 0.5 * tr + sqrt(max(0.25 * (a - d) ** 2 + b * b, 0.0))
-        lmin = det / (lmax if lmax > 0 else 1.0)
-        if not (math.isfinite(tr) and math.isfinite(det) and lmax > 0
-                and lmin > RCOND * lmax):
+        inv = inverse2(j00 - q0 * q0 / s, j01 - q0 * q1 / s, j11 - q1 * q1 / s)
+        if inv is None:
             return math.inf
-        inv_det = 1.0 / det
-        p00, p01, p11 = d * inv_det, -b * inv_det, a * inv_det
+        p00, p01, p11 = inv
         v0, v1 = v
         return sqrt(max(v0 * p00 * v0 + v0 * p01 * v1 + v1 * p01 * v0 + v1 * p11 * v1, 0.0))
     except (ZeroDivisionError, OverflowError, ValueError):
