@@ -96,14 +96,18 @@ def test_subscriptions_timers_and_services_run_directly(pair):
     assert pair.tasks == 0, 'plain callbacks must not go through rclpy Tasks'
 
 
+def _awaiting(label, gate, order):
+    """A coroutine callback: records ``label``, then what ``gate`` resolves to."""
+    async def callback(msg):
+        order.append(label)
+        order.append(await gate)
+    return callback
+
+
 def test_coroutine_callback_runs_as_an_rclpy_task(pair):
     gate, order = Future(), []
-
-    async def on_msg(msg):
-        order.append('start')
-        order.append(await gate)
-
-    pair.node.create_subscription(PoseWithCovarianceStamped, 'co', on_msg, RELIABLE)
+    pair.node.create_subscription(PoseWithCovarianceStamped, 'co',
+                                  _awaiting('start', gate, order), RELIABLE)
     pub = pair.peer.create_publisher(PoseWithCovarianceStamped, 'co', RELIABLE)
     assert pair.spin(lambda: pub.get_subscription_count())
     pub.publish(PoseWithCovarianceStamped())
@@ -120,12 +124,8 @@ def test_pending_coroutine_holds_back_its_callback_group(pair):
     # exclusive) group awaits, a plain callback of that group ready in the same wake-up
     # waits for it.
     gate, order = Future(), []
-
-    async def first(msg):
-        order.append('first')
-        order.append(await gate)
-
-    pair.node.create_subscription(PoseWithCovarianceStamped, 'a', first, RELIABLE)
+    pair.node.create_subscription(PoseWithCovarianceStamped, 'a',
+                                  _awaiting('first', gate, order), RELIABLE)
     pair.node.create_subscription(PoseWithCovarianceStamped, 'b',
                                   lambda m: order.append('second'), RELIABLE)
     pubs = [pair.peer.create_publisher(PoseWithCovarianceStamped, t, RELIABLE)
