@@ -169,6 +169,19 @@ def test_bad_input_in_process(tmp_path, capsys, doc, message):
     assert len(lines) == 1 and message in lines[0], err
 
 
+@pytest.mark.parametrize('data, message', [
+    (b'\xff\xfe{"bearings": []}', 'input: invalid JSON'),
+    (b'{"bearings": "\xc3"}', 'input: invalid JSON'),
+    (b'', 'input: invalid JSON'),
+    # a UTF-8 byte order mark (as some editors write) is read past
+    (b'\xef\xbb\xbf{"bearings": []}', 'bearings: 0 bearing(s)')])
+def test_undecodable_input_is_invalid_json(tmp_path, capsys, data, message):
+    (tmp_path / 'bad.json').write_bytes(data)
+    assert main(['locate', str(tmp_path / 'bad.json')]) == 2
+    out, err = capsys.readouterr()
+    assert out == '' and len(err.splitlines()) == 1 and message in err, err
+
+
 def test_missing_file_is_exit_2(tmp_path, capsys):
     assert main(['locate', str(tmp_path / 'nope.json')]) == 2
     out, err = capsys.readouterr()

@@ -369,25 +369,26 @@ def _mixed_solved(ids=None):
     return solve_groups('mle', options, problems)
 
 
+def _strict(text):
+    """json.loads that refuses NaN/Infinity literals (the output must be strict JSON)."""
+    def refuse(name):
+        raise AssertionError(f'non-strict JSON constant {name}')
+    return json.loads(text, parse_constant=refuse)
+
+
 @pytest.mark.parametrize('ids', [None, list(range(100, 140))])
-def test_json_output_is_json_dumps_of_the_result_dicts(ids):
-    solved = _mixed_solved(ids)
-    dicts = solved.dicts()
+@pytest.mark.parametrize('indent', [None, 2])
+def test_json_output_is_the_result_dicts(ids, indent, capsys):
+    from bearing_loc_ros.cli.jsonio import write_results
+    dicts = _mixed_solved(ids).dicts()
     assert {r['solve'] for r in dicts} == {'3d', 'horizontal'}
     assert any(r['position'] is None or None in r['position'] for r in dicts)
     assert any(None in sum(r['covariance'], []) for r in dicts)
-    assert solved.json(True) == json.dumps({'results': dicts}, allow_nan=False)
-    assert solved.json(False) == json.dumps(dicts[0], allow_nan=False)
-
-
-def test_number_tokens_share_text_only_for_identical_floats():
-    from bearing_loc_ros.cli.locate import _number_tokens
-    rng = np.random.default_rng(2)
-    values = rng.normal(size=(50, 21)) * 10.0 ** rng.integers(-8, 8, (50, 21))
-    values[:, 6] = values[:, 4]                 # symmetric covariance entry
-    values[:, 12:21] = values[:, 3:12]          # CRLB equal to the covariance
-    values[:10, 4], values[:10, 6] = 0.0, -0.0  # equal, but written differently
-    values[10:20, 13] = np.nan
-    values[20, 3:12] = np.inf
-    expect = [json.dumps(v if np.isfinite(v) else None) for v in values.ravel().tolist()]
-    assert _number_tokens(values) == expect
+    for batch, expect in ((True, {'results': dicts}), (False, dicts[0])):
+        assert write_results(dicts, batch, indent) == 0
+        out = capsys.readouterr().out
+        assert out.endswith('}\n')
+        if indent is None:
+            assert out.count('\n') == 1        # compact: one line
+        # every float read back to the bit, every non-finite number as null
+        assert _strict(out) == expect

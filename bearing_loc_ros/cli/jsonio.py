@@ -11,6 +11,7 @@ import numbers
 import sys
 
 import numpy as np
+import orjson
 
 from . import InputError
 from .deprecation import json_key
@@ -101,23 +102,39 @@ def finite_rows(array):
 
 
 def read_json(path):
-    """Parse the JSON document in file ``path`` ('-' = stdin); InputError when unreadable."""
+    """Parse the JSON document in file ``path`` ('-' = stdin); InputError when unreadable.
+
+    orjson parses; a document it rejects goes to the standard library's parser, which gives
+    the error message and also reads what strict JSON lacks (NaN literals, integers beyond
+    64 bits) for the field checks to name.
+    """
     try:
         if path == '-':
-            text = sys.stdin.read()
+            data = getattr(sys.stdin, 'buffer', sys.stdin).read()
         else:
-            with open(path, encoding='utf-8') as f:
-                text = f.read()
+            with open(path, 'rb') as f:
+                data = f.read()
     except OSError as exc:
         raise InputError(f'input: cannot read {path!r}: {exc.strerror}') from None
     try:
-        return json.loads(text)
+        return orjson.loads(data)
+    except orjson.JSONDecodeError:
+        pass
+    try:
+        return json.loads(data)
     except ValueError as exc:
         raise InputError(f'input: invalid JSON ({exc})') from None
 
 
 def write_results(results, batch, indent=None):
-    """Print ``{"results": [...]}`` for a batch request, else the single result."""
+    """Print ``{"results": [...]}`` for a batch request, else the single result.
+
+    Compact JSON by orjson (NaN/inf written as ``null``), or ``json`` with ``indent``.
+    """
     payload = {'results': results} if batch else results[0]
-    sys.stdout.write(json.dumps(payload, allow_nan=False, indent=indent) + '\n')
+    if indent is None:
+        text = orjson.dumps(payload, option=orjson.OPT_SERIALIZE_NUMPY).decode()
+    else:
+        text = json.dumps(payload, allow_nan=False, indent=indent)
+    sys.stdout.write(text + '\n')
     return 0

@@ -34,7 +34,6 @@ Problems with the same number of bearings are checked and solved in one vectoris
 
 import json
 import math
-import sys
 
 import numpy as np
 
@@ -209,9 +208,7 @@ def solve_groups(method, options, sets):
 class Solved:
     """The fixes of one request, group by group: (indices, FixResult, CRLB) per bearing count.
 
-    :meth:`dicts` gives the output objects of :func:`solve`; :meth:`json` the compact JSON
-    text ``json.dumps`` writes for them (byte for byte), formatted group by group without
-    building an object per problem.
+    :meth:`dicts` gives the output objects of :func:`solve`.
     """
 
     def __init__(self, method, groups, count, ids=None):
@@ -240,76 +237,6 @@ class Solved:
             for r, problem in zip(out, self.ids):
                 r['problem'] = problem
         return out
-
-    def json(self, batch):
-        """``json.dumps({"results": dicts})`` (``dicts()[0]`` unless ``batch``), allow_nan off.
-
-        Per group, the 21 numbers of every fix (position, covariance, CRLB) are written by one
-        ``json.dumps`` call (:func:`_number_tokens`) and each problem's object is one
-        ``str.format``: no dict per problem, and the same bytes.
-        """
-        name = json.dumps(self.method).replace('{', '{{').replace('}', '}}')
-        out = [None] * self.count
-        for idx, res, bound in self.groups:
-            m = len(idx)
-            tokens = _number_tokens(np.concatenate([np.reshape(res.position, (m, 3)),
-                                                    np.reshape(res.covariance, (m, 9)),
-                                                    np.reshape(bound, (m, 9))], axis=1,
-                                                   dtype=float))
-            solved = res.solve.tolist() if res.solve is not None else ['3d'] * m
-            status = res.status.tolist()
-            quoted = {text: json.dumps(str(text)) for text in set(status) | set(solved)}
-            fields = zip(idx.tolist(), map(_JSON_BOOL.get, res.converged.tolist()),
-                         res.iterations.tolist(), map(quoted.get, status),
-                         map(quoted.get, solved))
-            fmt = _FIX_TEMPLATE.replace('NAME', name).format
-            for r, (k, conv, it, st, how) in enumerate(fields):
-                out[k] = fmt(*tokens[21 * r:21 * r + 21], conv, int(it), st, how)
-            for j in np.flatnonzero(np.array(solved) == 'horizontal').tolist():
-                out[idx[j]] += ', "target_altitude": %s, "target_altitude_sigma": %s' % (
-                    json.dumps(float(res.target_altitude[j]), allow_nan=False),
-                    json.dumps(float(res.target_altitude_sigma[j]), allow_nan=False))
-        if self.ids is not None:
-            out = ['%s, "problem": %s}' % (r, json.dumps(problem))
-                   for r, problem in zip(out, self.ids)]
-        else:
-            out = [r + '}' for r in out]
-        return '{"results": [%s]}' % ', '.join(out) if batch else out[0]
-
-
-_JSON_BOOL = {True: 'true', False: 'false'}
-#: For each of the 21 numbers of a fix (position, covariance, CRLB; matrices row by row),
-#: earlier numbers that are often the same float: the mirror entry of a symmetric matrix,
-#: the covariance entry of a CRLB entry.
-_SAME_AS = [[]] * 3 + [[3 + 3 * (k % 3) + k // 3] if k % 3 < k // 3 else [] for k in range(9)] \
-    + [([12 + 3 * (k % 3) + k // 3] if k % 3 < k // 3 else []) + [3 + k] for k in range(9)]
-
-
-def _number_tokens(values):
-    """The JSON text of every number of the (M, 21) fixes, row by row: ``repr`` as ``json``
-    writes floats, ``null`` for NaN/inf. Each distinct float (by its bits) among the entries
-    :data:`_SAME_AS` pairs is written once (float repr is most of the output time)."""
-    bits = values.view(np.int64)
-    index = np.arange(values.size).reshape(values.shape)
-    source = index.copy()       # the entry whose text each entry takes
-    for j, earlier in enumerate(_SAME_AS):
-        for i in earlier:
-            same = (bits[:, j] == bits[:, i]) & (source[:, j] == index[:, j])
-            source[same, j] = source[same, i]
-    own = (source == index).ravel()
-    written = values.ravel()[own]
-    tokens = json.dumps(written.tolist())[1:-1].split(', ')
-    for j in np.flatnonzero(~np.isfinite(written)).tolist():
-        tokens[j] = 'null'
-    rank = np.cumsum(own) - 1
-    return np.array(tokens, dtype=object)[rank[source.ravel()]].tolist()
-
-
-#: One fix's output object without its closing brace (str.format; NAME: the estimator).
-_FIX_TEMPLATE = ('{{"estimator": NAME, "method": NAME, "position": [{}, {}, {}], '
-                 '"covariance": [[{}, {}, {}], [{}, {}, {}], [{}, {}, {}]], '
-                 '"crlb": [[{}, {}, {}], [{}, {}, {}], [{}, {}, {}]], "converged": {}, '
-                 '"iterations": {}, "status": {}, "solve": {}')
 
 
 def _name_problem(message, idx, batch, ids):
@@ -354,10 +281,6 @@ def run(args):
     from . import gisargs
     gisargs.check(args)
     method, options, sets, batch = read_request(args)
-    solved = solve_groups(method, dimension_options(args, options), sets)
-    if args.indent is None and not gisargs.wanted(args):
-        sys.stdout.write(solved.json(batch) + '\n')
-        return 0
-    results = solved.dicts()
+    results = solve_groups(method, dimension_options(args, options), sets).dicts()
     gisargs.export_locate(args, results, sets)
     return write_results(results, batch, args.indent)
