@@ -51,6 +51,7 @@ from .core.bearings import Bearing, HALF_PI, MAX_ABS_POSITION, SIGMA_MAX, SIGMA_
 from .core.conventions import (azel_from_quaternion_scalar, bearing_covariance6,
                                IDX_AZ_VAR, IDX_EL_VAR, NO_ELEVATION_VARIANCE,
                                quaternion_from_azel_scalar, wrap_angle_scalar)
+from .core.fusion.stations import covariance3_problem
 from .core.station import pose_sample, raw_reading, ReadingError
 
 #: σ_ψ² value marking an azimuth-only (1D) bearing (IDX_EL_VAR / IDX_AZ_VAR: the indices of
@@ -155,9 +156,11 @@ def bearing_from_msg(msg, station, expected_frame=None):
     variance whose σ is not in the core's
     [SIGMA_MIN, SIGMA_MAX] = [1e-12, 1e3] rad, NaN and <= 0 included
     (``bad_azimuth_variance``), elevation variance neither −1 nor such a σ²
-    (``bad_elevation_variance``), non-finite or negative-diagonal position covariance
-    (``bad_position_covariance``), header.stamp not normalised (``bad_stamp``: nanosec ≥ 10⁹
-    or sec < 0, :func:`time_to_ns`); the first rule that applies, in this order.
+    (``bad_elevation_variance``), a position covariance that is not finite, symmetric and
+    positive semi-definite (``bad_position_covariance``,
+    :func:`~bearing_loc_ros.core.fusion.stations.covariance3_problem`), header.stamp not
+    normalised (``bad_stamp``: nanosec ≥ 10⁹ or sec < 0, :func:`time_to_ns`); the first rule
+    that applies, in this order.
 
     The azimuth is returned wrapped to (−π, π]. Round trips through :func:`bearing_to_msg`
     are exact up to float rounding (~1e-15 rad) for any θ and any |ψ| < π/2. A quaternion
@@ -234,9 +237,9 @@ def _bearing_from_fields(station, frame, sec, nanosec, px, py, pz, qx, qy, qz, q
         raise ConversionError('bad_elevation_variance',
                               f'elevation variance {var_el} (use -1 for azimuth-only)')
     rows = (c[0:3], c[6:9], c[12:15])
-    if (not all(map(math.isfinite, rows[0] + rows[1] + rows[2]))
-            or c[0] < 0.0 or c[7] < 0.0 or c[14] < 0.0):
-        raise ConversionError('bad_position_covariance', 'non-finite or negative variance')
+    problem = covariance3_problem(rows[0] + rows[1] + rows[2])
+    if problem is not None:
+        raise ConversionError('bad_position_covariance', problem)
     sec, nanosec = int(sec), int(nanosec)
     if sec < 0 or not 0 <= nanosec < NS_PER_S:
         raise ConversionError('bad_stamp', f'stamp sec={sec} nanosec={nanosec} is not '

@@ -298,6 +298,48 @@ def test_rejects_frames_and_position_covariance(b, other):
     assert _reason(msg) == 'bad_position_covariance'
 
 
+def _with_position_covariance(P):
+    msg = rc.bearing_to_msg(Bearing('s1', 1, np.array([10.0, 20.0, 0.0]), 0.5, 0.2, 0.01, 0.01))
+    cov = list(msg.pose.covariance)
+    for i in range(3):
+        cov[6 * i:6 * i + 3] = [float(x) for x in P[i]]
+    msg.pose.covariance = cov
+    return msg
+
+
+@pytest.mark.parametrize('P, problem', [
+    # indefinite (eigenvalues -1e7, 0, 1e7): it made a lying station's gate distance negative
+    ([[0.0, 1e7, 0.0], [1e7, 0.0, 0.0], [0.0, 0.0, 0.0]], 'not positive semi-definite'),
+    ([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]], 'not positive semi-definite'),
+    ([[4.0, 1.0, 0.0], [0.0, 4.0, 0.0], [0.0, 0.0, 4.0]], 'not symmetric'),
+    ([[4.0, 0.0, 0.0], [0.0, -1e-9, 0.0], [0.0, 0.0, 4.0]], 'negative variance'),
+])
+def test_position_covariance_must_be_a_covariance(P, problem):
+    from bearing_loc_ros.core.fusion.stations import bearing_problem
+    msg = _with_position_covariance(P)
+    for read in (lambda: rc.bearing_from_msg(msg, 's1'),
+                 lambda: rc.bearing_from_cdr(serialize_message(msg), 's1')):
+        with pytest.raises(rc.ConversionError, match=problem) as err:
+            read()
+        assert err.value.reason == 'bad_position_covariance'
+    b = Bearing('s1', 1, np.zeros(3), 0.5, 0.2, 0.01, 0.01,
+                position_covariance=np.array(P, dtype=float))
+    assert problem in bearing_problem(b)
+
+
+def test_position_covariance_rounding_is_accepted():
+    """A rotated covariance with rounding in its last bits, a singular (flat) one and a
+    surveyed station's zeros are all covariances."""
+    R = Rotation.from_euler('ZYX', [0.7, -0.3, 0.2]).as_matrix()
+    for d in ([25.0, 4.0, 1.0], [25.0, 4.0, 0.0]):
+        P = R @ np.diag(d) @ R.T
+        P[0, 1] *= 1.0 + 1e-14                  # asymmetric in the last bits
+        b = rc.bearing_from_msg(_with_position_covariance(P), 's1')
+        np.testing.assert_array_equal(b.position_covariance, P)
+    b = rc.bearing_from_msg(_with_position_covariance(np.zeros((3, 3))), 's1')
+    assert not b.position_covariance.any()
+
+
 def test_bearing_to_msg_refuses_invalid_bearings():
     ok = dict(station='s', stamp_ns=1, position=np.zeros(3), azimuth=0.1)
     with pytest.raises(ValueError, match='azimuth'):

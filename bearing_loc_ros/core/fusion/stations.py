@@ -136,9 +136,39 @@ def bearing_problem(b):
     return None
 
 
+#: Relative tolerance of the symmetry and positive semi-definiteness of a station position
+#: covariance (rounding of a sender's arithmetic; a real violation is of order 1).
+COVARIANCE_TOL = 1e-9
+
+
+def covariance3_problem(v):
+    """None when the 9 numbers ``v`` (a 3 × 3 station position covariance, m², row-major)
+    are a covariance, else the problem text.
+
+    A covariance is finite, symmetric (|c_ij − c_ji| ≤ tol · max|c|) and positive
+    semi-definite (smallest eigenvalue ≥ −tol · largest), tol = :data:`COVARIANCE_TOL`.
+    One that is not would make a station's gate distance d² = r² / (σ² + gᵀ C g) negative
+    or undefined and switch its outlier gate off. The all-zero matrix (a surveyed station)
+    is accepted without an eigenvalue computation.
+    """
+    if not all(map(math.isfinite, v)) or v[0] < 0.0 or v[4] < 0.0 or v[8] < 0.0:
+        return 'non-finite or negative variance'
+    if not any(v):
+        return None
+    scale = max(map(abs, v))
+    tol = COVARIANCE_TOL * scale
+    if abs(v[1] - v[3]) > tol or abs(v[2] - v[6]) > tol or abs(v[5] - v[7]) > tol:
+        return 'not symmetric'
+    lam = np.linalg.eigvalsh(np.array(v, dtype=float).reshape(3, 3))
+    if lam[0] < -COVARIANCE_TOL * max(lam[2], 0.0) or not lam[2] > 0.0:
+        return f'not positive semi-definite (eigenvalues {lam[0]:.3g} … {lam[2]:.3g} m²)'
+    return None
+
+
 def _position_covariance_problem(pcov):
-    """None for a finite (3, 3) station position covariance with a non-negative diagonal
-    (m², the rule of ros_conversions.bearing_from_msg), else the problem text."""
+    """None for a (3, 3) station position covariance of numbers that is a covariance
+    (:func:`covariance3_problem`, the rule of ros_conversions.bearing_from_msg), else the
+    problem text."""
     try:
         c = (pcov if type(pcov) is np.ndarray else np.asarray(pcov, dtype=float))
         v = c.ravel().tolist() if c.shape == (3, 3) else None
@@ -146,9 +176,8 @@ def _position_covariance_problem(pcov):
         v = None
     if v is None or not all(isinstance(x, (float, int)) for x in v):
         return 'position_covariance: expected a (3, 3) array of numbers, m²'
-    if not all(map(math.isfinite, v)) or v[0] < 0.0 or v[4] < 0.0 or v[8] < 0.0:
-        return 'position_covariance: non-finite or negative variance'
-    return None
+    problem = covariance3_problem(v)
+    return None if problem is None else f'position_covariance: {problem}'
 
 
 class StationRegistry:
