@@ -145,8 +145,18 @@ BAD_CASES = [
      '"sigma_azimuth": 0.01}, {"position": [1, 0, 0], "azimuth": 1, "sigma_azimuth": 0.01}]}',
      'bearings[0].azimuth: must be a finite number'),
     ({'estimator': 'best', 'bearings': bearings_json()}, 'estimator: unknown estimator'),
+    ({'estimator': '', 'bearings': bearings_json()}, 'estimator: unknown estimator'),
+    ({'estimator': 0, 'bearings': bearings_json()}, 'estimator: unknown estimator'),
+    ({'estimator': False, 'bearings': bearings_json()}, 'estimator: unknown estimator'),
+    ({'estimator': [], 'bearings': bearings_json()}, 'estimator: unknown estimator'),
     ({'estimator': 'mle', 'bearings': bearings_json(), 'options': {'bogus': 1}},
      'options.bogus: unknown option'),
+    ({'estimator': 'mle', 'bearings': bearings_json(), 'options': {'initial': 'abc'}},
+     'options.initial: must be 3 numbers (m)'),
+    ({'estimator': 'mle', 'bearings': bearings_json(), 'options': {'initial': {'a': 1}}},
+     'options.initial: must be 3 numbers (m)'),
+    ({'estimator': 'mle', 'bearings': bearings_json(), 'options': {'initial': [1e300, 0, 0]}},
+     'options.initial: |coordinate| above 1e+12 m'),
     ({'estimator': 'mle', 'bearings': bearings_json(), 'options': {'max_iterations': 0}},
      'options.max_iterations: must be an integer >= 1'),
     ({'estimator': 'mle', 'bearings': bearings_json()[:1]}, 'bearings: 1 bearing(s)'),
@@ -173,6 +183,7 @@ def test_bad_input_in_process(tmp_path, capsys, doc, message):
     (b'\xff\xfe{"bearings": []}', 'input: invalid JSON'),
     (b'{"bearings": "\xc3"}', 'input: invalid JSON'),
     (b'', 'input: invalid JSON'),
+    (b'[' * 100000 + b']' * 100000, 'input: invalid JSON (nested too deeply)'),
     # a UTF-8 byte order mark (as some editors write) is read past
     (b'\xef\xbb\xbf{"bearings": []}', 'bearings: 0 bearing(s)')])
 def test_undecodable_input_is_invalid_json(tmp_path, capsys, data, message):

@@ -323,6 +323,8 @@ def test_npz_errors(tmp_path, capsys):
     cases = [({'x': np.array(['a', 'b'])}, 'x: must be a numeric array'),
              ({'y': np.zeros(3)}, 'input: the NPZ columns have different lengths'),
              ({'problem': np.array([0.0, 0.5])}, 'row 1: problem: must be an integer id'),
+             ({'problem': np.array([2**63 - 1, 2**63], dtype=np.uint64)},
+              'row 1: problem: integer id 9223372036854775808 is beyond the 64-bit'),
              ({'sigma_azimuth': np.array([1e-3, 0.0])},
               'row 1 (problem 0): sigma_azimuth: must be > 0')]
     for change, message in cases:

@@ -458,6 +458,11 @@ def _read_npz(path):
                 if bad.any():
                     r = int(np.argmax(bad))
                     raise InputError(f'row {r}: problem: must be an integer id, got {a[r]!r}')
+            elif a.dtype.kind == 'u' and a.max() > np.iinfo(np.int64).max:
+                # (a CSV id must fit int64 too; unsigned 64-bit ids beyond it would wrap)
+                r = int(np.argmax(a > np.iinfo(np.int64).max))
+                raise InputError(f'row {r}: problem: integer id {int(a[r])} is beyond the '
+                                 '64-bit signed range')
             columns[name] = a.astype(np.int64)
         else:
             columns[name] = a.astype(float)

@@ -59,7 +59,8 @@ def request_header(doc, top_fields, problem_key, names, default, override, kind=
     for key in doc:
         if key not in top_fields:
             raise InputError(f'{key}: unknown field (expected one of {", ".join(top_fields)})')
-    name = override or doc.get('estimator') or default
+    given = doc.get('estimator')
+    name = override or (default if given is None else given)
     if canonical is not None:
         name = canonical(name)
     if not isinstance(name, str) or name not in names:
@@ -124,6 +125,8 @@ def read_json(path):
         return json.loads(data)
     except ValueError as exc:
         raise InputError(f'input: invalid JSON ({exc})') from None
+    except RecursionError:
+        raise InputError('input: invalid JSON (nested too deeply)') from None
 
 
 def write_results(results, batch, indent=None):

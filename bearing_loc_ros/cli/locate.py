@@ -263,7 +263,7 @@ def read_request(args):
     if override is not None:
         try:
             override = json.loads(override)
-        except ValueError as exc:
+        except (ValueError, RecursionError) as exc:
             raise InputError(f'--options: invalid JSON ({exc})') from None
         if not isinstance(override, dict):
             raise InputError('--options: must be a JSON object')

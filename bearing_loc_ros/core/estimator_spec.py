@@ -25,6 +25,7 @@ import numbers
 
 import numpy as np
 
+from .bearings import MAX_ABS_POSITION
 from .fix import FixResult
 
 MULTISTATION = 'multistation'
@@ -109,7 +110,15 @@ def _metres(name, value, optional):
 
 
 def _initial(value, M):
-    x0 = np.asarray(value, dtype=float)
+    """The starting point(s) (M, 3), m: finite, within ±MAX_ABS_POSITION (the stations'
+    bound), given as (3,) or (M, 3); else ValueError naming ``options.initial``."""
+    if isinstance(value, (str, bytes)):
+        raise ValueError(f'options.initial: must be 3 numbers (m), got {value!r}'[:120])
+    try:
+        x0 = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f'options.initial: must be 3 numbers (m), got {value!r}'[:120]) \
+            from None
     if x0.ndim == 1:
         x0 = x0[None]
     if x0.ndim != 2 or x0.shape[1] != 3 or (M is not None and x0.shape[0] not in (1, M)):
@@ -117,6 +126,8 @@ def _initial(value, M):
                          f'{np.shape(value)}')
     if not np.all(np.isfinite(x0)):
         raise ValueError('options.initial: non-finite coordinate')
+    if np.any(np.abs(x0) > MAX_ABS_POSITION):
+        raise ValueError(f'options.initial: |coordinate| above {MAX_ABS_POSITION:g} m')
     return np.broadcast_to(x0, (M if M is not None else x0.shape[0], 3)).copy()
 
 
