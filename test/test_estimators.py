@@ -409,11 +409,12 @@ def test_one_problem_path_hands_ieee_cases_to_the_batch_path():
 def _screen_by_definition(data, X, P, c2, probability, max_nu):
     """The robust screen written out plainly: residuals, per-row χ² band, ν from eigvalsh."""
     from bearing_loc_ros.core.robust_model import chi2_band, region_nonlinearity
-    ra, re, _, _, _, d, _ = data.evaluate(X)
+    ra, re, _, _, _, _, _ = data.evaluate(X)
     qa, qe = ra * ra, re * re
     chi2 = (qa + qe).sum(axis=-1)
     lo, hi = chi2_band(data.az.shape[1] + data.has_el.sum(axis=-1) - 3, probability)
-    nu = region_nonlinearity(P, d, np.ones_like(d, dtype=bool))
+    rho = np.hypot(*(X[:, None, :2] - data.pos[..., :2]).transpose(2, 0, 1))
+    nu = region_nonlinearity(P, rho, np.ones_like(rho, dtype=bool))
     with np.errstate(invalid='ignore'):
         calm = ((qa.max(axis=-1) <= c2) & (qe.max(axis=-1) <= c2) & (chi2 >= lo)
                 & (chi2 <= hi) & (nu <= max_nu))

@@ -12,7 +12,7 @@ from scipy import stats
 
 from bearing_loc_ros.core import evaluation as ev
 from bearing_loc_ros.core import robust
-from bearing_loc_ros.core.bearings import Bearing, BearingSet
+from bearing_loc_ros.core.bearings import Bearing, BearingSet, simulate_bearings
 from bearing_loc_ros.core.conventions import azimuth_elevation
 from bearing_loc_ros.core.estimators import locate
 from bearing_loc_ros.core.fusion import FusionConfig
@@ -363,17 +363,18 @@ def test_range_grown_status_looks_at_the_region_of_a_confidently_wrong_fix():
     X = res.position[idx]
     wa = 1.0 - res.excluded[idx, :, 0]
     we = b.has_elevation[idx] & ~res.excluded[idx, :, 1]
-    _, _, ga, ge, _, d, _ = data.evaluate(X)
+    _, _, ga, ge, _, _, _ = data.evaluate(X)
     P0 = safe_inverse(robust.fisher(ga, ge, wa, we))
     cov = robust.test_inversion_covariance(data, X, wa, we, P0)
     np.testing.assert_allclose(res.covariance[idx], cov, rtol=1e-9,
                                atol=1e-9 * np.abs(cov).max())
     present = (wa + we) > 0
+    rho = robust.horizontal_ranges(data, X)
     wide = robust.region_nonlinearity(
         robust.test_inversion_covariance(data, X, wa, we, P0, z=robust.STATUS_REGION_Z),
-        d, present)
+        rho, present)
     np.testing.assert_allclose(res.nonlinearity[idx], wide, rtol=1e-9)
-    narrow = robust.region_nonlinearity(cov, d, present)
+    narrow = robust.region_nonlinearity(cov, rho, present)
     limit = robust.MAX_REGION_NONLINEARITY_GROWN
     # (Where the region has no far side both are capped at 10 × the largest range, and ν is
     # far above the limit in both.)
@@ -550,3 +551,42 @@ def test_batch_refit_gives_each_problem_its_own_result(d_ref):
     assert np.array_equal(batch, alone)
     assert np.all(np.isfinite(batch))
     assert not np.array_equal(batch, X0)
+
+
+def _one(bs, k):
+    """Problem k of ``bs`` as a one-problem BearingSet (the one-fix path)."""
+    return BearingSet(*(a[k:k + 1] for a in (bs.positions, bs.azimuth, bs.elevation,
+                                              bs.sigma_az, bs.sigma_el)))
+
+
+def test_target_above_a_station_is_not_confidently_wrong():
+    # A target 1.8 m beside the vertical axis of an azimuth-only station, 1.5 km up: every
+    # azimuth fits near that axis, where the azimuth information grows as 1/ρ² and the
+    # covariance collapses. ν is taken over the horizontal range ρ (the azimuth's curvature
+    # scale), so such fixes are not ok; with the slant range 40 of 151 ok fixes were
+    # confidently wrong.
+    S = np.array([[0, 0, 0], [4000, 0, 0], [0, 4000, 0], [-3000, -3000, 0], [3000, -2000, 0]],
+                 dtype=float)
+    T = np.array([1.5, 1.0, 1500.0])
+    bs = simulate_bearings(np.tile(T, (200, 1)), S, 5e-3,
+                           has_elevation=[False, True, True, True, True],
+                           rng=np.random.default_rng(0))
+    for res, idx in ((locate('mle', bs), np.arange(200)),
+                     *((locate('mle', _one(bs, k)), [k]) for k in range(20))):
+        ok = res.status == 'ok'
+        e = res.position[ok] - T
+        m2 = np.einsum('mi,mi->m', e, np.linalg.solve(res.covariance[ok], e[..., None])[..., 0])
+        assert np.all(m2 <= Q9999), (idx, m2.max())
+
+
+def test_three_angles_must_fit_exactly_to_be_ok():
+    # Two stations, one elevation: three angles for three unknowns (dof 0, no χ² test).
+    # The refit stops 6 km from the truth with azimuth residuals of 426σ and −333σ; it was
+    # reported ok (both paths) and is now low_confidence.
+    S = [[3292.612314091666, -4757.544318202028, 0], [-4451.283220341735, 4641.734893425179, 0]]
+    bs = BearingSet.from_arrays(S, [0.5861478494678765, -0.8824241124102877],
+                                [np.nan, 0.0016181228901217771], 1e-3, 1e-3)
+    two = BearingSet(*(np.concatenate([a, a]) for a in (
+        bs.positions, bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el)))
+    for res in (locate('mle', bs), locate('mle', two)):
+        assert set(res.status) == {'low_confidence'}

@@ -71,7 +71,7 @@ DEFAULT_ESTIMATOR = 'mle'
 _A00, _A01, _A02, _A11, _A12, _A22, _B0, _B1, _B2, _COST, _SCALE, _OLD = range(12)
 # Two more rows with ``screen_rows``: the largest whitened r² of any angle and the smallest
 # squared station range, m², at X (the robust screen's statistics, core.robust).
-_WORST, _D2MIN = 12, 13
+_WORST, _RHO2MIN = 12, 13
 
 
 class _MLProblem:
@@ -195,7 +195,7 @@ class _MLProblem:
             q[_COST] = (rra + rre).sum(axis=0)
             if self.screen_rows:
                 q[_WORST] = np.maximum(rra, rre).max(axis=0)
-                q[_D2MIN] = r2.min(axis=0)
+                q[_RHO2MIN] = rho2.min(axis=0)
             q[_SCALE] = np.sqrt(r2.mean(axis=0))
         if self.d_ref is None:
             q[_OLD] = q[_COST]
@@ -360,7 +360,7 @@ def mle(bearings, **options):
         res = iterative_result('mle', x, spd_inverse3(info), it, conv, div)
         if problem.screen_rows:
             Q = state[0]
-            stats = (Q[_COST], Q[_WORST], Q[_D2MIN], problem.n_measurements)
+            stats = (Q[_COST], Q[_WORST], Q[_RHO2MIN], problem.n_measurements)
     return confident_result(res, bearings, screen_stats=stats) if opts['robust'] else res
 
 

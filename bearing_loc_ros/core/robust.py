@@ -37,7 +37,8 @@ Zong & Cui 2015 eqs. (3)-(11) (``mle``, ``wmle``):
    :data:`TEST_INVERSION_Z` (:func:`test_inversion_covariance`): the covariance at the
    estimate understates the region toward larger range, where σ(d) is larger. The fix is
    ``ok`` only when (a) the residual χ² ≤ the χ²_dof quantile of
-   :data:`CONSISTENCY_PROBABILITY`, (b) ν ≤ :func:`max_nonlinearity` (for range-grown σ, ν
+   :data:`CONSISTENCY_PROBABILITY` (dof at least 1: an exactly determined fix of three
+   angles must fit them), (b) ν ≤ :func:`max_nonlinearity` (for range-grown σ, ν
    of the test-inversion region of level :data:`STATUS_REGION_Z`, the Mahalanobis radius
    of a confidently wrong fix: the linearisation must hold out to the level at which the
    fix is judged), (c) at most ⌊(M_meas − 3)/2⌋ angles were excluded and (d) every
@@ -53,12 +54,14 @@ Zong & Cui 2015 eqs. (3)-(11) (``mle``, ``wmle``):
    that the excluded angles are outliers, and a subset fit can lie far from the optimum
    of all of them (Wang, Zhang & Wu 2006 geometry at 1.5 mrad: 6 km against 0.23 km).
 
-Nonlinearity ν = sqrt(λ_max(P)) / min_k d_k (:func:`region_nonlinearity`): the radius of
-the confidence region seen from the nearest station, relative to its range. The angles are
-functions of X / d_k, so their second-order terms over the confidence region are ν times
-the first-order ones (the parameter-effects curvature of Bates & Watts 1980 for a bearing);
-with ν small the error ellipsoid describes the confidence region, with ν large the region
-is a banana elongated in range and a Gaussian covariance understates its tail.
+Nonlinearity ν = sqrt(λ_max(P)) / min_k ρ_k (:func:`region_nonlinearity`), ρ_k the
+horizontal range of station k: the radius of the confidence region seen from the nearest
+station, relative to its range. An azimuth is a function of the horizontal offset over ρ_k
+(an elevation of the offset over d_k ≥ ρ_k), so the second-order terms of the angles over
+the confidence region are at most ν times the first-order ones (the parameter-effects
+curvature of Bates & Watts 1980 for a bearing); with ν small the error ellipsoid describes
+the confidence region, with ν large the region is a banana elongated in range, or wraps
+around a station's vertical axis, and a Gaussian covariance understates its tail.
 
 With range-grown σ, ν is computed from a widened covariance (step 4): computed at the
 estimate alone, it selects at large σ the fixes that landed short in range (where σ(d)
@@ -142,7 +145,8 @@ from .crlb import safe_inverse
 # Re-exported: the model and the consensus are part of this module's interface.
 from .robust_consensus import consensus_fit, second_optimum  # noqa: F401
 from .robust_model import (chi2_band, chi2_upper, CONSISTENCY_PROBABILITY,  # noqa: F401
-                           Data, DECISIVE_PROBABILITY, fisher, MAX_NONLINEARITY,
+                           Data, DECISIVE_PROBABILITY, fisher, horizontal_ranges,
+                           MAX_NONLINEARITY,
                            MAX_REGION_NONLINEARITY, MAX_REGION_NONLINEARITY_GROWN,
                            max_nonlinearity, MULTIMODE_PROBABILITY, nonlinearity,
                            OUTLIER_PROBABILITY, outlier_c2,
@@ -161,7 +165,7 @@ def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY, max_nu=None,
     With ``decisive``, a sixth item (M,) bool: every excluded angle is decisive (check (d)
     below; True where nothing is excluded).
 
-    ``ok``: χ² ≤ the χ²_dof ``probability`` quantile, ν ≤ ``max_nu`` (default
+    ``ok``: χ² ≤ the χ²_max(dof, 1) ``probability`` quantile, ν ≤ ``max_nu`` (default
     :func:`max_nonlinearity`), at most ⌊(M_meas − 3)/2⌋ angles excluded, every
     excluded angle decisive (predictive residual r² / (1 + gᵀPg) above the χ²₁ quantile of
     :data:`DECISIVE_PROBABILITY`) and no second optimum of the likelihood outside the
@@ -192,9 +196,12 @@ def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY, max_nu=None,
         Ps = np.where(np.all(np.isfinite(P), axis=(-2, -1))[:, None, None], Ps, np.inf)
     else:
         Ps = P
-    nu = region_nonlinearity(Ps, d, present)
+    nu = region_nonlinearity(Ps, horizontal_ranges(data, X), present)
     excluded = n_all - n_kept
-    ok = ((chi2 <= chi2_upper(dof, probability)) & (nu <= max_nu)
+    # dof 0 (three angles kept): the fit is exactly determined and its χ² should vanish;
+    # it is held to the χ²₁ quantile (as the horizontal solve holds dof ≤ 0), so an
+    # iteration that stopped short of an exact fit is not ok.
+    ok = ((chi2 <= chi2_upper(np.maximum(dof, 1), probability)) & (nu <= max_nu)
           & (excluded <= np.floor((n_all - 3) / 2.0)) & ~marginal.any(axis=-1)
           & np.all(np.isfinite(P), axis=(-2, -1)))
     idx = np.flatnonzero(ok)
@@ -210,7 +217,7 @@ def screen(data, X, P, probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None
 
     ``data`` (:class:`Data`, M problems), X (M, 3) m, P (M, 3, 3) m². Calm (False) when every
     whitened residual has r_j² ≤ ``c2``, the residual χ² lies inside the two-sided χ²_dof band
-    of ``probability`` (dof = M_meas − 3) and ν = sqrt(λ_max(P)) / min_k d_k ≤ ``max_nu``.
+    of ``probability`` (dof = M_meas − 3) and ν = sqrt(λ_max(P)) / min_k ρ_k ≤ ``max_nu``.
     A non-finite X or P fails the screen. The same decisions as :func:`screen_one` (tested);
     computed by :func:`screen_station_major` on station-major copies of ``data``.
     """
@@ -252,27 +259,28 @@ def screen_station_major(px, py, pz, az, el, ia, ie, n_meas, d_ref, X, P,
         qe *= qe
         chi2 = (qa + qe).sum(axis=0)
         worst = np.maximum(qa, qe).max(axis=0)
-    return screen_decision(chi2, worst, r2.min(axis=0), n_meas, P, d_ref is not None,
+    return screen_decision(chi2, worst, rho2.min(axis=0), n_meas, P, d_ref is not None,
                            probability, c2, max_nu)
 
 
-def screen_decision(chi2, worst, d2min, n_meas, P, grown=False,
+def screen_decision(chi2, worst, rho2min, n_meas, P, grown=False,
                     probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None):
     """:func:`screen` from its statistics: (M,) True where the fix needs the consensus.
 
-    ``chi2`` Σ r_j² and ``worst`` max_j r_j² of the whitened residuals at the fix, ``d2min``
-    min_k d_k², m², ``n_meas`` measured angles (all (M,)), P (M, 3, 3) m², ``grown`` for
-    range-grown σ (the ν bound). The estimator may hand these from its own last evaluation
-    (``mle``: the same numbers in the same order as :func:`screen_station_major`). A few
+    ``chi2`` Σ r_j² and ``worst`` max_j r_j² of the whitened residuals at the fix,
+    ``rho2min`` min_k ρ_k² (horizontal ranges), m², ``n_meas`` measured angles (all (M,)),
+    P (M, 3, 3) m², ``grown`` for range-grown σ (the ν bound). The estimator may hand these
+    from its own last evaluation (``mle``: the same numbers in the same order as
+    :func:`screen_station_major`). A few
     operations on (M,) arrays, since at high SNR nearly every fix is calm: the χ² band is
     looked up per distinct dof, and the ν test needs no eigenvalues: λ_max(P) < t ⇔ tI − P
     positive definite ⇔ its three leading principal minors are positive (Sylvester's
-    criterion), t = (``max_nu`` min_k d_k)². A non-finite P or d fails the screen.
+    criterion), t = (``max_nu`` min_k ρ_k)². A non-finite P or ρ fails the screen.
     """
     c2 = outlier_c2() if c2 is None else c2
     max_nu = max_nonlinearity(grown) if max_nu is None else max_nu
     with np.errstate(invalid='ignore', over='ignore'):
-        t = max_nu * max_nu * d2min
+        t = max_nu * max_nu * rho2min
         a = t - P[:, 0, 0]
         b = t - P[:, 1, 1]
         c = t - P[:, 2, 2]
@@ -302,7 +310,7 @@ def screen_one(bearings, x, d_ref, P, c2=None, probability=CONSISTENCY_PROBABILI
     x0, x1, x2 = x
     chi2 = 0.0
     n = 0
-    dmin = math.inf
+    rho_min = math.inf
     for (px, py, pz), a, e, s1, s2 in zip(pos, az, el, sa, se):
         dx, dy, dz = x0 - px, x1 - py, x2 - pz
         rho = math.hypot(dx, dy)
@@ -321,12 +329,12 @@ def screen_one(bearings, x, d_ref, P, c2=None, probability=CONSISTENCY_PROBABILI
                 return True
             chi2 += q
             n += 1
-        dmin = min(dmin, d)
+        rho_min = min(rho_min, rho)
     lo, hi = _band_cached(n - 3, probability)
     if not lo <= chi2 <= hi:
         return True
     lam = _lambda_max(P.tolist() if hasattr(P, 'tolist') else P)
-    return not math.sqrt(max(lam, 0.0)) <= max_nu * dmin
+    return not math.sqrt(max(lam, 0.0)) <= max_nu * rho_min
 
 
 def _lambda_max(p):
@@ -393,7 +401,7 @@ def confident_result(result, bearings, d_ref=None, screen_stats=None):
     fix exists; ``excluded`` (M, N, 2) and
     ``nonlinearity`` (M,) are filled. A problem that passes the screen keeps the
     estimator's own position, covariance and status. ``screen_stats``: optionally the
-    screen's statistics (chi2, worst, d2min, n_meas) at the result's positions, from the
+    screen's statistics (chi2, worst, rho2min, n_meas) at the result's positions, from the
     estimator's last evaluation (:func:`screen_decision`; the same decisions as
     :func:`screen`, tested), instead of evaluating the residuals again.
     """

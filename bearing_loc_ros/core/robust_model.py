@@ -164,17 +164,26 @@ def nonlinearity(P, u, d, present):
     return np.where(np.isfinite(out), out, np.nan)
 
 
-def region_nonlinearity(P, d, present):
-    """ν = sqrt(λ_max(P)) / min_k d_k over stations ``present`` (…, N); NaN if none.
+def horizontal_ranges(data, X):
+    """ρ_k = |(X − S_k)_xy| (M, N), m: the horizontal ranges of the stations of ``data`` from
+    X (M, 3) (the same operations as :meth:`Data.evaluate`'s ρ, so the same bits)."""
+    dv = X[..., None, :] - data.pos
+    dx, dy = dv[..., 0], dv[..., 1]
+    return np.sqrt(dx * dx + dy * dy)
 
-    P (…, 3, 3) m², d (…, N) ranges, m. The angular radius of the confidence region seen
-    from the nearest station (:mod:`.robust` docstring); NaN where P is not finite.
+
+def region_nonlinearity(P, rho, present):
+    """ν = sqrt(λ_max(P)) / min_k ρ_k over stations ``present`` (…, N); NaN if none.
+
+    P (…, 3, 3) m², ρ (…, N) horizontal ranges, m (an azimuth's curvature scale, never
+    above the range d_k an elevation's scale). The angular radius of the confidence region
+    seen from the nearest station (:mod:`.robust` docstring); NaN where P is not finite.
     """
     finite = np.all(np.isfinite(P), axis=(-2, -1))
     lam = np.linalg.eigvalsh(np.where(finite[..., None, None], P, 0.0))[..., -1]
-    dmin = np.where(present, d, np.inf).min(axis=-1)
+    rho_min = np.where(present, rho, np.inf).min(axis=-1)
     with np.errstate(invalid='ignore', divide='ignore'):
-        nu = np.sqrt(np.maximum(lam, 0.0)) / dmin
+        nu = np.sqrt(np.maximum(lam, 0.0)) / rho_min
     return np.where(finite & np.isfinite(nu), nu, np.nan)
 
 

@@ -660,7 +660,7 @@ def assess(pb, X, wa, we, X_ls):
     grown = pb.d_ref is not None
     max_nu = max_nonlinearity(grown)
     chi2 = o0 = o1 = o2 = 0.0
-    dmin, dmax = inf, 0.0
+    rho_min, dmax = inf, 0.0
     excluded = []               # (r, gradient) of the excluded angles
     terms = zip(_terms(pb, X), wa, we, pb.has)
     for (ra, re, a0, a1, h0, h1, h2, dx, dy, dz, d), w1, w2, h in terms:
@@ -669,7 +669,7 @@ def assess(pb, X, wa, we, X_ls):
             o0 += dx / d
             o1 += dy / d
             o2 += dz / d
-            dmin = min(dmin, d)
+            rho_min = min(rho_min, sqrt(dx * dx + dy * dy))
         if isfinite(d):
             dmax = max(dmax, d)
         if w1 == 0:
@@ -693,9 +693,9 @@ def assess(pb, X, wa, we, X_ls):
               if finite else None)
     nu = nan
     if finite and Ps is not None:
-        nu = sqrt(max(_eig_extremes(_full(*Ps))[2], 0.0)) / dmin
+        nu = sqrt(max(_eig_extremes(_full(*Ps))[2], 0.0)) / rho_min
         nu = nu if isfinite(nu) else nan
-    ok = (chi2 <= _upper(n_kept - 3) and nu <= max_nu
+    ok = (chi2 <= _upper(max(n_kept - 3, 1)) and nu <= max_nu
           and n_all - n_kept <= (n_all - 3) // 2 and not marginal and finite)
     if ok:
         ok = not _second_optimum(pb, X, wa, we, P, X_ls)
