@@ -555,8 +555,8 @@ def test_batch_refit_gives_each_problem_its_own_result(d_ref):
 
 def _one(bs, k):
     """Problem k of ``bs`` as a one-problem BearingSet (the one-fix path)."""
-    return BearingSet(*(a[k:k + 1] for a in (bs.positions, bs.azimuth, bs.elevation,
-                                              bs.sigma_az, bs.sigma_el)))
+    fields = (bs.positions, bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el)
+    return BearingSet(*(a[k:k + 1] for a in fields))
 
 
 def test_target_above_a_station_is_not_confidently_wrong():
