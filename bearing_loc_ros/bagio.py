@@ -374,20 +374,65 @@ class BagWriter:
 
 # ----------------------------------------------------------------------------------- reader
 
+#: Top-level key of a rosbag2 ``metadata.yaml``.
+METADATA_KEY = 'rosbag2_bagfile_information'
+
+
+def _one_line(exc):
+    """``str(exc)`` with every run of whitespace (YAML errors span lines) made one space."""
+    return ' '.join(str(exc).split())
+
+
 def read_metadata(path):
-    """Parse ``<path>/metadata.yaml`` and return its ``rosbag2_bagfile_information`` dict."""
+    """Parse ``<path>/metadata.yaml`` and return its ``rosbag2_bagfile_information`` dict.
+
+    Checks what callers index directly: the document is a mapping holding the mapping
+    ``rosbag2_bagfile_information``, whose ``duration.nanoseconds`` is an integer (ns) and
+    whose optional ``relative_file_paths`` is a list of strings. Anything else raises a
+    one-line ValueError ``'bag: <file>: <key>: <problem>'`` (never a YAML or Key error).
+    """
     meta = Path(path) / 'metadata.yaml'
     if not meta.is_file():
         raise ValueError(f'bag: {path} has no metadata.yaml (not a rosbag2 directory?)')
-    with open(meta, encoding='utf-8') as f:
-        return yaml.safe_load(f)['rosbag2_bagfile_information']
+    try:
+        with open(meta, encoding='utf-8') as f:
+            doc = yaml.safe_load(f)
+    except OSError as exc:
+        raise ValueError(f'bag: {meta}: cannot read ({exc.strerror or exc})') from None
+    except UnicodeDecodeError:
+        raise ValueError(f'bag: {meta}: not a UTF-8 text file') from None
+    except yaml.YAMLError as exc:
+        raise ValueError(f'bag: {meta}: invalid YAML ({_one_line(exc)})') from None
+    if doc is None:
+        raise ValueError(f'bag: {meta}: empty file (not rosbag2 metadata)')
+    if not isinstance(doc, dict):
+        raise ValueError(f'bag: {meta}: expected a mapping with key {METADATA_KEY}, got '
+                         f'{type(doc).__name__} (not rosbag2 metadata)')
+    info = doc.get(METADATA_KEY)
+    if not isinstance(info, dict):
+        problem = ('required key is missing (not rosbag2 metadata)' if info is None
+                   else f'expected a mapping, got {type(info).__name__}')
+        raise ValueError(f'bag: {meta}: {METADATA_KEY}: {problem}')
+    duration = info.get('duration')
+    ns = duration.get('nanoseconds') if isinstance(duration, dict) else None
+    if isinstance(ns, bool) or not isinstance(ns, int):
+        problem = ('required key is missing' if ns is None
+                   else f'expected an integer (ns), got {str(ns)[:80]!r}')
+        raise ValueError(f'bag: {meta}: {METADATA_KEY}.duration.nanoseconds: {problem}')
+    files = info.get('relative_file_paths', [])
+    if not isinstance(files, list) or not all(isinstance(x, str) for x in files):
+        raise ValueError(f'bag: {meta}: {METADATA_KEY}.relative_file_paths: expected a list '
+                         f'of file names, got {str(files)[:80]}')
+    return info
 
 
 class BagReader:
     """Read a rosbag2 bag (either storage, metadata version <= 9) with ``rosbags``.
 
     ``topics`` maps topic name -> :class:`TopicInfo`; :meth:`messages` yields
-    :class:`BagMessage` in bag-time order (ties in storage order).
+    :class:`BagMessage` in bag-time order (ties in storage order); times are int ns. A
+    malformed directory or ``metadata.yaml`` raises a one-line ValueError starting ``bag:``
+    (:func:`read_metadata`'s checks first).
     """
 
     def __init__(self, path):
@@ -395,10 +440,12 @@ class BagReader:
         path = Path(path)
         if not path.is_dir():
             raise ValueError(f'bag: {path} is not a directory')
+        if (path / 'metadata.yaml').is_file():
+            read_metadata(path)          # a malformed file: the one-line error naming the key
         try:
             self._reader = Reader(path)
         except Exception as exc:  # rosbags raises ReaderError and friends
-            raise ValueError(f'bag: cannot open {path}: {exc}') from None
+            raise ValueError(f'bag: cannot open {path}: {_one_line(exc)}') from None
         self.path = path
 
     def open(self):
@@ -406,7 +453,7 @@ class BagReader:
         try:
             self._reader.open()
         except Exception as exc:
-            raise ValueError(f'bag: cannot open {self.path}: {exc}') from None
+            raise ValueError(f'bag: cannot open {self.path}: {_one_line(exc)}') from None
         return self
 
     def close(self):

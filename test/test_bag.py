@@ -243,6 +243,26 @@ def test_bag_simulate_cli_and_errors(tmp_path, capsys):
     assert resolve_scenario('seed003.yaml').endswith('seed003.yaml')
 
 
+@pytest.mark.parametrize('content,problem', [
+    ('garbage', 'expected a mapping with key rosbag2_bagfile_information, got str'),
+    ('', 'empty file'),
+    ('a: 1', 'rosbag2_bagfile_information: required key is missing'),
+    (': : [', 'invalid YAML'),
+])
+@pytest.mark.parametrize('verb', ['info', 'process'])
+def test_malformed_metadata_is_one_line_error(tmp_path, capsys, content, problem, verb):
+    """A malformed metadata.yaml (was TypeError, KeyError or a YAML error for `bag info`)
+    exits 2 with one line naming the file and the problem."""
+    (tmp_path / 'metadata.yaml').write_text(content, encoding='utf-8')
+    assert cli_main(['bag', verb, str(tmp_path)]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and 'Traceback' not in captured.err, captured.err
+    assert f'bag: {tmp_path / "metadata.yaml"}: {problem}' in lines[0], lines[0]
+    with pytest.raises(ValueError, match=problem):
+        bagio.read_metadata(tmp_path)
+
+
 def test_bag_simulate_is_deterministic(tmp_path):
     scenario = load_scenario(STATIC3)
     for name in ('a', 'b'):

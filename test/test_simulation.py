@@ -404,3 +404,82 @@ def test_bad_yaml_syntax_and_missing_file(tmp_path):
     p.write_text('')
     with pytest.raises(ValueError, match='empty scenario'):
         load_scenario(p)
+
+
+# --- values beyond the documented bounds (docs/nodes.md "Scenario YAML") ----------------------
+
+def _set(key, value, station=0):
+    """Mutation setting top-level ``key`` (station None) or ``stations[station].key``."""
+    def mutate(d):
+        (d if station is None else d['stations'][station])[key] = value
+    return mutate
+
+
+# Each value made `bag simulate` overflow (OverflowError in the simulator or rosbags), run
+# out of memory (truth_rate 1e9: a 745 GiB truth array) or silently write wrong data (every
+# stamp 0, or bearings that fail validation) before the loader bounded it.
+BEYOND = [
+    ('epoch', None, 1e300), ('epoch', None, 1e10), ('phase', 0, 1e300), ('rate', 0, 1e-300),
+    ('sigma_az', 0, 1e300), ('position_sigma', 0, 1e300), ('latency', 0, 1e12),
+    ('truth_rate', None, 1e9), ('clock_offset', 0, 1e12), ('clock_jitter', 0, 1e300),
+    ('position', 0, [1e300, 0.0, 0.0]),
+    ('duration', None, 1e300), ('sigma_el_deg', 0, 1e300), ('clock_drift_ppm', 1, -1e300),
+    ('latency_jitter', 1, 1e300), ('velocity', 2, [0.0, 1e300, 0.0]),
+]
+
+
+@pytest.mark.parametrize('key,station,value', BEYOND)
+def test_values_beyond_the_bounds_name_the_key(tmp_path, key, station, value):
+    d = _base()
+    if key == 'sigma_el_deg':
+        d['stations'][station].pop('sigma_el')
+    _set(key, value, station)(d)
+    path = tmp_path / 'beyond.yaml'
+    path.write_text(yaml.safe_dump(d))
+    with pytest.raises(ValueError) as exc:
+        load_scenario(path)
+    where = key if station is None else f'stations[{station}].{key}'
+    msg = str(exc.value)
+    assert msg.startswith(f'{path}: {where}: ') and 'must be' in msg, msg
+
+
+def test_truth_samples_are_bounded_by_rate_times_duration():
+    d = _base()
+    d.update(truth_rate=1e5, duration=100.0)    # 1e7 samples of ~0.5 kB each
+    with pytest.raises(ValueError, match=r'^x.yaml: truth_rate: .*1e\+07 truth samples'):
+        parse_scenario(d, 'x.yaml')
+    d.update(truth_rate=1e4)
+    assert parse_scenario(d, 'x.yaml').truth_rate == 1e4
+
+
+def test_the_bounds_themselves_give_valid_ros_stamps(tmp_path):
+    """At the largest epoch, clock offset, drift, jitters and latency every stamp still fits
+    builtin_interfaces/Time (int32 s) and every bearing is valid."""
+    d = _base()
+    d.update(epoch=2e9, duration=2.0)
+    d['stations'][0].update(clock_offset=1e8, clock_drift_ppm=1e5, clock_jitter=100.0,
+                            latency=3600.0, latency_jitter=100.0, position_sigma=1e6,
+                            position=[1e8, 0.0, 0.0], sigma_az=math.pi, sigma_el=1e-12)
+    sim = simulate(parse_scenario(d, 'edge.yaml'), seed=1)
+    assert sim.bearings
+    for ev in sim.bearings:
+        ev.bearing.validate()
+        assert 0 <= ev.bearing.stamp_ns < 2 ** 31 * 10 ** 9
+        assert 0 <= ev.publish_ns < 2 ** 31 * 10 ** 9
+
+
+def test_bag_simulate_refuses_an_unbounded_scenario(tmp_path, capsys):
+    """End to end through the CLI: exit 2, one line on stderr naming file and key, no bag."""
+    from bearing_loc_ros.cli import main
+    d = _base()
+    d['stations'][1]['clock_jitter'] = 1e300      # wrote a bag with every stamp 0
+    path = tmp_path / 'jitter.yaml'
+    path.write_text(yaml.safe_dump(d))
+    out = tmp_path / 'bag'
+    assert main(['bag', 'simulate', '--scenario', str(path), '--duration', '10', '--out',
+                 str(out)]) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and f'{path}: stations[1].clock_jitter: must be' in lines[0], \
+        captured.err
+    assert captured.out == '' and not out.exists()

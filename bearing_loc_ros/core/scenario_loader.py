@@ -11,6 +11,7 @@ import re
 
 import numpy as np
 
+from .bearings import SIGMA_MIN
 from .geodesy import geodetic_to_enu
 from .scenario_model import (DEFAULT_EPOCH, DEFAULT_FRAME, DEFAULT_TRUTH_RATE, Scenario,
                              SIGMA_REPORTS, SigmaGrowth, Station, Target, TARGET_KINDS,
@@ -31,6 +32,40 @@ STATION_KEYS = ('id', 'dims', 'sigma_az', 'sigma_az_deg', 'sigma_el', 'sigma_el_
 TARGET_KEYS = ('namespace', 'kind', 'box_min', 'box_max', 'count') + MOTION_KEYS
 GROWTH_KEYS = ('range_ref', 'min_factor', 'max_factor', 'report')
 GEODETIC_KEYS = ('lat_deg', 'lon_deg', 'alt')
+
+# Bounds of the numeric keys (docs/nodes.md "Scenario YAML", stated to users there). Far
+# beyond any deployment, they keep the simulator's arithmetic safe: every ROS stamp (epoch +
+# t + clock_offset + drift·t + jitter, or epoch + t + latency + jitter) fits the int32
+# seconds of builtin_interfaces/Time (2**31 − 1 s, January 2038): 2e9 + 1e7 + 1e8 + 1e6 +
+# 100·z < 2.12e9 s; a period 1/rate fits int64 ns; a station stays within 1e8 + 1e4·1e7 =
+# 1e11 m of the origin (core.bearings accepts |coordinate| <= 1e12 m) and σ within what a
+# bearing carries.
+#: Largest epoch, s (ROS time of scenario time 0; 2e9 s is May 2033).
+MAX_EPOCH = 2e9
+#: Largest duration, phase, |start_time| and |waypoint time|, s (about 116 days).
+MAX_TIME = 1e7
+#: Largest latency, s (an hour; it also lengthens a bag's /clock stream).
+MAX_LATENCY = 3600.0
+#: Largest |clock_offset|, s (about 3 years).
+MAX_CLOCK_OFFSET = 1e8
+#: Largest |clock_drift_ppm| (10 %; a quartz clock drifts < 100 ppm).
+MAX_DRIFT_PPM = 1e5
+#: Largest clock_jitter and latency_jitter (σ of a Gaussian), s.
+MAX_JITTER = 100.0
+#: Observation rate and non-zero truth_rate, Hz: a period from 1 µs to 11.6 days.
+RATE_RANGE = (1e-6, 1e6)
+#: Most truth samples of one run (truth_rate · duration · targets; ~0.5 kB each in memory).
+MAX_TRUTH_SAMPLES = 1e6
+#: Largest distance of a position, waypoint, box corner or geodetic point from the ENU
+#: origin, m (a quarter of the Earth-Moon distance); also the bound of |alt| and range_ref.
+MAX_POSITION = 1e8
+#: Speed (|velocity| or a waypoint speed) range, m/s: 1 mm/s to 10 km/s (above LEO speed).
+SPEED_RANGE = (1e-3, 1e4)
+#: Largest position_sigma (station survey σ), m.
+MAX_POSITION_SIGMA = 1e6
+#: σ of a bearing (sigma_az, sigma_el), rad: core.bearings' SIGMA_MIN to 180° (a larger σ
+#: carries no information); also the bound of outlier_size.
+SIGMA_RANGE = (SIGMA_MIN, math.pi)
 
 
 class _Src:
@@ -55,6 +90,8 @@ def _mapping(src, value, key, allowed):
 
 def _float(src, d, key, where, default=None, lo=None, hi=None, lo_open=False,
            required=False):
+    """``d[key]`` as a finite float in the bounds lo (open if ``lo_open``) .. hi, in the
+    key's own unit; ``default`` when absent or null. ``where`` prefixes the key path."""
     if key not in d or d[key] is None:
         if required:
             raise src.error(f'{where}{key}', 'required key is missing')
@@ -75,17 +112,45 @@ def _float(src, d, key, where, default=None, lo=None, hi=None, lo_open=False,
     return v
 
 
-def _angle(src, d, key, where, default, lo=0.0, lo_open=True):
-    """A radian value given as ``key`` (rad) or ``key_deg`` (degrees), not both."""
+def _within(src, key, v, bounds, unit):
+    """Raise the loader error for ``key`` unless bounds[0] <= v <= bounds[1] (``unit``, e.g.
+    ' s'); None passes. The bounds keep the simulator's arithmetic finite (module constants).
+    Returns v."""
+    lo, hi = bounds
+    if v is not None and not lo <= v <= hi:
+        raise src.error(key, f'must be within [{lo:g}, {hi:g}]{unit} (got {v:g})')
+    return v
+
+
+def _bounded(src, d, key, where, default, bounds, unit, lo_open=False):
+    """``d[key]`` (``unit``) checked by :func:`_float` (lower bound bounds[0]) and
+    :func:`_within` (bounds[1]); ``default`` when absent."""
+    v = _float(src, d, key, where, default, lo=bounds[0], lo_open=lo_open)
+    return _within(src, f'{where}{key}', v, bounds, unit)
+
+
+def _angle(src, d, key, where, default, lo=0.0, lo_open=True, bounds=None):
+    """A radian value given as ``key`` (rad) or ``key_deg`` (degrees), not both.
+
+    ``lo`` (in the unit given) as in :func:`_float`; ``bounds`` (rad, optional) the accepted
+    range, reported in the unit given. Returns rad, or ``default`` when neither key is set.
+    """
     if key in d and f'{key}_deg' in d:
         raise src.error(f'{where}{key}_deg', f'give either {key} (rad) or {key}_deg, not both')
     if f'{key}_deg' in d:
         v = _float(src, d, f'{key}_deg', where, lo=lo, lo_open=lo_open)
+        if bounds is not None:
+            _within(src, f'{where}{key}_deg', v, [math.degrees(b) for b in bounds], ' deg')
         return default if v is None else math.radians(v)
-    return _float(src, d, key, where, default, lo=lo, lo_open=lo_open)
+    v = _float(src, d, key, where, default, lo=lo, lo_open=lo_open)
+    if bounds is not None and key in d:
+        _within(src, f'{where}{key}', v, bounds, ' rad')
+    return v
 
 
-def _vec(src, value, key, n=3):
+def _vec(src, value, key, n=3, max_norm=MAX_POSITION, unit=' m'):
+    """``value`` as a finite float array of n numbers whose Euclidean norm is at most
+    ``max_norm`` (``unit``; default: a position within MAX_POSITION m of the origin)."""
     if (not isinstance(value, (list, tuple)) or len(value) != n
             or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in value)):
         raise src.error(key, f'expected a list of {n} numbers, got {value!r}')
@@ -95,19 +160,27 @@ def _vec(src, value, key, n=3):
         v = np.array([math.inf])
     if not np.all(np.isfinite(v)):
         raise src.error(key, f'non-finite value in {str(value)[:80]}')
+    if np.max(np.abs(v)) > max_norm or np.linalg.norm(v) > max_norm:
+        raise src.error(key, f'norm must be <= {max_norm:g}{unit} (got {str(value)[:80]})')
     return v
 
 
 def _geodetic(src, value, key):
+    """(lat_deg, lon_deg, alt m) of a WGS84 mapping; |alt| <= MAX_POSITION m."""
     g = _mapping(src, value, key, GEODETIC_KEYS)
     lat = _float(src, g, 'lat_deg', f'{key}.', lo=-90.0, hi=90.0, required=True)
     lon = _float(src, g, 'lon_deg', f'{key}.', lo=-180.0, hi=360.0, required=True)
-    alt = _float(src, g, 'alt', f'{key}.', default=0.0)
+    alt = _bounded(src, g, 'alt', f'{key}.', 0.0, (-MAX_POSITION, MAX_POSITION), ' m')
     return lat, lon, alt
 
 
 def _motion(src, d, where, origin, allow_random=False):
-    """Parse the motion keys of a station or target into a Trajectory (or None for random)."""
+    """Parse the motion keys of a station or target into a Trajectory (or None for random).
+
+    Positions m (ENU, within MAX_POSITION of the origin), speeds m/s (SPEED_RANGE), times s
+    of scenario time (|t| <= MAX_TIME).
+    """
+    t_bounds = (-MAX_TIME, MAX_TIME)
     has = {k for k in MOTION_KEYS if k in d}
     if 'position' in has and 'geodetic' in has:
         raise src.error(f'{where}geodetic', 'give either position (ENU m) or geodetic')
@@ -128,7 +201,9 @@ def _motion(src, d, where, origin, allow_random=False):
             times = d['times']
             if not isinstance(times, (list, tuple)) or len(times) != len(pts):
                 raise src.error(f'{where}times', f'expected {len(pts)} times (one per waypoint)')
-            ts = np.array([_float(src, {'t': x}, 't', f'{where}times[{k}]', required=True)
+            ts = np.array([_within(src, f'{where}times[{k}]',
+                                   _float(src, {'t': x}, 't', f'{where}times[{k}]',
+                                          required=True), t_bounds, ' s')
                            for k, x in enumerate(times)])
             if np.any(np.diff(ts) <= 0):
                 raise src.error(f'{where}times', 'must be strictly increasing')
@@ -139,14 +214,18 @@ def _motion(src, d, where, origin, allow_random=False):
         if isinstance(sp, (list, tuple)):
             if len(sp) != len(legs):
                 raise src.error(f'{where}speed', f'expected {len(legs)} speeds (one per leg)')
-            speeds = np.array([_float(src, {'v': x}, 'v', f'{where}speed[{k}]', lo=0.0,
-                                      lo_open=True, required=True) for k, x in enumerate(sp)])
+            speeds = np.array([_within(src, f'{where}speed[{k}]',
+                                       _float(src, {'v': x}, 'v', f'{where}speed[{k}]',
+                                              lo=0.0, lo_open=True, required=True),
+                                       SPEED_RANGE, ' m/s') for k, x in enumerate(sp)])
         else:
-            speeds = np.full(len(legs), _float(src, d, 'speed', where, lo=0.0, lo_open=True))
+            speeds = np.full(len(legs), _within(
+                src, f'{where}speed', _float(src, d, 'speed', where, lo=0.0, lo_open=True),
+                SPEED_RANGE, ' m/s'))
         k0 = np.flatnonzero(legs <= 0)
         if len(k0):
             raise src.error(f'{where}waypoints[{k0[0] + 1}]', 'repeats the previous waypoint')
-        t0 = _float(src, d, 'start_time', where, 0.0)
+        t0 = _bounded(src, d, 'start_time', where, 0.0, t_bounds, ' s')
         return Trajectory.waypoints(pts, t0 + np.concatenate([[0.0], np.cumsum(legs / speeds)]))
     for k in ('speed', 'times', 'start_time'):
         if k in has:
@@ -159,6 +238,9 @@ def _motion(src, d, where, origin, allow_random=False):
             p = geodetic_to_enu(lat, lon, alt, origin).reshape(3)
         except ValueError as exc:
             raise src.error(f'{where}geodetic', str(exc)) from None
+        if np.linalg.norm(p) > MAX_POSITION:
+            raise src.error(f'{where}geodetic', f'{np.linalg.norm(p):.3g} m from '
+                            f'geodetic_origin, more than {MAX_POSITION:g} m')
     elif 'position' in has:
         p = _vec(src, d['position'], f'{where}position')
     elif allow_random:
@@ -166,11 +248,14 @@ def _motion(src, d, where, origin, allow_random=False):
     else:
         raise src.error(f'{where}position', 'required (or geodetic, or waypoints)')
     if 'velocity' in has:
-        return Trajectory.constant_velocity(p, _vec(src, d['velocity'], f'{where}velocity'))
+        return Trajectory.constant_velocity(p, _vec(src, d['velocity'], f'{where}velocity',
+                                                    max_norm=SPEED_RANGE[1], unit=' m/s'))
     return Trajectory.static(p)
 
 
 def _station(src, raw, k, defaults, origin):
+    """Station k from its mapping over ``defaults`` (units: docs/nodes.md "Scenario YAML";
+    rad, s, Hz, m; bounds: the module constants)."""
     where = f'stations[{k}].'
     _mapping(src, raw, f'stations[{k}]', STATION_KEYS)
     d = dict(defaults)
@@ -186,8 +271,9 @@ def _station(src, raw, k, defaults, origin):
     dims = d.get('dims', 2)
     if dims not in (1, 2) or isinstance(dims, bool):
         raise src.error(f'{where}dims', f'must be 1 (azimuth only) or 2 (got {dims!r})')
-    sigma_az = _angle(src, d, 'sigma_az', where, 0.01)
-    sigma_el = _angle(src, d, 'sigma_el', where, sigma_az) if dims == 2 else math.nan
+    sigma_az = _angle(src, d, 'sigma_az', where, 0.01, bounds=SIGMA_RANGE)
+    sigma_el = (_angle(src, d, 'sigma_el', where, sigma_az, bounds=SIGMA_RANGE) if dims == 2
+                else math.nan)
     growth = None
     if d.get('sigma_growth') is not None:
         gw = f'{where}sigma_growth'
@@ -197,29 +283,44 @@ def _station(src, raw, k, defaults, origin):
             raise src.error(f'{gw}.report', f'must be one of {SIGMA_REPORTS} (got {report!r})')
         fmin = _float(src, g, 'min_factor', f'{gw}.', 1e-3, lo=0.0, lo_open=True)
         fmax = _float(src, g, 'max_factor', f'{gw}.', math.inf, lo=fmin)
-        growth = SigmaGrowth(_float(src, g, 'range_ref', f'{gw}.', lo=0.0, lo_open=True,
-                                    required=True), fmin, fmax, report)
-    outlier_size = _angle(src, d, 'outlier_size', where, math.radians(10.0), lo_open=False)
+        floor = fmin * max(sigma_az, sigma_el if dims == 2 else 0.0)
+        if floor > SIGMA_RANGE[1]:
+            raise src.error(f'{gw}.min_factor', f'sigma x min_factor = {floor:g} rad, more '
+                            f'than pi rad (180 deg) at every range')
+        range_ref = _float(src, g, 'range_ref', f'{gw}.', lo=0.0, lo_open=True,
+                           required=True)
+        growth = SigmaGrowth(_within(src, f'{gw}.range_ref', range_ref,
+                                     (1e-3, MAX_POSITION), ' m'), fmin, fmax, report)
+    outlier_size = _angle(src, d, 'outlier_size', where, math.radians(10.0), lo_open=False,
+                          bounds=(0.0, math.pi))
     size_max = None
     if 'outlier_size_max' in d or 'outlier_size_max_deg' in d:
         size_max = _angle(src, d, 'outlier_size_max', where, None, lo_open=False)
         if not outlier_size <= size_max <= math.pi:
             raise src.error(f'{where}outlier_size_max', 'must be in [outlier_size, 180 deg]')
-    rate = _float(src, d, 'rate', where, 1.0, lo=0.0, lo_open=True)
-    if rate > 1e6:
-        raise src.error(f'{where}rate', f'must be <= 1e6 Hz (got {rate})')
+    rate = _within(src, f'{where}rate', _float(src, d, 'rate', where, 1.0, lo=0.0,
+                                               lo_open=True), RATE_RANGE, ' Hz')
+    clock_offset = _within(src, f'{where}clock_offset',
+                           _float(src, d, 'clock_offset', where, 0.0),
+                           (-MAX_CLOCK_OFFSET, MAX_CLOCK_OFFSET), ' s')
+    drift_ppm = _within(src, f'{where}clock_drift_ppm',
+                        _float(src, d, 'clock_drift_ppm', where, 0.0),
+                        (-MAX_DRIFT_PPM, MAX_DRIFT_PPM), ' ppm')
     return Station(
         id=sid, trajectory=_motion(src, d, where, origin), dims=dims, sigma_az=sigma_az,
-        sigma_el=sigma_el, rate=rate, phase=_float(src, d, 'phase', where, 0.0, lo=0.0),
-        clock_offset=_float(src, d, 'clock_offset', where, 0.0),
-        clock_jitter=_float(src, d, 'clock_jitter', where, 0.0, lo=0.0),
-        clock_drift=_float(src, d, 'clock_drift_ppm', where, 0.0) * 1e-6,
-        latency=_float(src, d, 'latency', where, 0.0, lo=0.0),
-        latency_jitter=_float(src, d, 'latency_jitter', where, 0.0, lo=0.0),
+        sigma_el=sigma_el, rate=rate,
+        phase=_bounded(src, d, 'phase', where, 0.0, (0.0, MAX_TIME), ' s'),
+        clock_offset=clock_offset,
+        clock_jitter=_bounded(src, d, 'clock_jitter', where, 0.0, (0.0, MAX_JITTER), ' s'),
+        clock_drift=drift_ppm * 1e-6,
+        latency=_bounded(src, d, 'latency', where, 0.0, (0.0, MAX_LATENCY), ' s'),
+        latency_jitter=_bounded(src, d, 'latency_jitter', where, 0.0, (0.0, MAX_JITTER),
+                                ' s'),
         dropout=_float(src, d, 'dropout', where, 0.0, lo=0.0, hi=1.0),
         outlier=_float(src, d, 'outlier', where, 0.0, lo=0.0, hi=1.0),
         outlier_size=outlier_size, outlier_size_max=size_max,
-        position_sigma=_float(src, d, 'position_sigma', where, 0.0, lo=0.0),
+        position_sigma=_bounded(src, d, 'position_sigma', where, 0.0,
+                                (0.0, MAX_POSITION_SIGMA), ' m'),
         sigma_growth=growth)
 
 
@@ -235,6 +336,7 @@ def _namespace(src, value, key):
 
 
 def _targets(src, raw, k, origin):
+    """Target(s) of ``targets[k]`` (several for a random_static ``count``); positions m."""
     where = f'targets[{k}].'
     _mapping(src, raw, f'targets[{k}]', TARGET_KEYS)
     ns = _namespace(src, raw.get('namespace', ''), f'{where}namespace')
@@ -269,8 +371,10 @@ def _targets(src, raw, k, origin):
 def parse_scenario(data, source='<dict>'):
     """Validate a scenario mapping (the parsed YAML) and return a :class:`Scenario`.
 
-    Raises ValueError ``'<source>: <key path>: <problem>'`` naming the offending key, e.g.
-    ``config/scenarios/x.yaml: stations[1].sigma_az: must be > 0.0 (got -1.0)``.
+    Units: m, s, rad (``_deg`` keys: degrees), Hz, ENU. Raises ValueError
+    ``'<source>: <key path>: <problem>'`` naming the offending key, e.g.
+    ``config/scenarios/x.yaml: stations[1].sigma_az: must be > 0.0 (got -1.0)``; every number
+    must also lie within the bounds of the module constants (docs/nodes.md).
     """
     src = _Src(source)
     _mapping(src, data, '', SCENARIO_KEYS)
@@ -282,9 +386,12 @@ def parse_scenario(data, source='<dict>'):
     frame_id = data.get('frame_id', DEFAULT_FRAME)
     if not isinstance(frame_id, str) or not frame_id:
         raise src.error('frame_id', f'expected a non-empty string, got {frame_id!r}')
-    duration = _float(src, data, 'duration', '', lo=0.0, lo_open=True, required=True)
-    epoch = _float(src, data, 'epoch', '', DEFAULT_EPOCH, lo=0.0)
+    duration = _within(src, 'duration', _float(src, data, 'duration', '', lo=0.0, lo_open=True,
+                                               required=True), (0.0, MAX_TIME), ' s')
+    epoch = _bounded(src, data, 'epoch', '', DEFAULT_EPOCH, (0.0, MAX_EPOCH), ' s')
     truth_rate = _float(src, data, 'truth_rate', '', DEFAULT_TRUTH_RATE, lo=0.0)
+    if truth_rate > 0:
+        _within(src, 'truth_rate', truth_rate, RATE_RANGE, ' Hz (or 0 for none)')
     origin = None
     if data.get('geodetic_origin') is not None:
         origin = _geodetic(src, data['geodetic_origin'], 'geodetic_origin')
@@ -313,6 +420,11 @@ def parse_scenario(data, source='<dict>'):
         if t.namespace in seen:
             raise src.error('targets', f'duplicate target namespace {t.namespace!r}')
         seen.add(t.namespace)
+    n_truth = truth_rate * duration * len(targets)
+    if n_truth > MAX_TRUTH_SAMPLES:
+        raise src.error('truth_rate', f'truth_rate x duration x targets = {n_truth:.3g} truth '
+                        f'samples, more than {MAX_TRUTH_SAMPLES:g}: lower truth_rate '
+                        f'(0 = no truth)')
     return Scenario(stations=stations, targets=targets, duration=duration, name=name,
                     description=description, frame_id=frame_id, epoch=epoch,
                     truth_rate=truth_rate, geodetic_origin=origin, source=source)
