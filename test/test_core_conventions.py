@@ -252,6 +252,24 @@ def test_simulate_bearings_noise_free_is_exact():
     assert np.isnan(bs.elevation[0, 1]) and np.isnan(bs.sigma_el[0, 1])
 
 
+def test_simulate_bearings_clips_elevation_past_the_zenith():
+    # The target 2e-6 rad from station 0's zenith with σ_ψ = 0.01: about half the draws cross
+    # ±π/2, which raised ValueError('elevation: |elevation| must be < pi/2'). Clipped to
+    # ±MAX_ELEVATION as the simulator and core.evaluation do; the other draws are unchanged.
+    from bearing_loc_ros.core.scenario_model import MAX_ELEVATION
+    assert bearings_module.MAX_ELEVATION is MAX_ELEVATION       # one rule, one constant
+    st = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0]])
+    tgt = np.tile([0.01, 0.0, 5000.0], (1000, 1))
+    bs = simulate_bearings(tgt, st, 1e-3, 1e-2, rng=np.random.default_rng(0))
+    el = bs.elevation[:, 0]
+    assert np.all(np.abs(el) <= MAX_ELEVATION) and np.any(el == MAX_ELEVATION)
+    raw = math.atan2(5000.0, 0.01) + 1e-2 * np.random.default_rng(0).standard_normal(
+        (2, 1000, 2))[1, :, 0]
+    np.testing.assert_array_equal(el, np.minimum(raw, MAX_ELEVATION))
+    overhead = simulate_bearings([0.0, 0.0, 100.0], st, 1e-3)      # noise-free, exactly above
+    assert overhead.elevation[0, 0] == MAX_ELEVATION
+
+
 def test_bearing_covariance6_layout():
     from bearing_loc_ros.core.conventions import (bearing_covariance6, IDX_AZ_VAR, IDX_EL_VAR,
                                                   NO_ELEVATION_VARIANCE)

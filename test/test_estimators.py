@@ -519,3 +519,22 @@ def test_robust_mle_screens_with_the_iterations_residuals_as_from_the_bearings()
               'nonlinearity'):
         np.testing.assert_array_equal(getattr(fast, f), getattr(plain, f), err_msg=f)
     assert 0.05 < np.mean(~np.isnan(fast.nonlinearity)) < 0.95     # both paths taken
+
+
+@pytest.mark.parametrize('weighting', ['paper', 'am'])
+def test_ctls_covariance_is_symmetric_and_paths_agree(weighting):
+    # Two stations nearly in line with the target: A of eq. (30) is ill-conditioned and the
+    # rounding of A⁻¹BA⁻¹ made P[0, 2] = 989.04 against P[2, 0] = 989.94 (``ctls``, relative
+    # asymmetry 8e-5). Symmetrised in the batch path and the one-problem path (ctls_am, M = 1).
+    from bearing_loc_ros.core.constrained_tls import constrained_tls
+    st = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0]])
+    bs = simulate_bearings([3000.0, 0.0, 200.0], st, 1e-3, rng=np.random.default_rng(5))
+    one = constrained_tls(bs, weighting)
+    P = one.covariance[0]
+    assert one.status[0] == 'ok'
+    np.testing.assert_array_equal(P, P.T)
+    rep = BearingSet.from_arrays(*(np.repeat(a, 3, axis=0) for a in (
+        bs.positions, bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el)))
+    batch = constrained_tls(rep, weighting)
+    np.testing.assert_array_equal(batch.covariance, np.swapaxes(batch.covariance, 1, 2))
+    np.testing.assert_allclose(batch.covariance[0], P, rtol=1e-9)

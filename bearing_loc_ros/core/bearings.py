@@ -16,6 +16,9 @@ import math
 import numpy as np
 
 HALF_PI = np.pi / 2.0
+#: Largest |elevation| a simulated bearing carries, rad (a Bearing requires |ψ| < π/2): the
+#: clip of :func:`simulate_bearings`, of the simulator and of core.evaluation.
+MAX_ELEVATION = HALF_PI - 1e-9
 #: Accepted range of an angle σ, rad. Below 1e-12 rad (a picoradian, far below any sensor)
 #: the weights 1/σ² and their products overflow float64 in the estimators' sums (σ = 1e-300
 #: made TMA's eigen-solver fail); the upper bound only keeps σ² r² finite (a σ above π
@@ -314,10 +317,16 @@ def simulate_bearings(target, positions, sigma_az, sigma_el=None, has_elevation=
     """Noisy bearings from stations ``positions`` (N, 3) to target(s) ``target`` (M, 3) or (3,).
 
     Model of Wang, Zhang & Wu eq. (1) with additive Gaussian noise eq. (6): θ_i = θ_i* + n_i,
-    ψ_i = ψ_i* + m_i. ``sigma_az``/``sigma_el`` are scalars or (N,)/(M, N) arrays (rad);
-    ``has_elevation`` a bool or (N,) bool mask (False = 1D station). ``rng`` a numpy Generator
-    (None: noise-free). Returns a validated :class:`BearingSet` with M problems
-    (``require_elevation=False``: field checks only, azimuth-only sets allowed).
+    ψ_i = clip(ψ_i* + m_i, ±:data:`MAX_ELEVATION`), MAX_ELEVATION = π/2 − 1e-9 rad (the rule
+    of the simulator and of core.evaluation): near the zenith a Gaussian draw can cross
+    ±π/2, and a bearing needs |ψ| < π/2; the clipped ψ is a valid bearing, its distribution
+    the Gaussian with the tails beyond ±90° moved onto ±90° (a target exactly overhead,
+    noise-free, gets ψ = MAX_ELEVATION). The draws do not change: a set that needed no
+    clipping is the same as before. ``sigma_az``/``sigma_el`` are
+    scalars or (N,)/(M, N) arrays (rad); ``has_elevation`` a bool or (N,) bool mask
+    (False = 1D station). ``rng`` a numpy Generator (None: noise-free). Returns a validated
+    :class:`BearingSet` with M problems (``require_elevation=False``: field checks only,
+    azimuth-only sets allowed).
     """
     from .conventions import azimuth_elevation, wrap_angle
     tgt = np.atleast_2d(np.asarray(target, dtype=float))
@@ -333,6 +342,7 @@ def simulate_bearings(target, positions, sigma_az, sigma_el=None, has_elevation=
     if rng is not None:
         az = az + saz * rng.standard_normal((M, N))
         el = el + sel * rng.standard_normal((M, N))
+    el = np.clip(el, -MAX_ELEVATION, MAX_ELEVATION)
     mask = np.broadcast_to(np.asarray(has_elevation, dtype=bool), (N,))
     el = np.where(mask[None, :], el, np.nan)
     return BearingSet.from_arrays(pos, wrap_angle(az), el, saz, sel,

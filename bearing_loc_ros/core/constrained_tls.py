@@ -191,7 +191,10 @@ class _CTLSProblem(BlockProblem):
         P = A⁻¹ H*ᵀ S⁻¹ (H_X P_E H_Xᵀ) S⁻¹ H* A⁻¹, A = H*ᵀ S⁻¹ H*, S = H_X G⁻¹ H_Xᵀ, where
         H*, F_j, G and H_X use the angles predicted from X (the noise-free angles of eq. (3),
         which is how eq. (30) is evaluated for the true target in eq. (32)); P_E =
-        diag(σ_θi², σ_ψi²) from the bearings (1D: the elevation variance is 0).
+        diag(σ_θi², σ_ψi²) from the bearings (1D: the elevation variance is 0). Returned
+        symmetrised, (P + Pᵀ)/2: with an ill-conditioned A the rounding of A⁻¹ (LAPACK) made
+        P[0, 2] and P[2, 0] differ by 1e-4 relative (two stations nearly in line with the
+        target); the one-problem path (core/ctls_single.py) symmetrises the same way.
         """
         th, ps = azimuth_elevation(X[:, None, :] - self.positions)
         ps = np.where(self.has_el, ps, 0.0)
@@ -208,7 +211,8 @@ class _CTLSProblem(BlockProblem):
         Ainv = safe_inverse(A)
         ok = np.all(np.isfinite(Ainv), axis=(1, 2)) & np.all(np.isfinite(B), axis=(1, 2))
         P = np.full(A.shape, np.inf)
-        P[ok] = Ainv[ok] @ B[ok] @ Ainv[ok]
+        Po = Ainv[ok] @ B[ok] @ Ainv[ok]
+        P[ok] = 0.5 * (Po + np.swapaxes(Po, 1, 2))       # symmetrised (rounding of A⁻¹BA⁻¹)
         return P
 
 

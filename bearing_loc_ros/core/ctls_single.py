@@ -218,7 +218,9 @@ def _covariance(stations, X):
     predicted angles H_X = diag(−ρ, −r) (ρ horizontal, r slant range), so S = diag(ρ² σ_θ²,
     r² σ_ψ²) and A = Σ h_θ h_θᵀ/(ρ σ_θ)² + h_ψ h_ψᵀ/(r σ_ψ)² with the rows h_θ = (sin θ, −cos θ,
     0) = (dy, −dx, 0)/ρ and h_ψ = (cos θ sin ψ, sin θ sin ψ, −cos ψ) = (dx dz/ρ, dy dz/ρ, −ρ)/r:
-    the Fisher information of the bearings (Zong & Cui 2015 eq. (7)), P = A⁻¹AA⁻¹ = CRLB.
+    the Fisher information of the bearings (Zong & Cui 2015 eq. (7)), P = A⁻¹AA⁻¹ = CRLB,
+    symmetric (the cofactor inverse is symmetric by construction; the LAPACK product is
+    symmetrised, (P + Pᵀ)/2, as in the batch path).
     """
     x, y, z = X
     a00 = a01 = a02 = a11 = a12 = a22 = 0.0
@@ -251,7 +253,8 @@ def _covariance(stations, X):
         return np.full((1, 3, 3), np.inf)
     A = np.array(A)
     Ainv = np.linalg.inv(A)
-    return (Ainv @ A @ Ainv)[None]
+    P = Ainv @ A @ Ainv
+    return (0.5 * (P + P.T))[None]            # symmetrised, as the batch path
 
 
 def solve_one(name, bearings, opts):

@@ -86,11 +86,12 @@ def prior_covariance(info, sigma_z):
     Ph, ok = inverse2(S)
     P = np.full((M, 3, 3), np.inf)
     if np.any(ok):
-        Pho, qo, so = Ph[ok], q[ok], s[ok]
-        Phq = np.einsum('mij,mj->mi', Pho, qo)
+        Pho, qs, so = Ph[ok], q[ok] / s[ok, None], s[ok]
+        Phq = np.einsum('mij,mj->mi', Pho, qs)          # P_h q / s
         P[ok, :2, :2] = Pho
-        P[ok, :2, 2] = P[ok, 2, :2] = -Phq / so[:, None]
-        pzz = 1.0 / so + np.einsum('mi,mi->m', qo, Phq) / so ** 2
+        P[ok, :2, 2] = P[ok, 2, :2] = -Phq
+        # 1/s + (q/s)ᵀ P_h (q/s): no (qᵀP_h q)/s², which is 0/0 once s² underflows (σ_z ≳ 1e77).
+        pzz = 1.0 / so + np.einsum('mi,mi->m', qs, Phq)
         P[ok, 2, 2] = np.where(fixed[ok], 0.0, pzz)
         P[ok & fixed, :2, 2] = 0.0
         P[ok & fixed, 2, :2] = 0.0

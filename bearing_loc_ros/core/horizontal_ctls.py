@@ -38,10 +38,14 @@ elevation row and the m_i column are zeroed and the [1, 1] entries of G and S se
 1 × 1 reduced problem, as in the 3D code). ``ctls_am`` (Abatzoglou-Mendel) replaces G⁻¹ by
 P_E = diag(σ_θi², σ_ψi²): origin- and unit-independent, efficient to first order.
 
-Covariance (eq. (30) reduced, everything at the estimate with predicted angles): with
-A = Σ h*ᵀS⁻¹h*, P_h = A⁻¹ [Σ h*ᵀS⁻¹ (H_X P_E H_Xᵀ) S⁻¹h* + σ_z² g gᵀ] A⁻¹, g = Σ h*ᵀS⁻¹c_i,
-c_i = (0, cos ψ_i) the sensitivity of Y_i to z₀; P_hz = σ_z² A⁻¹ g; P_zz = σ_z². The fit itself
-treats z₀ as exact.
+Covariance. The bearing noise: eq. (30) reduced, everything at the estimate with predicted
+angles, P₀ = A⁻¹ [Σ h*ᵀS⁻¹ (H_X P_E H_Xᵀ) S⁻¹h*] A⁻¹, A = Σ h*ᵀS⁻¹h*. The fit treats z₀ as
+exact; σ_z is carried through the fit itself by refitting at the four nonzero nodes
+z₀ + σ_z x_j of the five-point Gauss-Hermite rule
+(:func:`.horizontal_estimators.altitude_covariance`): S_i depends on Δz_i and on X, so X̂
+is not linear in z₀, and the first-order gain k = A⁻¹g, g = Σ h*ᵀS⁻¹c_i, c_i = (0, cos ψ_i)
+(∂Y_i/∂z₀), understated the covariance up to a thousandfold (σ_z = 300 m, one elevation
+station); k remains the fallback where a refit fails.
 """
 
 import numpy as np
@@ -50,7 +54,8 @@ from .constrained_tls import block_hx, block_s, BlockProblem, ctls_blocks
 from .horizontal_crlb import inverse2
 from .estimators import (STATUS_DEGENERATE, STATUS_DIVERGED, STATUS_MAX_ITERATIONS,
                          STATUS_OK)
-from .horizontal_estimators import fix_result, parse_horizontal_options, plane_system, start
+from .horizontal_estimators import (altitude_covariance, fix_result, parse_horizontal_options,
+                                    plane_system, sandwich, start)
 from .solvers import CHI2_STEP_TOL, COST_RTOL, inv2, newton_backtracking
 
 WEIGHTINGS = ('paper', 'am')
@@ -92,7 +97,8 @@ class PlaneCTLS(BlockProblem):
         return out
 
     def covariance(self, X):
-        """Reduced eq. (30) with the σ_z term (module docstring): (M, 3, 3), m²."""
+        """Reduced eq. (30) for the bearing noise (module docstring): (P₀ (M, 3, 3) m², zero
+        z row and column, +inf where singular; k = A⁻¹g (M, 2), the first-order ∂X/∂z₀; ok)."""
         p = self.p
         dx, dy = X[:, 0:1] - p.px, X[:, 1:2] - p.py
         th = np.arctan2(dy, dx)
@@ -112,15 +118,8 @@ class PlaneCTLS(BlockProblem):
         g = np.einsum('mnki,mnkl,mnl->mi', Hs, Sinv, c)
         Ainv, ok = inverse2(A)
         ok &= np.all(np.isfinite(B), axis=(1, 2)) & np.all(np.isfinite(g), axis=1)
-        sz2 = p.sz ** 2
-        P = np.full((p.M, 3, 3), np.inf)
-        if np.any(ok):
-            Ai, go = Ainv[ok], g[ok]
-            Bo = B[ok] + sz2[ok, None, None] * go[:, :, None] * go[:, None, :]
-            P[ok, :2, :2] = Ai @ Bo @ Ai
-            P[ok, :2, 2] = P[ok, 2, :2] = sz2[ok, None] * np.einsum('mij,mj->mi', Ai, go)
-            P[ok, 2, 2] = sz2[ok]
-        return P, ok
+        P0, k = sandwich(Ainv, B, g, ok)
+        return P0, k, ok
 
 
 def _rms_horizontal_range(sub, X):
@@ -139,8 +138,8 @@ def constrained_tls(p, weighting='paper', **options):
     horizontal station range, or at a stop when its predicted decrease is below
     max(1e-10/dof, 1e-12) × f, dof = angles − 2).
     ``weighting``: ``'paper'`` (``ctls``) or ``'am'`` (``ctls_am``). Covariance: reduced eq.
-    (30) with σ_z (module docstring), m². Options: ``step_decay``, ``max_iterations``,
-    ``tolerance``, ``initial``.
+    (30), σ_z by four refits at z₀ + σ_z x_j where an elevation is used (module
+    docstring), m². Options: ``step_decay``, ``max_iterations``, ``tolerance``, ``initial``.
     """
     name = 'ctls' if weighting == 'paper' else 'ctls_am'
     opts, initial = parse_horizontal_options(name, options, p.M)
@@ -152,8 +151,16 @@ def constrained_tls(p, weighting='paper', **options):
     X, iterations, converged, diverged = newton_backtracking(
         problem, X, opts['step_decay'], opts['tolerance'], opts['max_iterations'], rel_tol,
         _rms_horizontal_range)
-    P, ok = problem.covariance(np.where(np.isfinite(X), X, 0.0))
+    P0, k, ok = problem.covariance(np.where(np.isfinite(X), X, 0.0))
     ok &= finite0
+
+    def refit(q, idx):
+        # The same iteration from the fit, at the shifted altitudes (σ_z = 0: no recursion).
+        return constrained_tls(q, weighting, initial=X[idx], step_decay=opts['step_decay'],
+                               max_iterations=opts['max_iterations'],
+                               tolerance=opts['tolerance']).position[:, :2]
+
+    P = altitude_covariance(p, np.where(ok[:, None], X, np.nan), P0, k, refit)
     status = np.where(converged, STATUS_OK,
                       np.where(diverged, STATUS_DIVERGED, STATUS_MAX_ITERATIONS)).astype(object)
     status[~ok] = STATUS_DEGENERATE

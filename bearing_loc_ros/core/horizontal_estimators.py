@@ -30,13 +30,37 @@ how a 2D station's elevation carries range information once the altitude is know
 form above (not divided) stays finite when ψ_i → 0 and has the noise scale of eq. (2): to
 first order the azimuth row's error is ρ_i n_i and the elevation row's is r_i m_i − cos ψ_i δz₀
 (ρ, r horizontal and slant range, δz₀ the error of the stated altitude). Rows are whitened by
-1/σ_θi and 1/σ_ψi. The pseudo-linear estimators fit with z = z₀ and carry σ_z into their
-covariance (first order): with K = A⁻¹HᵀW the gain of the solution X = K Y,
+1/σ_θi and 1/σ_ψi. With A = HᵀWH the ``ls`` solution X = A⁻¹HᵀWY is linear in z₀
+(∂Y/∂z₀ = (0, cos ψ_i) per station), so its covariance is exact to first order in the noise:
 
     P_h = A⁻¹ (Hᵀ W Σ W H + σ_z² g gᵀ) A⁻¹,  P_hz = σ_z² A⁻¹ g,  P_zz = σ_z²,
     Σ = diag(ρ_i² σ_θi², r_i² σ_ψi²),  g = Σ_{2D} h_ei w_ei cos ψ_i,
 
 so g = 0 (no x-y/z correlation) without elevations.
+
+σ_z through a fit that is not linear in z₀ (``tls``, ``ctls``, ``ctls_am``;
+:func:`altitude_covariance`). Every estimator here fits with z = z₀. The TLS eigenvalue λ
+grows with the square of the misfit between the elevation rows and the azimuths, and the
+CTLS weights S_i depend on Δz_i and on X, so with an elevation station and a σ_z of tens of
+metres the fit moves with z₀ far from its first-order gain, and not linearly (it can even
+turn back when z₀ + s nears a station's height). The true altitude is z₀ + s,
+s ~ N(0, σ_z²); the fit at the true altitude, X̂(z₀ + s), errs only by the bearing noise
+(covariance P₀, the σ_z = 0 sandwich), so the reported (X̂(z₀), z₀) errs by
+v(s) = (X̂(z₀) − X̂(z₀ + s), −s) plus that noise, and
+
+    P = P₀ + E_s[v vᵀ] ≈ P₀ + Σ_j w_j v(σ_z x_j) v(σ_z x_j)ᵀ,
+
+the five-point Gauss-Hermite rule of N(0, 1) (nodes x_j = 0, ±1.3556, ±2.8570, weights 8/15,
+0.2221, 0.0113; v(0) = 0): exact when X̂ is a polynomial of degree ≤ 4 in z₀ over the prior
+(for ``ls``, X̂ linear, it is the formula above). Cost: four refits of the problems with
+σ_z > 0 and a used elevation, started from the fit (the others do not depend on z₀).
+Measured (test/test_horizontal_covariance.py, 5 stations, one or two with an elevation,
+σ = 0.6 mrad, σ_z = 100-300 m), mean NEES of the 3 × 3 covariance: first-order gain 4-4600;
+local derivative ∂X̂/∂z₀ 3-1100 (misses the curvature); CRLB with the prior 30-50000 (these
+fits keep z = z₀ and do not reach the bound); three-point rule 3.0-3.2 but 178 where the
+fit turns back; five-point rule 2.8-3.7. The error is then not Gaussian in s: the mean NEES
+is right, but up to ~2 % of the fixes exceed the χ²₃ 0.9999 quantile when the altitude term
+dominates the bearing noise (``mle``, which estimates z, has no such term).
 
 Options (keyword arguments; an unknown one raises ``ValueError('options.<name>: ...')``):
 ``max_iterations`` (default 50), ``tolerance`` (1e-9, relative to the rms station range),
@@ -44,10 +68,10 @@ Options (keyword arguments; an unknown one raises ``ValueError('options.<name>: 
 ``reference_range`` (``wmle``, m, default 1000), ``step_decay`` (``ctls``/``ctls_am``).
 Statuses as in core/estimators.py: ``ok``, ``max_iterations``, ``diverged``,
 ``degenerate_geometry`` (horizontal information singular at the estimate, e.g. all stations
-and the target on one line with no usable elevation; position NaN, covariance inf).
+and the target on one line with no usable elevation, or a covariance that is not finite;
+position NaN, covariance inf). Covariances are symmetrised, (P + Pᵀ)/2.
 """
 
-import math
 import numbers
 
 import numpy as np
@@ -80,6 +104,18 @@ OPTION_DEFAULTS = {name: spec.defaults() for name, spec in SPECS.items()}
 #: target on the stations' line at this level are declared degenerate; small, so that a
 #: target truly on the line is practically never given a fix).
 LINE_CHI2_TAIL = 1e-6
+#: Largest stated |z₀|, m: the bound of every coordinate (core/bearings.py), so that a target
+#: altitude near stations the package accepts is accepted too.
+MAX_ABS_ALTITUDE = MAX_ABS_POSITION
+#: Largest σ_z, m (the fusion node's ``target_altitude_sigma`` range). Beyond it σ_z² and
+#: the σ_z terms of the covariances overflow or lose every digit (σ_z = 1e155 gave NaN).
+MAX_ALTITUDE_SIGMA = 1.0e6
+#: Nonzero nodes (ascending, symmetric) and weights of the five-point Gauss-Hermite rule of
+#: N(0, 1): ±1.3556, ±2.8570 with weights 0.2221, 0.0113 (the node 0 has weight 8/15);
+#: E[f(s)] exact for polynomials f of degree ≤ 9 (:func:`altitude_covariance`).
+_GH_X, _GH_W = np.polynomial.hermite_e.hermegauss(5)
+GH_NODES = _GH_X[_GH_X != 0.0]
+GH_WEIGHTS = (_GH_W / _GH_W.sum())[_GH_X != 0.0]
 
 
 class HorizontalProblem:
@@ -117,8 +153,9 @@ def prepare(bearings, target_altitude, target_altitude_sigma=0.0, use_elevations
     Raises ``ValueError`` naming the field: ``bearings`` (not a BearingSet, fewer than two
     azimuths), ``position``/``azimuth``/``elevation``/``sigma_azimuth``/``sigma_elevation``
     (the rules of BearingSet.validate without its demand for an elevation),
-    ``target_altitude`` (missing, not a number, NaN or infinite), ``target_altitude_sigma``
-    (negative, NaN or infinite), ``use_elevations`` (not a bool).
+    ``target_altitude`` (missing, not a number, NaN, infinite or |z₀| above
+    :data:`MAX_ABS_ALTITUDE` m), ``target_altitude_sigma`` (negative, NaN, infinite or above
+    :data:`MAX_ALTITUDE_SIGMA` m), ``use_elevations`` (not a bool).
     """
     if not isinstance(bearings, BearingSet):
         raise ValueError(f'bearings: expected a BearingSet, got {type(bearings).__name__}')
@@ -142,12 +179,18 @@ def prepare(bearings, target_altitude, target_altitude_sigma=0.0, use_elevations
     z0 = _as_problem_vector(target_altitude, bearings.M, 'target_altitude')
     if not np.all(np.isfinite(z0)):
         raise ValueError('target_altitude: must be finite (m, world frame), got NaN or inf')
+    if np.any(np.abs(z0) > MAX_ABS_ALTITUDE):
+        raise ValueError(f'target_altitude: |z0| above {MAX_ABS_ALTITUDE:g} m (the bound of '
+                         'every coordinate)')
     if isinstance(target_altitude_sigma, bool):
         raise ValueError('target_altitude_sigma: expected a number (m), got a bool')
     sz = _as_problem_vector(target_altitude_sigma, bearings.M, 'target_altitude_sigma')
     if not np.all(np.isfinite(sz) & (sz >= 0)):
         raise ValueError('target_altitude_sigma: must be finite and >= 0 (m; 0 = altitude '
                          'exactly known)')
+    if np.any(sz > MAX_ALTITUDE_SIGMA):
+        raise ValueError(f'target_altitude_sigma: above {MAX_ALTITUDE_SIGMA:g} m (the range '
+                         'of the node parameter; 0 = altitude exactly known)')
     use_elevations = check_bool(use_elevations, 'use_elevations')
     p = object.__new__(HorizontalProblem)
     p.px, p.py, p.pz = pos[..., 0], pos[..., 1], pos[..., 2]
@@ -164,13 +207,14 @@ def _prepare_one(bearings, target_altitude, target_altitude_sigma, use_elevation
     """:func:`prepare` of one problem whose input is certainly valid, else None.
 
     The same checks on Python floats (:func:`fields_valid`; z₀, σ_z plain finite
-    numbers, σ_z ≥ 0; ``use_elevations`` a bool) and the same arrays; anything else (None)
-    takes the full check, which names the bad field.
+    numbers, |z₀| ≤ :data:`MAX_ABS_ALTITUDE`, 0 ≤ σ_z ≤ :data:`MAX_ALTITUDE_SIGMA`;
+    ``use_elevations`` a bool) and the same arrays; anything else (None) takes the full
+    check, which names the bad field.
     """
     z0, sz = _one_number(target_altitude), _one_number(target_altitude_sigma)
     if z0 is None or sz is None or not isinstance(use_elevations, (bool, np.bool_)):
         return None
-    if not (math.isfinite(z0) and math.isfinite(sz) and sz >= 0.0) \
+    if not (abs(z0) <= MAX_ABS_ALTITUDE and 0.0 <= sz <= MAX_ALTITUDE_SIGMA) \
             or not fields_valid(bearings):
         return None
     pos, el = bearings.positions, bearings.elevation
@@ -286,7 +330,12 @@ def solve2(A, b):
 
 
 def linear_covariance(p, xy, ok, H, w, Ainv):
-    """First-order covariance (M, 3, 3), m², of X = A⁻¹HᵀWY including σ_z (module docstring)."""
+    """σ_z = 0 covariance and altitude gain of X = A⁻¹HᵀWY (module docstring).
+
+    Returns (P₀, k): P₀ (M, 3, 3), m², the first-order sandwich A⁻¹HᵀWΣWHA⁻¹ in the x-y block
+    and zeros in the z row and column (+inf where not ``ok``); k = A⁻¹g (M, 2), the exact
+    ∂X/∂z₀ of the linear fit (dimensionless; 0 without a used elevation).
+    """
     dx = np.where(ok[:, None], xy[:, 0:1], 0.0) - p.px
     dy = np.where(ok[:, None], xy[:, 1:2], 0.0) - p.py
     rho2 = dx * dx + dy * dy
@@ -295,15 +344,77 @@ def linear_covariance(p, xy, ok, H, w, Ainv):
                    axis=-1)
     B = np.einsum('mnki,mnk,mnkj->mij', H, w * w * var, H)
     g = np.einsum('mni,mn->mi', H[..., 1, :], w[..., 1] * np.cos(p.el))
-    sz2 = p.sz ** 2
-    P = np.full((p.M, 3, 3), np.inf)
+    return sandwich(Ainv, B, g, ok)
+
+
+def sandwich(Ainv, B, g, ok):
+    """(P₀, k) of :func:`linear_covariance` from A⁻¹, B (M, 2, 2) and g (M, 2); P₀ = A⁻¹BA⁻¹
+    symmetrised, k = A⁻¹g; P₀ = +inf and k = 0 where not ``ok``."""
+    M = Ainv.shape[0]
+    P = np.full((M, 3, 3), np.inf)
+    k = np.zeros((M, 2))
     if np.any(ok):
-        Ai, Bo, go = Ainv[ok], B[ok], g[ok]
-        Bo = Bo + sz2[ok, None, None] * go[:, :, None] * go[:, None, :]
-        P[ok, :2, :2] = Ai @ Bo @ Ai
-        P[ok, :2, 2] = P[ok, 2, :2] = sz2[ok, None] * np.einsum('mij,mj->mi', Ai, go)
-        P[ok, 2, 2] = sz2[ok]
-    return P
+        Ai = Ainv[ok]
+        Ph = Ai @ B[ok] @ Ai
+        P[ok, :2, :2] = 0.5 * (Ph + np.swapaxes(Ph, 1, 2))
+        P[ok, :2, 2] = P[ok, 2, :] = 0.0
+        k[ok] = np.einsum('mij,mj->mi', Ai, g[ok])
+    return P, k
+
+
+def _outer(v):
+    return v[:, :, None] * v[:, None, :]
+
+
+def linear_altitude_covariance(p, P0, k):
+    """P₀ + σ_z² u uᵀ, u = (k, 1): the covariance of a fit X̂(z₀) linear in z₀ with gain k.
+
+    ``P0`` (M, 3, 3) and ``k`` (M, 2) from :func:`linear_covariance`; exact for ``ls`` (module
+    docstring). Non-finite P₀ stays as it is.
+    """
+    u = np.concatenate([k, np.ones((p.M, 1))], axis=1) * p.sz[:, None]
+    with np.errstate(invalid='ignore'):
+        return P0 + _outer(u)
+
+
+def with_altitude(p, idx, dz):
+    """The problems ``idx`` of ``p`` with the stated altitude z₀ + ``dz`` (m) and σ_z = 0."""
+    q = p.take(idx)
+    q.z0 = q.z0 + dz
+    q.sz = np.zeros_like(q.sz)
+    return q
+
+
+def altitude_covariance(p, xy, P0, k, refit):
+    """Covariance (M, 3, 3), m², of a fit X̂(z₀) that holds z = z₀: σ_z through the fit itself.
+
+    P = P₀ + Σ_j w_j v_j v_jᵀ, v_j = (X̂(z₀) − X̂(z₀ + s_j), −s_j), s_j = σ_z x_j over the
+    nonzero nodes x_j of the five-point Gauss-Hermite rule (module docstring), symmetrised.
+    ``xy`` (M, 2) the fit, ``P0`` its σ_z = 0 covariance (zero z row and column), ``k``
+    (M, 2) its first-order gain ∂X̂/∂z₀. ``refit(q, idx)`` returns the fit (len(idx), 2), NaN
+    where none, of ``q`` = :func:`with_altitude` (the problems ``idx`` at shifted altitudes,
+    σ_z = 0; ``idx`` repeats each problem once per node, so one batch call does every node).
+    Refits run only where σ_z > 0, an elevation is used and P₀ is finite; elsewhere X̂ does
+    not depend on z₀ (or the fix is degenerate) and P = P₀ + σ_z² (k, 1)(k, 1)ᵀ. A node
+    without a finite refit takes the mirror of its opposite node (−v), or else the linear
+    v = −s_j (k, 1).
+    """
+    P = linear_altitude_covariance(p, P0, k)
+    finite = np.all(np.isfinite(P0), axis=(1, 2)) & np.all(np.isfinite(xy), axis=1)
+    idx = np.flatnonzero(finite & (p.sz > 0) & np.any(p.use_el, axis=1))
+    if idx.size:
+        n = GH_NODES.size
+        rep = np.tile(idx, n)
+        s = (GH_NODES[:, None] * p.sz[idx]).ravel()
+        X = refit(with_altitude(p, rep, s), rep)
+        v = np.concatenate([xy[rep] - X, -s[:, None]], axis=1).reshape(n, idx.size, 3)
+        ok = np.all(np.isfinite(v), axis=2)
+        lin = -(GH_NODES[:, None] * p.sz[idx])[:, :, None] * np.concatenate(
+            [k[idx], np.ones((idx.size, 1))], axis=1)
+        mirror = -v[::-1]                        # GH_NODES is symmetric: node j ↔ n − 1 − j
+        v = np.where(ok[:, :, None], v, np.where(ok[::-1, :, None], mirror, lin))
+        P[idx] = P0[idx] + np.einsum('j,jmi,jmk->mik', GH_WEIGHTS, v, v)
+    return 0.5 * (P + np.swapaxes(P, 1, 2))
 
 
 def on_station_line(p):
@@ -334,21 +445,28 @@ def on_station_line(p):
 def fix_result(p, xy, cov, iterations, converged, status, method, z=None):
     """FixResult with position (M, 3) = (x, y, z) (z = z₀ unless given); NaN where degenerate.
 
-    Problems flagged by :func:`on_station_line` are degenerate_geometry too.
+    Problems flagged by :func:`on_station_line` are degenerate_geometry too, and so is an
+    ``ok`` fix whose covariance or (x, y) is not finite (never an ``ok`` fix without an
+    honest, finite covariance).
     """
-    status = np.where(on_station_line(p), STATUS_DEGENERATE, status)
+    cov = np.array(cov, dtype=float)
+    finite = np.all(np.isfinite(cov), axis=(1, 2)) & np.all(np.isfinite(xy), axis=1)
+    status = np.where(on_station_line(p) | ((status == STATUS_OK) & ~finite), STATUS_DEGENERATE,
+                      status)
     bad = status == STATUS_DEGENERATE
     pos = np.empty((p.M, 3))
     pos[:, :2] = np.where(bad[:, None], np.nan, xy)
     pos[:, 2] = np.where(bad, np.nan, p.z0 if z is None else z)
-    cov = np.array(cov, dtype=float)
     cov[bad] = np.inf
     return FixResult(pos, cov, np.asarray(iterations, dtype=int), converged & ~bad,
                      status.astype(str), method)
 
 
-def _closed_form(p, xy, ok, H, w, Ainv, method):
+def _closed_form(p, xy, ok, H, w, Ainv, method, refit=None):
     """Result of a pseudo-linear solution; degenerate where singular or on a station.
+
+    Covariance: :func:`linear_altitude_covariance` (``ls``), or :func:`altitude_covariance`
+    with ``refit`` (``tls``).
 
     A solution within 1e-9 × (1 m + largest |station coordinate| + largest station range) of
     a station (horizontally) is the answer of co-located stations, where the bearing model is
@@ -359,7 +477,9 @@ def _closed_form(p, xy, ok, H, w, Ainv, method):
         scale = 1.0 + np.max(np.abs(np.stack([p.px, p.py])), axis=(0, 2)) + np.max(dist, axis=1)
         ok = ok & np.all(np.isfinite(xy), axis=1) & ~np.any(dist <= 1e-9 * scale[:, None],
                                                             axis=1)
-    cov = linear_covariance(p, xy, ok, H, w, Ainv)
+    P0, k = linear_covariance(p, xy, ok, H, w, Ainv)
+    cov = linear_altitude_covariance(p, P0, k) if refit is None \
+        else altitude_covariance(p, xy, P0, k, refit)
     status = np.where(ok, STATUS_OK, STATUS_DEGENERATE)
     return fix_result(p, xy, cov, np.zeros(p.M, dtype=int), ok.copy(), status, method)
 
@@ -393,10 +513,24 @@ def tls(p, **options):
     X = (HᵀWH − λI)⁻¹HᵀWY with λ the smallest eigenvalue of the 3 × 3 normal matrix of
     W^½[−Y H] (the squared smallest singular value σ₃² of eq. (5)), refined by three
     Rayleigh-quotient steps λ ← ‖W^½(HX − Y)‖² / (1 + ‖X‖²) as the 3D ``tls`` does. Origin-
-    and unit-dependent, like eq. (5). First-order covariance: the LS sandwich (the TLS
-    correction is second order), m².
+    and unit-dependent, like eq. (5). Covariance, m²: the LS sandwich for the bearing noise
+    (the TLS correction is second order in it) and σ_z carried through the TLS solution
+    itself (:func:`altitude_covariance`: λ grows with the square of the altitude misfit, so
+    X̂ is not linear in z₀ when an elevation is used).
     """
     parse_horizontal_options('tls', options, p.M)
+    xy, ok, H, w, Ainv = _tls_solve(p)
+    return _closed_form(p, xy, ok, H, w, Ainv, 'tls',
+                        refit=lambda q, idx: _finite(*_tls_solve(q)[:2]))
+
+
+def _finite(xy, ok):
+    """``xy`` with NaN rows where not ``ok``."""
+    return np.where(ok[:, None], xy, np.nan)
+
+
+def _tls_solve(p):
+    """The TLS fit of :func:`tls`: (xy (M, 2), ok, H, w, A⁻¹) with A = HᵀWH."""
     H, Y, w = plane_system(p)
     A = np.einsum('mnki,mnk,mnkj->mij', H, w, H)
     b = np.einsum('mnki,mnk,mnk->mi', H, w, Y)
@@ -415,7 +549,7 @@ def tls(p, **options):
         lam = np.where(np.isfinite(lam_new), lam_new, lam)
     xy, _, ok = solve2(A - lam[:, None, None] * eye, b)
     Ainv, ok_ls = inverse2(A)
-    return _closed_form(p, xy, ok & ok_ls, H, w, Ainv, 'tls')
+    return xy, ok & ok_ls, H, w, Ainv
 
 
 def start(p, initial):

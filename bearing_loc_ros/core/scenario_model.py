@@ -10,11 +10,9 @@ import math
 
 import numpy as np
 
-from .bearings import HALF_PI
+from .bearings import MAX_ELEVATION  # noqa: F401  (largest |elevation| simulated, rad)
 
 NS_PER_S = 1_000_000_000
-#: Largest |elevation| a simulated bearing may carry (Bearing requires |ψ| < π/2).
-MAX_ELEVATION = HALF_PI - 1e-9
 #: Default simulated time of scenario start (s). Non-zero so that ROS time 0 ("clock not
 #: received yet") is never a valid simulated instant and negative clock offsets stay >= 0.
 DEFAULT_EPOCH = 1000.0
