@@ -590,3 +590,59 @@ def test_three_angles_must_fit_exactly_to_be_ok():
         bs.positions, bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el)))
     for res in (locate('mle', bs), locate('mle', two)):
         assert set(res.status) == {'low_confidence'}
+
+
+def _line_of_fifty(sigma=0.05, seed=50):
+    S = np.c_[np.linspace(-5000, 5000, 50), np.zeros(50), np.zeros(50)]
+    return simulate_bearings([8000.0, 0.0, 1000.0], S, sigma, rng=np.random.default_rng(seed))
+
+
+def test_consistency_marks_gross_failures_of_the_closed_forms():
+    # Fifty stations on a 10 km line, the target 8 km off it, σ 0.05 rad: ls ends with a
+    # Mahalanobis error² of 261, ctls and ctls_am stop at spurious minima (6e4, 3e5); mle
+    # is ok with 2.1. The check after one Gauss-Newton step marks the three low_confidence.
+    bs = _line_of_fifty()
+    truth = np.array([8000.0, 0.0, 1000.0])
+    for name in ('ls', 'ctls', 'ctls_am'):
+        r = locate(name, bs)
+        e = r.position[0] - truth
+        assert e @ np.linalg.solve(r.covariance[0], e) > 100, name
+        assert r.status[0] == 'low_confidence' and not r.converged[0], name
+        assert locate(name, bs, consistency=False).status[0] == 'ok', name
+        batch = locate(name, BearingSet(*(np.concatenate([a, a]) for a in (
+            bs.positions, bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el))))
+        assert list(batch.status) == ['low_confidence'] * 2, name
+    assert locate('mle', bs).status[0] == 'ok'
+
+
+def test_consistency_keeps_honest_fixes_ok():
+    # Wang, Zhang & Wu (2006) stations, σ 1.5 mrad, 2000 trials per target. The checks
+    # reject an honest fix with probability ≈ 0.1 % (χ²) + < 0.1 % (plausibility) + 6 ×
+    # 0.01 % (outliers) ≈ 0.25 %: 5 expected of 2000; ≥ 98.9 % ok (22 or more rejections)
+    # has Poisson probability below 1e-6.
+    S = np.array([[30.0, -10.0, 0.1], [30.0, 20.0, 0.2], [-30.0, 5.0, 0.15]]) * 1e3
+    for tgt in ([20e3, 40e3, 5e3], [-40e3, -30e3, 5e3], [10e3, 20e3, 5e3]):
+        bs = simulate_bearings(np.tile(tgt, (2000, 1)), S, 1.5e-3, rng=np.random.default_rng(1))
+        for name in ('ls', 'tls', 'ctls', 'ctls_am'):
+            assert np.mean(locate(name, bs).status == 'ok') >= 0.989, (tgt, name)
+
+
+def test_consistency_one_fix_equals_the_batch():
+    rng = np.random.default_rng(7)
+    for N, sigma in ((3, 2e-3), (4, 0.02), (6, 0.08), (10, 0.02)):
+        st = rng.uniform(-5e3, 5e3, (N, 3))
+        st[:, 2] = rng.uniform(0.0, 100.0, N)
+        tg = rng.uniform([-8e3, -8e3, 200.0], [8e3, 8e3, 3e3], (100, 3))
+        bs = simulate_bearings(tg, st, sigma, has_elevation=np.arange(N) % 3 != 1, rng=rng)
+        for name in ('ls', 'tls', 'ctls', 'ctls_am'):
+            batch = locate(name, bs).status
+            one = [locate(name, _one(bs, k)).status[0] for k in range(100)]
+            assert list(batch) == one, (N, sigma, name)
+
+
+def test_consistency_option_is_validated():
+    bs = _line_of_fifty()
+    with pytest.raises(ValueError, match='options.consistency'):
+        locate('ls', bs, consistency='yes')
+    with pytest.raises(ValueError, match='consistency'):
+        locate('mle', bs, consistency=False)        # mle has option robust instead

@@ -58,10 +58,12 @@ def add_arguments(parser):
                              '(σ(r) = σ · r / r_ref, Zong & Cui 2015 eqs. (9)-(10)); 0: '
                              'constant σ')
     parser.add_argument('--paper', dest='robust', action='store_false', default=None,
-                        help='run mle/wmle without option robust: the papers\' estimators '
-                             'alone (mle is robust by default)')
+                        help='the papers\' estimators alone: mle/wmle without option robust '
+                             '(mle is robust by default), ls/tls/ctls/ctls_am without option '
+                             'consistency (their low_confidence status)')
     parser.add_argument('--robust', dest='robust', action='store_true', default=None,
-                        help='run mle/wmle with option robust (consensus, outlier exclusion, '
+                        help='run mle/wmle with option robust and the others with option '
+                             'consistency (consensus, outlier exclusion, '
                              'full likelihood, ok/low_confidence status; as the fusion node)')
     parser.add_argument('--outliers', default=None, metavar='F,MIN_DEG,MAX_DEG',
                         help='outlier bearings: a fraction F of the bearings get an extra '
@@ -162,7 +164,8 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
 
     ``outliers``: None or (fraction, min, max magnitude in rad) (:func:`parse_outliers`).
     ``robust``: None runs each estimator with its own default (``mle`` robust, ``wmle``
-    not); True or False passes option ``robust`` to the estimators that accept it.
+    not, the others with ``consistency``); True or False passes option ``robust`` and
+    ``consistency`` to the estimators that accept them.
     ``dimension``, ``target_altitude``, ``target_altitude_sigma`` (m): the solve
     (core.horizontal). A horizontal solve (forced, or a scenario whose stations are all
     azimuth-only, ``dims: 1``) states the altitude: ``target_altitude``, else each trial's
@@ -201,8 +204,9 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
                 options[e] = scoped
     if robust is not None:
         for e in estimators:
-            scoped = registry.check(e, dict(options.get(e, {}), robust=bool(robust)))
-            if 'robust' in scoped:
+            scoped = registry.check(e, dict(options.get(e, {}), robust=bool(robust),
+                                            consistency=bool(robust)))
+            if 'robust' in scoped or 'consistency' in scoped:
                 options[e] = scoped
     solve_options = _solve_options(tr, dimension, target_altitude, target_altitude_sigma)
     t0 = time.perf_counter()

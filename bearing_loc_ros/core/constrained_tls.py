@@ -43,9 +43,10 @@ from .bearings import BearingSet
 from .conventions import azimuth_elevation
 from .crlb import safe_inverse
 from .ctls_single import solve_one
-from .estimator_spec import BEARING_SIGMA, declare, ITERATIVE_OPTIONS, MULTISTATION, STEP_DECAY
+from .estimator_spec import (BEARING_SIGMA, CONSISTENCY, declare, ITERATIVE_OPTIONS,
+                             MULTISTATION, STEP_DECAY)
 from .fix import iterative_result
-from .pseudo_linear import pseudo_linear_system, start
+from .pseudo_linear import checked, pseudo_linear_system, start
 from .solvers import COST_RTOL, CHI2_STEP_TOL, inv2, newton_backtracking
 
 WEIGHTINGS = ('paper', 'am')
@@ -289,7 +290,7 @@ def constrained_tls(bearings, weighting='paper', **options):
     return iterative_result(name, X, P, iterations, converged, diverged)
 
 
-CTLS_OPTIONS = ITERATIVE_OPTIONS + (STEP_DECAY,)
+CTLS_OPTIONS = ITERATIVE_OPTIONS + (STEP_DECAY, CONSISTENCY)
 
 
 @declare('ctls', MULTISTATION, CTLS_OPTIONS, BEARING_SIGMA)
@@ -297,9 +298,13 @@ def ctls(bearings, **options):
     """Constrained TLS exactly as Wang, Zhang & Wu publish it (eqs. (9)-(20), appendix A, (30)).
 
     See :func:`constrained_tls` (weighting ``'paper'``). Options: ``step_decay`` (μ of
-    eq. (20)), ``max_iterations``, ``tolerance``, ``initial``.
+    eq. (20)), ``max_iterations``, ``tolerance``, ``initial``, ``consistency`` (default true:
+    an ``ok`` fix that fails the residual χ², outlier or nonlinearity check at its estimate,
+    for example one stopped at a spurious minimum, is ``low_confidence``;
+    :func:`~bearing_loc_ros.core.robust.consistency_status`).
     """
-    return constrained_tls(bearings, weighting='paper', **options)
+    return checked(constrained_tls(bearings, weighting='paper', **options), bearings,
+                   options.get('consistency', CONSISTENCY.default))
 
 
 @declare('ctls_am', MULTISTATION, CTLS_OPTIONS, BEARING_SIGMA)
@@ -310,4 +315,6 @@ def ctls_am(bearings, **options):
     (its eq. (30) covariance is the CRLB). See :func:`constrained_tls` (weighting ``'am'``).
     Same options as :func:`ctls`.
     """
-    return constrained_tls(bearings, weighting='am', **options)
+    # (option consistency validated by constrained_tls)
+    return checked(constrained_tls(bearings, weighting='am', **options), bearings,
+                   options.get('consistency', CONSISTENCY.default))

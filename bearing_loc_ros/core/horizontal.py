@@ -39,7 +39,7 @@ from . import horizontal_estimators as _h
 from . import horizontal_ml as _ml
 from .bearings import BearingSet, simulate_bearings as _simulate
 from .crlb import fisher_information
-from .estimator_spec import DIMENSIONS, ROBUST, ROBUST_ON
+from .estimator_spec import CONSISTENCY, DIMENSIONS, ROBUST, ROBUST_ON
 from .estimators import DEFAULT_ESTIMATOR, locate as locate_3d, ls as ls_3d
 from .fix import FixResult
 
@@ -106,7 +106,8 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
         options: estimator options (see :mod:`.horizontal_estimators`); ``mle`` and ``wmle``
             also take ``robust`` (:mod:`.horizontal_robust`: screen, pairwise consensus,
             refit without outlier bearings, status ok or low_confidence, ``excluded``),
-            default true for ``mle`` and false for ``wmle``, as in 3D.
+            default true for ``mle`` and false for ``wmle``, as in 3D; the others accept
+            ``consistency`` (their 3D option) and do not apply it in the plane.
 
     Returns a FixResult (core.fix) with ``solve`` = ``'horizontal'``: position (M, 3) with
     z = z₀ (or its posterior), covariance (M, 3, 3) (z block σ_z² for azimuth-only sets).
@@ -125,6 +126,10 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
                          f'by {", ".join(ROBUST_ESTIMATORS)})')
     else:
         robust = False
+    if method not in ROBUST_ESTIMATORS:
+        # The 3D option, validated; the horizontal fixes of these estimators keep their
+        # statuses (the check of core.robust.consistency_status is 3D).
+        CONSISTENCY.validate(options.pop('consistency', CONSISTENCY.default))
     p = _h.prepare(bearings, target_altitude, target_altitude_sigma, use_elevations)
     res = ESTIMATORS[method](p, **options)
     if not robust:
@@ -228,7 +233,7 @@ def height_observed(bearings):
     if idx.size == 0:
         return out
     sub = _subset(bearings, idx)
-    x = ls_3d(sub).position
+    x = ls_3d(sub, consistency=False).position
     finite = np.all(np.isfinite(x), axis=1)
     J = fisher_information(np.where(finite[:, None], x, 0.0), sub.positions, sub.sigma_az,
                            sub.sigma_el, sub.has_elevation)

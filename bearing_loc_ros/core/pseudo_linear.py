@@ -12,7 +12,7 @@ an azimuth-only (1D) bearing has elevation NaN (its elevation row is zero).
 import numpy as np
 
 from .crlb import safe_inverse
-from .estimator_spec import BEARING_SIGMA, COMMON_OPTIONS, declare, MULTISTATION
+from .estimator_spec import BEARING_SIGMA, COMMON_OPTIONS, CONSISTENCY, declare, MULTISTATION
 from .fix import FixResult, STATUS_DEGENERATE, STATUS_OK
 
 
@@ -99,7 +99,7 @@ def _closed_form_result(bearings, x, ok, H, Ainv, method):
     return FixResult(x, cov, np.zeros(bearings.M, dtype=int), ok.copy(), status, method)
 
 
-@declare('ls', MULTISTATION, COMMON_OPTIONS, BEARING_SIGMA)
+@declare('ls', MULTISTATION, COMMON_OPTIONS + (CONSISTENCY,), BEARING_SIGMA)
 def ls(bearings, **options):
     """Pseudo-linear least squares, Wang, Zhang & Wu eq. (4): X_LS = (HᵀH)⁻¹ HᵀY.
 
@@ -108,12 +108,23 @@ def ls(bearings, **options):
     Units: m. Biased at long range (noise in H); the initial guess of the iterative methods.
     Covariance: (HᵀH)⁻¹ HᵀΣH (HᵀH)⁻¹ with Σ = diag(ρ_i² σ_θi², r_i² σ_ψi²) evaluated at the
     estimate (first-order error propagation of eq. (4)). Status degenerate_geometry where
-    HᵀH is singular (for example parallel bearings). Options: only the common
-    ``max_iterations``/``tolerance`` (ignored).
+    HᵀH is singular (for example parallel bearings). Options: the common
+    ``max_iterations``/``tolerance`` (ignored) and ``consistency`` (default true: an ``ok``
+    fix that fails the residual χ², outlier or nonlinearity check at its estimate is
+    ``low_confidence``; :func:`~bearing_loc_ros.core.robust.consistency_status`).
     """
     bearings.validate()
-    ls.spec.parse(options)
-    return ls_unchecked(bearings)
+    opts = ls.spec.parse(options)
+    return checked(ls_unchecked(bearings), bearings, opts['consistency'])
+
+
+def checked(result, bearings, consistency):
+    """``result``, with :func:`~bearing_loc_ros.core.robust.consistency_status` applied when
+    option ``consistency`` (a validated bool) is on."""
+    if not consistency:
+        return result
+    from .robust import consistency_status     # (core.robust imports the estimators)
+    return consistency_status(result, bearings)
 
 
 def ls_unchecked(bearings):
@@ -129,7 +140,7 @@ def ls_unchecked(bearings):
     return _closed_form_result(bearings, x, ok, H, Ainv, 'ls')
 
 
-@declare('tls', MULTISTATION, COMMON_OPTIONS, BEARING_SIGMA)
+@declare('tls', MULTISTATION, COMMON_OPTIONS + (CONSISTENCY,), BEARING_SIGMA)
 def tls(bearings, **options):
     """Total least squares, Wang, Zhang & Wu eq. (5).
 
@@ -147,10 +158,11 @@ def tls(bearings, **options):
     TLS depends on the origin and units (it is not invariant to translations). Covariance:
     σ₄² is second order in the angle errors, so TLS and LS share the first-order covariance
     (HᵀH)⁻¹HᵀΣH(HᵀH)⁻¹ (see :func:`ls`), m². Status degenerate_geometry where HᵀH − σ₄²I is
-    singular (the TLS solution does not exist, v₄(1) = 0).
+    singular (the TLS solution does not exist, v₄(1) = 0). Option ``consistency`` as for
+    :func:`ls`.
     """
     bearings.validate()
-    tls.spec.parse(options)
+    opts = tls.spec.parse(options)
     H, Y, _ = pseudo_linear_system(bearings)
     A = np.einsum('mnki,mnkj->mij', H, H)
     b = np.einsum('mnki,mnk->mi', H, Y)
@@ -178,4 +190,5 @@ def tls(bearings, **options):
     # First-order covariance: the LS sandwich (the TLS correction is second order).
     Ainv_ls = safe_inverse(A)
     ok &= np.all(np.isfinite(Ainv_ls), axis=(-2, -1))
-    return _closed_form_result(bearings, x, ok, H, Ainv_ls, 'tls')
+    return checked(_closed_form_result(bearings, x, ok, H, Ainv_ls, 'tls'), bearings,
+                   opts['consistency'])

@@ -137,6 +137,7 @@ statuses and exclusions as the batch path, positions within about 1e-8 of the ra
 falling back to the arrays where floats cannot follow them.
 """
 
+from dataclasses import replace
 import math
 
 import numpy as np
@@ -152,6 +153,7 @@ from .robust_model import (chi2_band, chi2_upper, CONSISTENCY_PROBABILITY,  # no
                            OUTLIER_PROBABILITY, outlier_c2,
                            REFIT_ITERATIONS, REFIT_ROUNDS, region_nonlinearity,
                            STATUS_REGION_Z, TEST_INVERSION_Z, test_inversion_covariance,
+                           _upper_cached,
                            whitened_residuals)
 
 #: The former private name of :func:`outlier_c2`.
@@ -212,14 +214,17 @@ def assess(data, X, wa, we, probability=CONSISTENCY_PROBABILITY, max_nu=None,
     return P, ok, chi2, dof, nu
 
 
-def screen(data, X, P, probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None):
+def screen(data, X, P, probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None,
+           two_sided=True):
     """Step 1: (M,) True where the fix needs the consensus and refit (module docstring).
 
     ``data`` (:class:`Data`, M problems), X (M, 3) m, P (M, 3, 3) m². Calm (False) when every
     whitened residual has r_j² ≤ ``c2``, the residual χ² lies inside the two-sided χ²_dof band
     of ``probability`` (dof = M_meas − 3) and ν = sqrt(λ_max(P)) / min_k ρ_k ≤ ``max_nu``.
     A non-finite X or P fails the screen. The same decisions as :func:`screen_one` (tested);
-    computed by :func:`screen_station_major` on station-major copies of ``data``.
+    computed by :func:`screen_station_major` on station-major copies of ``data``. With
+    ``two_sided`` False the χ² test is the assessment's one-sided one (χ² at most the
+    χ²_max(dof, 1) ``probability`` quantile; :func:`consistency_status`).
     """
     def rows(v):
         return np.ascontiguousarray(v.T)
@@ -228,11 +233,12 @@ def screen(data, X, P, probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None
     return screen_station_major(
         rows(pos[..., 0]), rows(pos[..., 1]), rows(pos[..., 2]), rows(data.az), rows(data.el),
         rows(data.ia), rows(data.ie), data.az.shape[1] + rows(data.has_el).sum(axis=0),
-        data.d_ref, X, P, probability, c2, max_nu)
+        data.d_ref, X, P, probability, c2, max_nu, two_sided)
 
 
 def screen_station_major(px, py, pz, az, el, ia, ie, n_meas, d_ref, X, P,
-                         probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None):
+                         probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None,
+                         two_sided=True):
     """:func:`screen` on station-major (N, M) arrays, as the ML iteration keeps them.
 
     ``px``, ``py``, ``pz`` station positions, m; ``az``, ``el`` measured angles, rad (el 0
@@ -260,11 +266,12 @@ def screen_station_major(px, py, pz, az, el, ia, ie, n_meas, d_ref, X, P,
         chi2 = (qa + qe).sum(axis=0)
         worst = np.maximum(qa, qe).max(axis=0)
     return screen_decision(chi2, worst, rho2.min(axis=0), n_meas, P, d_ref is not None,
-                           probability, c2, max_nu)
+                           probability, c2, max_nu, two_sided)
 
 
 def screen_decision(chi2, worst, rho2min, n_meas, P, grown=False,
-                    probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None):
+                    probability=CONSISTENCY_PROBABILITY, c2=None, max_nu=None,
+                    two_sided=True):
     """:func:`screen` from its statistics: (M,) True where the fix needs the consensus.
 
     ``chi2`` Σ r_j² and ``worst`` max_j r_j² of the whitened residuals at the fix,
@@ -287,14 +294,17 @@ def screen_decision(chi2, worst, rho2min, n_meas, P, grown=False,
         p01, p02, p12 = P[:, 0, 1], P[:, 0, 2], P[:, 1, 2]
         det = (a * (b * c - p12 * p12) - p01 * p01 * c - b * p02 * p02
                - 2.0 * p01 * p12 * p02)
-        lo, hi = _band_table(n_meas - 3, probability)
+        if two_sided:
+            lo, hi = _band_table(n_meas - 3, probability)
+        else:
+            lo, hi = 0.0, chi2_upper(np.maximum(n_meas - 3, 1).astype(int), probability)
         calm = ((worst <= c2) & (chi2 >= lo) & (chi2 <= hi) & (t < np.inf) & (a > 0.0)
                 & (a * b > p01 * p01) & (det > 0.0))
     return ~calm
 
 
 def screen_one(bearings, x, d_ref, P, c2=None, probability=CONSISTENCY_PROBABILITY,
-               max_nu=None):
+               max_nu=None, two_sided=True):
     """:func:`screen` for one problem on Python floats (the fusion's one-fix path).
 
     ``x`` (3,) m, ``P`` (3, 3) m² (array or nested lists); True when the fix needs the
@@ -330,7 +340,10 @@ def screen_one(bearings, x, d_ref, P, c2=None, probability=CONSISTENCY_PROBABILI
             chi2 += q
             n += 1
         rho_min = min(rho_min, rho)
-    lo, hi = _band_cached(n - 3, probability)
+    if two_sided:
+        lo, hi = _band_cached(n - 3, probability)
+    else:
+        lo, hi = 0.0, _upper_cached(max(n - 3, 1), probability)
     if not lo <= chi2 <= hi:
         return True
     lam = _lambda_max(P.tolist() if hasattr(P, 'tolist') else P)
@@ -389,6 +402,80 @@ def _band_table(dof, probability):
         return _band_cached(d0, probability)
     table = np.array([_band_cached(k, probability) for k in range(d0, d1 + 1)])
     return table[dof - d0].T
+
+
+def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
+    """``result`` with every ``ok`` fix that fails a consistency check marked
+    ``low_confidence`` (``converged`` False); position and covariance unchanged.
+
+    The status rule of the estimators without option ``robust`` (``ls``, ``tls``, ``ctls``,
+    ``ctls_am``; their option ``consistency``). Such a fix X̂ is not the maximum likelihood
+    fix, so its residuals are judged after one Gauss-Newton step toward it (Zong & Cui 2015
+    eq. (8)): with r the whitened residuals at X̂, G their whitened gradients, F = GᵀG and
+    δ = F⁻¹Gᵀr the step, the fix is ``ok`` only when
+    (a) χ²_min = rᵀr − δᵀFδ (the predicted χ² at the likelihood's optimum) is at most the
+    χ²_max(dof, 1) quantile of ``probability`` (dof = M_meas − 3): the data are consistent;
+    (b) δᵀP⁻¹δ ≤ the χ²₃ quantile of ``probability``, P the estimator's covariance: the
+    optimum lies inside the fix's own confidence region (X̂ − X_ML has covariance P − F⁻¹
+    ≤ P for an unbiased estimator, so this rarely fails by chance; it fails for a biased
+    pseudo-linear fix, a fix behind a station or a CTLS stop at a spurious minimum);
+    (c) every linearised residual at X̂ + δ, (r − Gδ)_j², is at most c² (:func:`outlier_c2`,
+    3.9σ): no outlier angle;
+    (d) ν = sqrt(λ_max(P)) / min_k ρ_k ≤ :data:`MAX_REGION_NONLINEARITY` (0.2; module
+    docstring): the covariance describes the confidence region.
+    Units: m, rad; bearing σ as given (constant σ). One problem on Python floats
+    (:func:`.robust_single.consistent_one`, the same decisions), a batch as arrays.
+    """
+    from .bearings import BearingSet
+    from .fix import STATUS_LOW_CONFIDENCE, STATUS_OK, STATUSES
+    status = np.asarray(result.status)
+    X = np.asarray(result.position, dtype=float)
+    P = np.asarray(result.covariance, dtype=float)
+    ok = ((status == STATUS_OK) & np.all(np.isfinite(X), axis=1)
+          & np.all(np.isfinite(P), axis=(1, 2)))
+    idx = np.flatnonzero(ok)
+    bad = (status == STATUS_OK) & ~ok
+    if bearings.M == 1 and idx.size:
+        from .robust_single import consistent_one, Fallback
+        try:
+            bad[0] = not consistent_one(bearings, X[0].tolist(), P[0].tolist(), probability)
+            idx = idx[:0]
+        except Fallback:
+            pass
+    if idx.size:
+        sub = BearingSet(bearings.positions[idx], bearings.azimuth[idx],
+                         bearings.elevation[idx], bearings.sigma_az[idx],
+                         bearings.sigma_el[idx])
+        bad[idx] = ~_consistent(Data(sub, None), X[idx], P[idx], probability)
+    if not bad.any():
+        return result
+    wide = f'<U{max(map(len, STATUSES))}'
+    return replace(result, status=np.where(bad, STATUS_LOW_CONFIDENCE, status).astype(wide),
+                   converged=np.asarray(result.converged, dtype=bool) & ~bad)
+
+
+def _consistent(data, X, P, probability):
+    """(M,) bool: checks (a)-(d) of :func:`consistency_status` at fixes X (M, 3) with
+    covariances P (M, 3, 3), all finite."""
+    ra, re, ga, ge, _, _, _ = data.evaluate(X)
+    we = data.has_el.astype(float)
+    ra = np.where(np.isfinite(ra), ra, np.inf)
+    re = np.where(data.has_el, re, 0.0)
+    ge = np.where(data.has_el[..., None], ge, 0.0)
+    F = fisher(ga, ge, np.ones_like(we), we)
+    b = np.einsum('mn,mni->mi', ra, ga) + np.einsum('mn,mni->mi', re, ge)
+    with np.errstate(invalid='ignore', over='ignore'):
+        delta = np.einsum('mij,mj->mi', safe_inverse(F), b)
+        chi2_min = (ra * ra + re * re).sum(axis=-1) - np.einsum('mi,mi->m', delta, b)
+        m2 = np.einsum('mi,mi->m', delta, np.einsum('mij,mj->mi', safe_inverse(P), delta))
+        la = ra - np.einsum('mni,mi->mn', ga, delta)
+        le = re - np.einsum('mni,mi->mn', ge, delta)
+        worst = np.maximum(la * la, le * le).max(axis=-1)
+    dof = (data.az.shape[1] + data.has_el.sum(axis=-1) - 3).astype(int)
+    nu = region_nonlinearity(P, horizontal_ranges(data, X), np.ones(ra.shape, dtype=bool))
+    return ((chi2_min <= chi2_upper(np.maximum(dof, 1), probability))
+            & (m2 <= chi2_upper(np.full(len(X), 3), probability))
+            & (worst <= outlier_c2()) & (nu <= MAX_REGION_NONLINEARITY))
 
 
 def confident_result(result, bearings, d_ref=None, screen_stats=None):

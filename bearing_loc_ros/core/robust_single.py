@@ -40,8 +40,8 @@ import numpy as np
 
 from .robust_consensus import _station_masks, ACCEPT_TOL, STEP_TOL
 from .robust_model import (_upper_cached, CONSISTENCY_PROBABILITY, DECISIVE_PROBABILITY,
-                           max_nonlinearity, MULTIMODE_PROBABILITY, outlier_c2,
-                           REFIT_ITERATIONS, REFIT_ROUNDS, STATUS_REGION_Z,
+                           MAX_REGION_NONLINEARITY, max_nonlinearity, MULTIMODE_PROBABILITY,
+                           outlier_c2, REFIT_ITERATIONS, REFIT_ROUNDS, STATUS_REGION_Z,
                            TEST_INVERSION_Z)
 
 _TWO_PI = 2.0 * pi
@@ -719,6 +719,52 @@ def _second_optimum(pb, X, wa, we, P, ls):
     far = dist2(X2) > q
     close = _cost(pb, X2, wa, we) - _cost(pb, X, wa, we) < q
     return far and close
+
+
+def consistent_one(bearings, x, P, probability):
+    """robust._consistent for one problem on floats: checks (a)-(d) of
+    :func:`.robust.consistency_status` at the fix ``x`` (3,) m with covariance ``P`` (3, 3)
+    m² (finite; constant σ). Raises :class:`Fallback` where the batch path must decide."""
+    try:
+        pb = Problem(bearings, None)
+        f00 = f01 = f02 = f11 = f12 = f22 = b0 = b1 = b2 = chi2 = 0.0
+        rows = []
+        rho_min = inf
+        for (ra, re, a0, a1, h0, h1, h2, dx, dy, _, _), h in zip(_terms(pb, x), pb.hasf):
+            re, h0, h1, h2 = re * h, h0 * h, h1 * h, h2 * h
+            f00 += a0 * a0 + h0 * h0
+            f01 += a0 * a1 + h0 * h1
+            f02 += h0 * h2
+            f11 += a1 * a1 + h1 * h1
+            f12 += h1 * h2
+            f22 += h2 * h2
+            b0 += ra * a0 + re * h0
+            b1 += ra * a1 + re * h1
+            b2 += re * h2
+            chi2 += ra * ra + re * re
+            rows.append((ra, re, a0, a1, h0, h1, h2))
+            rho_min = min(rho_min, sqrt(dx * dx + dy * dy))
+        Fi = _safe_inverse_packed(f00, f01, f02, f11, f12, f22)
+        Pp = (P[0][0], P[0][1], P[0][2], P[1][1], P[1][2], P[2][2])
+        Pi = _safe_inverse_packed(*Pp)
+        if Fi is None or Pi is None:
+            return False
+        i00, i01, i02, i11, i12, i22 = Fi
+        d0 = i00 * b0 + i01 * b1 + i02 * b2
+        d1 = i01 * b0 + i11 * b1 + i12 * b2
+        d2 = i02 * b0 + i12 * b1 + i22 * b2
+        chi2_min = chi2 - (d0 * b0 + d1 * b1 + d2 * b2)
+        worst = 0.0
+        for ra, re, a0, a1, h0, h1, h2 in rows:
+            la = ra - (a0 * d0 + a1 * d1)
+            le = re - (h0 * d0 + h1 * d1 + h2 * d2)
+            worst = max(worst, la * la, le * le)
+        nu = sqrt(max(_eig_extremes(_full(*Pp))[2], 0.0)) / rho_min
+    except (ZeroDivisionError, ValueError, OverflowError) as exc:
+        raise Fallback(str(exc)) from exc
+    return (chi2_min <= _upper(max(pb.n + pb.n_has - 3, 1), probability)
+            and _quad_packed(d0, d1, d2, Pi) <= _upper(3, probability)
+            and worst <= outlier_c2() and nu <= MAX_REGION_NONLINEARITY)
 
 
 def refine(bearings, X_ml, d_ref=None):
