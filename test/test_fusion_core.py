@@ -8,7 +8,7 @@ import pytest
 from scipy import stats
 
 from bearing_loc_ros.core import estimators
-from bearing_loc_ros.core.bearings import Bearing, BearingSet
+from bearing_loc_ros.core.bearings import Bearing, BearingSet, simulate_bearings
 from bearing_loc_ros.core.conventions import azimuth_elevation, quaternion_from_azel
 from bearing_loc_ros.core.crlb import crlb
 from bearing_loc_ros.core import registry
@@ -434,3 +434,19 @@ def test_event_trigger_scan_resume_gives_the_same_epochs(seed, monkeypatch):
     monkeypatch.setattr(multistation, 'event_epoch_time', from_the_first)
     assert run() == resumed
     assert sum(r[2] == 'ok' for r in resumed) >= 30
+
+
+def test_a_closed_form_fix_the_data_contradict_is_low_confidence():
+    # Fifty stations on a 10 km line, the target 8 km off it, σ 0.05 rad: the ls fix has a
+    # Mahalanobis error² of 261 (option consistency, core.robust.consistency_status). The
+    # epoch carries it as low_confidence (no fix on `fix`); with the gate off (outlier_gate
+    # 1: no outlier test at all) it is published as before.
+    rng = np.random.default_rng(50)
+    xs = np.linspace(-5000.0, 5000.0, 50)
+    positions = np.c_[xs, np.zeros(50), np.zeros(50)]
+    bs = simulate_bearings([8000.0, 0.0, 1000.0], positions, 0.05, rng=rng)
+    bearings = [Bearing(f's{i}', 10 * S, positions[i], float(bs.azimuth[0, i]),
+                        float(bs.elevation[0, i]), 0.05, 0.05) for i in range(50)]
+    sol = solve_epoch(bearings, 'ls')
+    assert not sol.ok and sol.reason == 'low_confidence'
+    assert solve_epoch(bearings, 'ls', outlier_gate=1.0).reason != 'low_confidence'

@@ -254,11 +254,11 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     the fix (z = the stated altitude) and ``dof`` = angles − 2 for a horizontal fix.
 
     Robustness (core.robust, core.station_trust): an estimator that declares option
-    ``robust`` runs with it on (off when ``outlier_gate`` is 1, which disables every outlier
-    test) unless ``options`` says otherwise; its outlier bearings (any angle excluded) count
-    as rejected and the fix is recomputed without them, and a fix it assesses
-    ``low_confidence`` becomes an Epoch of reason ``low_confidence`` that carries position
-    and covariance. With ``trust``
+    ``robust`` (or ``consistency``) runs with it on (off when ``outlier_gate`` is 1, which
+    disables every outlier test) unless ``options`` says otherwise; its outlier bearings
+    (any angle excluded) count as rejected and the fix is recomputed without them, and a fix
+    it assesses ``low_confidence`` becomes an Epoch of reason ``low_confidence`` that
+    carries position and covariance. With ``trust``
     (a :class:`~bearing_loc_ros.core.station_trust.StationTrust`) every bearing is used with
     its σ_eff and the deletion residuals of the final solve update the trust (deferred:
     applied by ``trust.settle()`` once the fix is out, or before the trust is next read).
@@ -273,8 +273,9 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         used = [trust.effective(b, peer) for b in used]
     rejected = []
     kwargs = _registry.scoped_options(estimator, options)
-    if 'robust' not in kwargs and _registry.spec(estimator).accepts('robust'):
-        kwargs['robust'] = float(outlier_gate) < 1.0     # gate 1: no outlier handling
+    for name in ('robust', 'consistency'):
+        if name not in kwargs and _registry.spec(estimator).accepts(name):
+            kwargs[name] = float(outlier_gate) < 1.0     # gate 1: no outlier handling
     horizontal = horizontal_capable(kwargs)
     if validated and not horizontal:
         make_set = _trusted_set
