@@ -437,3 +437,37 @@ def test_float_bound_along_an_axis_is_the_horizontal_crlb(sigma_z):
     # Collinear stations and point, azimuths only: the horizontal block is singular.
     line = [((0.0, 0.0, 0.0), 0.01, np.nan, False), ((1000.0, 0.0, 0.0), 0.01, np.nan, False)]
     assert _bound_sigma_along(5000.0, 0.0, 0.0, [1.0, 0.0], line, 1000.0, sigma_z) == np.inf
+
+
+def test_consistency_marks_gross_horizontal_failures():
+    # Fifty azimuth-only stations in a 1 km cluster, the target 100 km away, σ 0.05 rad:
+    # the pseudo-linear and CTLS fixes end with Mahalanobis errors² of 1e6-1e10 (x-y) and
+    # were ok; option consistency (core.horizontal.consistency_status) marks them.
+    from bearing_loc_ros.core.horizontal import locate_horizontal
+    S = np.c_[np.random.default_rng(3).uniform(-500, 500, (50, 2)), np.zeros(50)]
+    bs = simulate_bearings([100e3, 20e3, 2000.0], S, 0.05, has_elevation=False,
+                           rng=np.random.default_rng(0))
+    for name in ('ls', 'ctls', 'ctls_am'):
+        r = locate_horizontal(name, bs, 2000.0, 0.0)
+        e = r.position[0, :2] - [100e3, 20e3]
+        assert e @ np.linalg.solve(r.covariance[0, :2, :2], e) > 1e5, name
+        assert r.status[0] == 'low_confidence', name
+        assert locate_horizontal(name, bs, 2000.0, 0.0, consistency=False).status[0] == 'ok'
+
+
+@pytest.mark.parametrize('has, sz', [((False,) * 4, 0.0), ((False,) * 4, 40.0),
+                                     ((True, False, True, False), 40.0)])
+def test_consistency_keeps_honest_horizontal_fixes_ok(has, sz):
+    # Four stations, σ 2/3 mrad, the true altitude drawn from the stated prior: an honest
+    # fix is rejected with probability ≈ 0.1 % + < 0.1 % + a few × 0.01 % (≈ 5 of 2000
+    # expected); ≥ 98.9 % ok (22 or more rejections) has Poisson probability below 1e-6.
+    from bearing_loc_ros.core.horizontal import locate_horizontal
+    rng = np.random.default_rng(12)
+    st = np.array([[0.0, 0.0, 0.0], [4000.0, 500.0, 20.0], [-2000.0, 3000.0, 5.0],
+                   [1000.0, -2500.0, 0.0]])
+    truth = np.tile([1500.0, 2500.0, 600.0], (2000, 1))
+    truth[:, 2] += sz * rng.standard_normal(2000)
+    bs = simulate_bearings(truth, st, 2e-3, 3e-3, has_elevation=list(has), rng=rng)
+    for name in ('ls', 'tls', 'ctls', 'ctls_am'):
+        r = locate_horizontal(name, bs, 600.0, sz)
+        assert np.mean(r.status == 'ok') >= 0.989, name

@@ -96,4 +96,5 @@ def test_evaluate_reports_rmse_over_crlb_and_nees_for_an_azimuth_only_scenario()
     lo, hi = chi2.ppf([0.0005, 0.9995], 2 * n) / n
     assert lo < mle.mean_nees < hi
     ls = next(r for r in rows if r.estimator == 'ls')
-    assert ls.rmse >= mle.rmse and ls.convergence_rate == 1.0
+    # (ls's option consistency rejects an honest fix with probability ≈ 0.2 %)
+    assert ls.rmse >= mle.rmse and ls.convergence_rate >= 0.99

@@ -42,6 +42,7 @@ from .crlb import fisher_information
 from .estimator_spec import CONSISTENCY, DIMENSIONS, ROBUST, ROBUST_ON
 from .estimators import DEFAULT_ESTIMATOR, locate as locate_3d, ls as ls_3d
 from .fix import FixResult
+from .robust_model import CONSISTENCY_PROBABILITY
 
 __all__ = ['DIMENSIONS', 'ESTIMATORS', 'height_observed', 'locate', 'locate_horizontal',
            'select_dimension', 'simulate_bearings']
@@ -106,8 +107,8 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
         options: estimator options (see :mod:`.horizontal_estimators`); ``mle`` and ``wmle``
             also take ``robust`` (:mod:`.horizontal_robust`: screen, pairwise consensus,
             refit without outlier bearings, status ok or low_confidence, ``excluded``),
-            default true for ``mle`` and false for ``wmle``, as in 3D; the others accept
-            ``consistency`` (their 3D option) and do not apply it in the plane.
+            default true for ``mle`` and false for ``wmle``, as in 3D; the others take
+            ``consistency`` (default true, as in 3D: :func:`consistency_status`).
 
     Returns a FixResult (core.fix) with ``solve`` = ``'horizontal'``: position (M, 3) with
     z = z₀ (or its posterior), covariance (M, 3, 3) (z block σ_z² for azimuth-only sets).
@@ -126,12 +127,13 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
                          f'by {", ".join(ROBUST_ESTIMATORS)})')
     else:
         robust = False
+    consistency = False
     if method not in ROBUST_ESTIMATORS:
-        # The 3D option, validated; the horizontal fixes of these estimators keep their
-        # statuses (the check of core.robust.consistency_status is 3D).
-        CONSISTENCY.validate(options.pop('consistency', CONSISTENCY.default))
+        consistency = CONSISTENCY.validate(options.pop('consistency', CONSISTENCY.default))
     p = _h.prepare(bearings, target_altitude, target_altitude_sigma, use_elevations)
     res = ESTIMATORS[method](p, **options)
+    if consistency:
+        res = consistency_status(res, p)
     if not robust:
         return _wrap(res, SOLVE_HORIZONTAL, p.z0, p.sz)
     return _wrap(_robust(method, bearings, res, p, options), SOLVE_HORIZONTAL, p.z0, p.sz)
@@ -188,6 +190,82 @@ def _robust(method, bearings, res, p, options):
     missing = np.isnan(assessed)
     nu = np.where(missing, nu_of(fields, excluded), assessed) if missing.any() else assessed
     return FixResult(method=method, excluded=excluded, nonlinearity=nu, **fields)
+
+
+def consistency_status(res, p, probability=CONSISTENCY_PROBABILITY):
+    """``res`` (a horizontal FixResult of problem ``p``) with every ``ok`` fix that fails a
+    consistency check marked ``low_confidence`` (``converged`` False).
+
+    The horizontal twin of :func:`.robust.consistency_status` (option ``consistency`` of
+    ``ls``, ``tls``, ``ctls``, ``ctls_am``). Unknowns x, y and, when σ_z > 0, z with the
+    stated altitude as one more measurement (z₀ − z)/σ_z; measurements the azimuths and the
+    used elevations, whitened by their σ. At the fix X̂, with r the whitened residuals, G
+    their whitened gradients (crlb.angle_jacobians over σ), F = GᵀG and the Gauss-Newton step
+    δ = F⁻¹Gᵀr (Zong & Cui 2015 eq. (8)), the fix is ``ok`` only when rᵀr − δᵀFδ is at most
+    the χ²_max(dof, 1) quantile of ``probability`` (dof = angles − 2), δᵀP⁻¹δ is at most the
+    χ²_k quantile (k = 2, or 3 with σ_z > 0; P the fix's covariance over the same unknowns),
+    no linearised angle residual at X̂ + δ is beyond 3.9σ and ν ≤ 0.2
+    (:func:`.horizontal_robust.nonlinearity`). Units: m, rad.
+    """
+    from dataclasses import replace
+    from .crlb import angle_jacobians, safe_inverse
+    from .fix import STATUS_LOW_CONFIDENCE, STATUS_OK, STATUSES
+    from .horizontal_robust import nonlinearity
+    from .robust_model import chi2_upper, MAX_REGION_NONLINEARITY, outlier_c2
+    status = np.asarray(res.status)
+    X = np.asarray(res.position, dtype=float)
+    P = np.asarray(res.covariance, dtype=float)
+    ok = ((status == STATUS_OK) & np.all(np.isfinite(X), axis=1)
+          & np.all(np.isfinite(P), axis=(1, 2)))
+    bad = (status == STATUS_OK) & ~ok
+    idx = np.flatnonzero(ok)
+    if idx.size:
+        q = p.take(idx)
+        Xq, Pq = X[idx], P[idx]
+        pos = np.stack([q.px, q.py, q.pz], axis=-1)
+        d = Xq[:, None, :] - pos
+        with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
+            ra = np.angle(np.exp(1j * (q.az - np.arctan2(d[..., 1], d[..., 0])))) / q.saz
+            sel = np.where(q.use_el, q.sel, 1.0)
+            el_pred = np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1]))
+            re = np.where(q.use_el, (q.el - el_pred) / sel, 0.0)
+            ga, ge = angle_jacobians(Xq, pos)
+            ga = ga / q.saz[..., None]
+            ge = np.where(q.use_el[..., None], ge / sel[..., None], 0.0)
+            vertical = q.sz > 0.0
+            sz = np.where(vertical, q.sz, 1.0)
+            rz = np.where(vertical, (q.z0 - Xq[:, 2]) / sz, 0.0)
+            F = (np.einsum('mni,mnj->mij', ga, ga) + np.einsum('mni,mnj->mij', ge, ge))
+            F[:, 2, 2] += np.where(vertical, 1.0 / (sz * sz), 0.0)
+            b = np.einsum('mn,mni->mi', ra, ga) + np.einsum('mn,mni->mi', re, ge)
+            b[:, 2] += rz / sz
+            # σ_z = 0: z is fixed, the step and the test are over (x, y) alone.
+            F[~vertical, 2, :] = F[~vertical, :, 2] = 0.0
+            F[~vertical, 2, 2] = 1.0
+            b[~vertical, 2] = 0.0
+            Pq = Pq.copy()
+            Pq[~vertical, 2, :] = Pq[~vertical, :, 2] = 0.0
+            Pq[~vertical, 2, 2] = 1.0
+            delta = np.einsum('mij,mj->mi', safe_inverse(F), b)
+            chi2 = (ra * ra).sum(axis=-1) + (re * re).sum(axis=-1) + rz * rz
+            chi2_min = chi2 - np.einsum('mi,mi->m', delta, b)
+            m2 = np.einsum('mi,mi->m', delta,
+                           np.einsum('mij,mj->mi', safe_inverse(Pq), delta))
+            la = ra - np.einsum('mni,mi->mn', ga, delta)
+            le = np.where(q.use_el, re - np.einsum('mni,mi->mn', ge, delta), 0.0)
+            worst = np.maximum(la * la, le * le).max(axis=-1)
+            n_angles = q.N + np.count_nonzero(q.use_el, axis=1)
+            k = np.where(vertical, 3, 2)
+            nu = nonlinearity(Xq, P[idx], pos)
+            good = ((chi2_min <= chi2_upper(np.maximum(n_angles - 2, 1), probability))
+                    & (m2 <= chi2_upper(k, probability)) & (worst <= outlier_c2())
+                    & (nu <= MAX_REGION_NONLINEARITY))
+        bad[idx] = ~good
+    if not bad.any():
+        return res
+    wide = f'<U{max(map(len, STATUSES))}'
+    return replace(res, status=np.where(bad, STATUS_LOW_CONFIDENCE, status).astype(wide),
+                   converged=np.asarray(res.converged, dtype=bool) & ~bad)
 
 
 def screen_passed(bearings, res, p, d_ref=None):
