@@ -25,7 +25,17 @@ the first bearing is exact); the paper's figures look like that setting.
 
 Also prints the wall time of the fusion-node path (TmaAccumulator.add / estimate).
 
+``--confidence`` instead measures the confidence tests (T19)-(T21) of core.tma.confidence
+(docs/tma.md, "Confidence of a fix"): with the covariance on, per configuration (the two
+experiments at t = 100 s and seed001 cut to 20-80 s) and estimator, the ``ok`` fixes with
+the tests off (``max_nonlinearity`` and ``max_ml_distance`` inf; the residual χ² test stays,
+0.1 % of correct fixes) and on (the defaults), their mean squared Mahalanobis position error
+(NEES, 3 dof), how many exceed χ²₃(0.9999) = 21.1, and their RMSE; then the calibration of
+the κ bound: windows 20-100 s × σ 0.1°-0.3° × start 0.5-2 × (100, 100, 10) km,
+``--sweep-runs`` runs each, tma_ctls6 and tma_mle, the ``ok`` fixes at each candidate bound.
+
 Run: .venv/bin/python bench/tma_seed001.py [--runs 200] [--seed 1] [--mle-stride 1]
+     .venv/bin/python bench/tma_seed001.py --confidence [--runs 200] [--sweep-runs 600]
 """
 import argparse
 import os
@@ -191,14 +201,109 @@ def accumulator_timing(t, obs, start, velocity, window=60.0, repeat=20):
     return len(acc), out
 
 
+def _nees(res, truth):
+    """Squared Mahalanobis position error (M,) under the reported covariance (NaN if none)."""
+    e = res.position - truth
+    out = np.full(len(e), np.nan)
+    fin = np.all(np.isfinite(e), -1) & np.all(np.isfinite(res.covariance[:, :3, :3]),
+                                              axis=(1, 2))
+    out[fin] = np.einsum('mi,mi->m', e[fin], np.linalg.solve(res.covariance[fin, :3, :3],
+                                                             e[fin][..., None])[..., 0])
+    return out
+
+
+def _cut(t, obs, seconds):
+    k = int(np.searchsorted(t, t[0] + seconds + 1e-9))
+    return t[:k], obs[:k]
+
+
+def confidence_tables(t, obs, start0, vel, runs, sweep_runs, seed):
+    """``--confidence``: the ok fixes with the confidence tests off and on (module doc)."""
+    from bearing_loc_ros.core.tma import tma
+    from bearing_loc_ros.core.tma.confidence import range_nonlinearity
+    off = {'max_nonlinearity': np.inf, 'max_ml_distance': np.inf}
+    configs = ([(100.0, s, 1.0, start0) for s in SIGMAS_DEG]
+               + [(100.0, 0.1, k, k * UNIT_START) for k in SCALES]
+               + [(w, 0.1, 1.0, start0) for w in (20.0, 40.0, 60.0, 80.0)])
+    print('| window s | σ ° | start | estimator | ok off | ok on | mean NEES off | on | '
+          '> 21.1 off | on | RMSE km off | on |')
+    print('|' + '---:|' * 12)
+    for i, (w, sig, k, start) in enumerate(configs):
+        tw, ow = _cut(t, obs, w)
+        bs, times = simulate_tma(tw, start, vel, ow, np.deg2rad(sig),
+                                 rng=np.random.default_rng(seed + 100 + i), M=runs)
+        truth = start + vel * (tw[-1] - tw[0])
+        label = f'{k:g}×' if np.allclose(start, k * UNIT_START) else '1 (yaml)'
+        for m in ('tma_ple', 'tma_ctls', 'tma_ctls6', 'tma_mle'):
+            cols = []
+            for opts in (off, {}):
+                r = tma(m, bs, times, SPEED, **opts)
+                ok = r.status == STATUS_OK
+                n = _nees(r, truth)[ok]
+                e2 = np.sum((r.position[ok] - truth) ** 2, -1)
+                cols.append((ok.sum(), np.mean(n) if ok.any() else np.nan,
+                             int(np.sum(n > 21.1)),
+                             np.sqrt(np.mean(e2)) / 1e3 if ok.any() else np.nan))
+            print(f'| {w:g} | {sig:g} | {label} | {m} | {cols[0][0]} | {cols[1][0]} | '
+                  f'{cols[0][1]:.3g} | {cols[1][1]:.3g} | {cols[0][2]} | {cols[1][2]} | '
+                  f'{cols[0][3]:.3g} | {cols[1][3]:.3g} |')
+    # Calibration of max_nonlinearity: κ of every fix that passes (T19)-(T20).
+    bounds = (0.1, 0.15, 0.2, 0.25, 0.3, 0.5, np.inf)
+    kap, nees, cfg = [], [], []
+    ci = 0
+    for w in (20.0, 30.0, 40.0, 50.0, 60.0, 80.0, 100.0):
+        tw, ow = _cut(t, obs, w)
+        for sig in (0.1, 0.2, 0.3):
+            for k in (0.5, 1.0, 2.0):
+                start = k * np.array([100e3, 100e3, 10e3])
+                bs, times = simulate_tma(tw, start, vel, ow, np.deg2rad(sig),
+                                         rng=np.random.default_rng(seed + 1000 + ci),
+                                         M=sweep_runs)
+                truth = start + vel * (tw[-1] - tw[0])
+                for m in ('tma_ctls6', 'tma_mle'):
+                    r = tma(m, bs, times, SPEED, max_nonlinearity=np.inf)
+                    ok = r.status == STATUS_OK
+                    T = state_transform(-(times[ok, -1] - times[ok, 0]))
+                    C = T @ r.covariance[ok] @ np.swapaxes(T, -1, -2)
+                    kap.append(range_nonlinearity(r.relative_position0[ok],
+                                                  r.relative_velocity[ok], C,
+                                                  r.observer_velocity[ok]))
+                    nees.append(_nees(r, truth)[ok])
+                    cfg.append(np.full(ok.sum(), ci))
+                ci += 1
+    kap, nees, cfg = (np.concatenate(x) for x in (kap, nees, cfg))
+    print(f'\nCalibration of max_nonlinearity ({ci} configurations × {sweep_runs} runs × '
+          'tma_ctls6, tma_mle; fixes that pass the χ² and ML-distance tests)\n')
+    print('| κ bound | ok fixes | mean NEES | > 21.1 | share | configurations with ≥ 60 ok: '
+          'mean NEES from | to |')
+    print('|---:|---:|---:|---:|---:|---:|---:|')
+    for b in bounds:
+        s = kap <= b
+        per = [np.mean(nees[s & (cfg == c)]) for c in range(ci)
+               if np.sum(s & (cfg == c)) >= 60]
+        print(f'| {b:g} | {s.sum()} | {np.mean(nees[s]):.3g} | {np.sum(nees[s] > 21.1)} | '
+              f'{100 * np.mean(nees[s] > 21.1):.3f} % | {min(per):.2f} | {max(per):.2f} |')
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--runs', type=int, default=200, help='Monte Carlo runs per configuration')
     ap.add_argument('--seed', type=int, default=1)
     ap.add_argument('--mle-stride', type=int, default=1,
                     help='evaluate mle every n-th epoch of 50-100 s (1 = all 251)')
+    ap.add_argument('--confidence', action='store_true',
+                    help='measure the confidence tests (T19)-(T21) instead (module doc)')
+    ap.add_argument('--sweep-runs', type=int, default=600,
+                    help='--confidence: runs per configuration of the κ calibration')
     args = ap.parse_args(argv)
     t, obs, start0, vel = geometry()
+    if args.confidence:
+        t0 = time.time()
+        print(f'<!-- bench/tma_seed001.py --confidence --runs {args.runs} --seed {args.seed} '
+              f'--sweep-runs {args.sweep_runs} -->')
+        confidence_tables(t, obs, start0, vel, args.runs, args.sweep_runs, args.seed)
+        print(f'\n{time.time() - t0:.1f} s')
+        return
     t0 = time.time()
     cols = ('ple', 'ctls', 'ctls6', 'mle', 'CRLB')
     paper_cols = ('ple*', 'ctls*', 'ctls6', 'CRLB')

@@ -72,7 +72,11 @@ def test_tma_matches_reference(method):
     bs = inputs('tma')
     # Stored under the short names; run under the registry names.
     r = tma.tma('tma_' + method, bs, REF['tma/in/times'], float(REF['tma/in/speed']))
-    np.testing.assert_array_equal(r.status, REF[f'tma/{method}/status'])
+    # The reference predates the confidence checks (T19)-(T21): a fix they mark
+    # low_confidence keeps the state and covariance it had as ok, and says why.
+    low = r.status == 'low_confidence'
+    assert all(r.reason[low])
+    np.testing.assert_array_equal(np.where(low, 'ok', r.status), REF[f'tma/{method}/status'])
     assert_rows_close(r.position, REF[f'tma/{method}/position'])
     assert_rows_close(r.velocity, REF[f'tma/{method}/velocity'])
     assert_rows_close(r.covariance, REF[f'tma/{method}/covariance'])

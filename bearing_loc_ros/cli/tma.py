@@ -2,7 +2,7 @@
 
 Input (a file argument, or stdin when the argument is ``-`` or absent), one problem::
 
-    {"estimator": "tma_ctls",          # optional: tma_ple | tma_ctls | tma_ctls6 | tma_mle
+    {"estimator": "tma_ctls6",         # optional: tma_ple | tma_ctls | tma_ctls6 | tma_mle
      "speed": 380.0,                   # prior speed v_c, m/s (> 0)
      "speed_reference": "relative",    # optional: relative (Lin et al.) | ground
      "options": {"alpha": 1e-3},       # optional estimator options (core.tma.DEFAULTS)
@@ -18,7 +18,7 @@ Input (a file argument, or stdin when the argument is ``-`` or absent), one prob
                       ...]}
 
 or a batch ``{"estimator": ..., "speed": ..., "problems": [{"observations": [...]}, ...]}``
-(a problem may override ``speed``). The default estimator is ``tma_ctls``. The former key
+(a problem may override ``speed``). The default estimator is ``tma_ctls6``. The former key
 ``method`` and the former names ``ple``, ``ctls``, ``ctls6``, ``mle`` are accepted with a
 deprecation warning. Observations are sorted by time. Output (stdout), the target at the
 last observation time: ``{"estimator", "method" (the same, deprecated), "t", "position",
@@ -42,7 +42,9 @@ from .deprecation import DeprecatedOption, tma_estimator
 from .jsonio import (add_io_arguments, check_object, finite_or_none, number, read_json,
                      request_header, write_results)
 
-DEFAULT_METHOD = 'tma_ctls'
+#: The recommended closed form (core.tma: near the CRLB; the paper's tma_ctls is biased and
+#: its fixes rarely pass the confidence checks).
+DEFAULT_METHOD = 'tma_ctls6'
 TOP_FIELDS = ('estimator', 'speed', 'speed_reference', 'options', 'sigma_azimuth',
               'sigma_elevation', 'observations', 'problems')
 OBS_FIELDS = ('t', 'observer', 'azimuth', 'elevation', 'sigma_azimuth', 'sigma_elevation')
@@ -108,7 +110,7 @@ def parse_request(doc, method_override=None, speed_override=None, compass=False)
     options = dict(options)
     for key, value in options.items():
         if key in ('alpha', 'max_range_ratio', 'dtol', 'xtol', 'min_bearings',
-                   'max_iterations'):
+                   'max_iterations', 'max_nonlinearity', 'max_ml_distance'):
             options[key] = number(value, f'options.{key}', positive=True)
             if key in ('min_bearings', 'max_iterations'):
                 options[key] = int(options[key])

@@ -36,7 +36,8 @@ STATUS_LOW_CONFIDENCE = 'low_confidence'
 STATUSES = (STATUS_OK, STATUS_MAX_ITERATIONS, STATUS_DIVERGED, STATUS_DEGENERATE,
             STATUS_LOW_CONFIDENCE)
 #: Statuses of the TMA estimators.
-TMA_STATUSES = (STATUS_OK, STATUS_UNOBSERVABLE, STATUS_DEGENERATE, STATUS_MAX_ITERATIONS)
+TMA_STATUSES = (STATUS_OK, STATUS_UNOBSERVABLE, STATUS_DEGENERATE, STATUS_MAX_ITERATIONS,
+                STATUS_LOW_CONFIDENCE)
 
 _TMA_FIELDS = ('velocity', 't', 't0', 'position0', 'relative_position0', 'relative_velocity',
                'observer_velocity', 'range', 'reason')

@@ -16,7 +16,9 @@ Triggers: ``event``: one epoch per accepted bearing; ``timer``: at most one epoc
 when bearings arrived since the last one (bounds the CPU of ``tma_mle``). No fix (a counted
 reason): ``unobservable`` (too few bearings, no significant bearing change or a range the
 CRLB cannot resolve), ``no_elevation`` (3-D TMA needs the elevation of every bearing),
-``degenerate_geometry``, ``not_converged`` (tma_mle), ``bad_covariance``,
+``degenerate_geometry``, ``not_converged`` (tma_mle), ``low_confidence`` (the fix failed
+its confidence checks, core.tma.confidence: it carries position and covariance, is counted
+in ``low_confidence_fixes`` and goes to ``fix/low_confidence`` only), ``bad_covariance``,
 ``estimator_error``. A backward time jump clears the accumulator.
 """
 
@@ -26,9 +28,10 @@ import numpy as np
 
 from .. import estimators as _estimators
 from ..alignment import NEAREST
+from ..fix import STATUS_LOW_CONFIDENCE
 from ..tma import STATUS_UNOBSERVABLE, TmaAccumulator
 from .config import MODE_TMA, NS_PER_S, TRIGGER_EVENT, TRIGGER_TIMER
-from .gating import covariance_ok
+from .gating import covariance_ok, LOW_CONFIDENCE
 from .results import (BAD_COVARIANCE, DEGENERATE_GEOMETRY, Epoch, ESTIMATOR_ERROR,
                       LEVEL_ERROR, LEVEL_OK, LEVEL_WARN, NO_ELEVATION, NOT_CONVERGED, OK,
                       UNOBSERVABLE)
@@ -53,6 +56,7 @@ class TmaStrategy:
         self.tracked_station = None
         self._pending = None      # newest accepted bearing not yet estimated
         self._newest = None       # newest bearing in the accumulator
+        self.low_confidence = 0   # fixes that failed their confidence checks
 
     @property
     def window_bearings(self):
@@ -125,10 +129,12 @@ class TmaStrategy:
         return {}
 
     def diagnostic_values(self):
-        """tracked_station, window_bearings, target_speed (m/s), speed_reference."""
+        """tracked_station, window_bearings, low_confidence_fixes, target_speed (m/s),
+        speed_reference."""
         cfg = self.registry.config
         return dict(tracked_station=self.tracked_station or 'none',
                     window_bearings=len(self.accumulator),
+                    low_confidence_fixes=self.low_confidence,
                     target_speed=f'{float(cfg.target_speed):.3f}',
                     speed_reference=cfg.speed_reference)
 
@@ -171,6 +177,11 @@ class TmaStrategy:
             ep.reason = UNOBSERVABLE
         elif status == _estimators.STATUS_DEGENERATE:
             ep.reason = DEGENERATE_GEOMETRY
+        elif (status == STATUS_LOW_CONFIDENCE and np.all(np.isfinite(pos))
+              and np.all(np.isfinite(C[:3, :3]))):
+            self.low_confidence += 1
+            ep.reason = LOW_CONFIDENCE
+            ep.position, ep.covariance = pos, 0.5 * (C[:3, :3] + C[:3, :3].T)
         elif status != _estimators.STATUS_OK or not bool(res.converged[0]):
             ep.reason = NOT_CONVERGED
         elif not (np.all(np.isfinite(pos)) and np.all(np.isfinite(vel))):

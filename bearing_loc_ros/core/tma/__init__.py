@@ -31,12 +31,14 @@ the given observer positions exactly (any δ).
 
 Modules: :mod:`.model` (options, input checks, observer track, simulation), :mod:`.sums`
 (pseudo-linear moments (T6)-(T13)), :mod:`.closed_form` (ple, ctls, ctls6),
-:mod:`.observability` (Fisher information, constrained CRLB, gates), :mod:`.mle` (tma_mle),
+:mod:`.observability` (Fisher information, constrained CRLB, gates), :mod:`.confidence`
+(the tests (T19)-(T21) that mark a fix whose covariance would be too small
+``low_confidence``), :mod:`.mle` (tma_mle),
 :mod:`.accumulator` (the recursive window of the fusion node) and :mod:`.methods` (by name).
 Every public name is importable from ``bearing_loc_ros.core.tma``.
 """
 
-from ..fix import STATUS_UNOBSERVABLE, TMA_STATUSES
+from ..fix import STATUS_LOW_CONFIDENCE, STATUS_OK, STATUS_UNOBSERVABLE, TMA_STATUSES
 from .accumulator import TmaAccumulator
 from .closed_form import estimate_from_sums, tma_ctls, tma_ctls6, tma_ple
 from .methods import TMA_FUNCTIONS, tma, tma_function
@@ -46,7 +48,8 @@ from .observability import (constrained_crlb, constraint_gradient, fisher_terms,
                             state_transform, tma_crlb)
 from .sums import batch_sums, bearing_terms, prefix_sums, TmaSums
 
-__all__ = ['DEFAULTS', 'SPEED_REFERENCES', 'STATUS_UNOBSERVABLE', 'TMA_FUNCTIONS', 'TMA_OPTIONS',
+__all__ = ['DEFAULTS', 'SPEED_REFERENCES', 'STATUS_LOW_CONFIDENCE', 'STATUS_OK',
+           'STATUS_UNOBSERVABLE', 'TMA_FUNCTIONS', 'TMA_OPTIONS',
            'TMA_STATUSES', 'TmaAccumulator', 'TmaSums', 'batch_sums', 'bearing_terms',
            'constrained_crlb', 'constraint_gradient', 'estimate_from_sums', 'fisher_terms',
            'observer_track', 'prefix_sums', 'simulate_tma', 'state_transform', 'tma',

@@ -5,12 +5,11 @@ Conventions as :mod:`bearing_loc_ros.core.tma`.
 
 import numpy as np
 
-from ..conventions import azimuth_elevation, wrap_angle
-from ..crlb import angle_jacobians
 from ..estimator_spec import BEARING_SIGMA, declare, TMA
 from ..fix import STATUS_DEGENERATE, STATUS_MAX_ITERATIONS, STATUS_OK
 from .closed_form import estimate_from_sums
-from .model import _Data, prepare, TMA_OPTIONS
+from .confidence import residuals, tangent_basis, whitened_jacobian
+from .model import prepare, TMA_OPTIONS
 from .observability import finish
 from .sums import batch_sums
 
@@ -29,23 +28,6 @@ def _options(options, fn=None):
     return (fn or tma_mle).spec.parse(options)
 
 
-def _tangent_basis(s):
-    """Orthonormal basis E (M, 3, 2) of the plane normal to unit vectors s (M, 3)."""
-    a = np.where((np.abs(s[:, 0]) < 0.9)[:, None], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0])
-    e1 = a - np.sum(a * s, -1, keepdims=True) * s
-    e1 /= np.linalg.norm(e1, axis=-1, keepdims=True)
-    e2 = np.cross(s, e1)
-    return np.stack([e1, e2], axis=-1)
-
-
-def _residuals(data, p0, v):
-    """Whitened residuals (M, K, 2) = [wrap(θ̂ − θ)/σ_θ, (ψ̂ − ψ)/σ_ψ] and d = p_k (T3)-(T4)."""
-    d = p0[:, None, :] + v[:, None, :] * data.tau[..., None] - data.delta
-    az, el = azimuth_elevation(d)
-    e = np.stack([wrap_angle(az - data.az) / data.s_az, (el - data.el) / data.s_el], -1)
-    return e, d
-
-
 def _mle_start(data, sums, opts, methods=('ctls', 'ctls6', 'ple')):
     """Start of :func:`tma_mle`: of the closed forms, the one with the lowest ML cost (T17).
 
@@ -60,8 +42,8 @@ def _mle_start(data, sums, opts, methods=('ctls', 'ctls6', 'ple')):
             best = [p0.copy(), v.copy(), st.copy(), rs.copy()]
         ok = st == STATUS_OK
         if np.any(ok):
-            e, _ = _residuals(data, np.where(ok[:, None], p0, 0.0),
-                              np.where(ok[:, None], v, 0.0))
+            e, _ = residuals(data, np.where(ok[:, None], p0, 0.0),
+                             np.where(ok[:, None], v, 0.0))
             c = np.where(ok, np.sum(e * e, axis=(1, 2)), np.inf)
             c = np.where(np.isfinite(c), c, np.inf)
             use = c < best_cost
@@ -115,7 +97,7 @@ def tma_mle(bearings, times, speed, **options):
     s = s / np.where(np.linalg.norm(s, axis=-1) > 0, np.linalg.norm(s, axis=-1), 1.0)[:, None]
     p0 = np.where(active[:, None], p0, 0.0)
     v = vc[:, None] * s - off
-    e, d = _residuals(data, p0, v)
+    e, d = residuals(data, p0, v)
     cost = np.sum(e * e, axis=(1, 2))
     mu = np.full(M, 1e-9)
     nu = np.full(M, 2.0)
@@ -127,11 +109,8 @@ def tma_mle(bearings, times, speed, **options):
             break
         r = np.nonzero(running)[0]
         iters[r] += 1
-        E = _tangent_basis(s[r])
-        g_t, g_p = angle_jacobians(np.zeros((len(r), 3)), -d[r])
-        G = np.stack([g_t / data.s_az[r][..., None], g_p / data.s_el[r][..., None]], -2)
-        Jv = (G @ (vc[r, None, None] * E)[:, None]) * data.tau[r][..., None, None]
-        J = np.concatenate([G, Jv], axis=-1).reshape(len(r), -1, 5)     # (m, 2K, 5)
+        E = tangent_basis(s[r])
+        J = whitened_jacobian(d[r], data.s_az[r], data.s_el[r], E, vc[r], data.tau[r])
         Jt = np.swapaxes(J, -1, -2)
         JtJ = Jt @ J
         Jte = (Jt @ e[r].reshape(len(r), -1, 1))[..., 0]
@@ -149,9 +128,8 @@ def tma_mle(bearings, times, speed, **options):
         s_new = s[r] + np.einsum('mij,mj->mi', E, step[:, 3:])
         s_new /= np.linalg.norm(s_new, axis=-1, keepdims=True)
         v_new = vc[r, None] * s_new - off[r]
-        sub = _Data(data.tau[r], data.t0[r], data.obs[r], data.az[r], data.el[r],
-                    data.s_az[r], data.s_el[r], vc[r], data.v_o[r], data.delta[r])
-        e_new, d_new = _residuals(sub, p_new, v_new)
+        sub = data.take(r)
+        e_new, d_new = residuals(sub, p_new, v_new)
         c_new = np.sum(e_new * e_new, axis=(1, 2))
         # Gain ratio ρ = actual / predicted decrease of the cost |e + J h|² (Nielsen 1999).
         dec = np.einsum('mi,mij,mj->m', step, JtJ, step)

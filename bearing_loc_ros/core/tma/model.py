@@ -13,6 +13,7 @@ import numpy as np
 from ..bearings import _check_bearing_fields, BearingSet
 from ..conventions import azimuth_elevation, wrap_angle
 from ..estimator_spec import MAX_ITERATIONS, Option
+from .confidence import MAX_ML_DISTANCE, MAX_NONLINEARITY
 
 
 SPEED_REFERENCES = ('relative', 'ground')
@@ -28,7 +29,14 @@ TMA_OPTIONS = (
     Option('max_range_ratio', 1.0, 'positive',
            'unobservable when the CRLB range std exceeds this fraction of the range (inf: '
            'never)', allow_inf=True),
-    Option('covariance', True, 'flag', 'compute the constrained CRLB (T15)-(T16)'),
+    Option('covariance', True, 'flag', 'compute the constrained CRLB (T15)-(T16) and the '
+           'confidence tests (T19)-(T21)'),
+    Option('max_nonlinearity', MAX_NONLINEARITY, 'positive',
+           'low_confidence when the range nonlinearity kappa over the confidence region '
+           'exceeds this (T21; inf: never)', allow_inf=True),
+    Option('max_ml_distance', MAX_ML_DISTANCE, 'positive',
+           'low_confidence when the fix lies more than this many standard deviations from '
+           'the maximum likelihood estimate (T20; inf: never)', allow_inf=True),
     Option('start', None, 'object', 'tma_mle: initial (p0, v), m and m/s'),
     MAX_ITERATIONS,
     Option('xtol', 1e-10, 'positive', 'tma_mle: relative step tolerance'),
@@ -36,7 +44,7 @@ TMA_OPTIONS = (
 )
 
 #: Default options shared by every TMA estimator (see :data:`TMA_OPTIONS`).
-DEFAULTS = {o.name: o.default for o in TMA_OPTIONS[:5]}
+DEFAULTS = {o.name: o.default for o in TMA_OPTIONS[:7]}
 
 
 # --------------------------------------------------------------------------------------------
@@ -61,6 +69,10 @@ class _Data:
     @property
     def M(self):
         return self.az.shape[0]
+
+    def take(self, idx):
+        """The problems ``idx`` (an index array or mask) as a new _Data."""
+        return _Data(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
 
 
 def prepare(bearings, times, speed, speed_reference):

@@ -2,14 +2,18 @@
 
 The Cramér-Rao bound of the relative state x = (p0, v) under the speed constraint (Stoica &
 Ng 1998; Lin et al. sec. 3.3) and :func:`finish`, shared by every TMA estimator: the target
-state at the last bearing (T1), its covariance and the range gate that reports a range the
-bound cannot resolve as unobservable. Conventions as :mod:`bearing_loc_ros.core.tma`.
+state at the last bearing (T1), its covariance, the range gate that reports a range the
+bound cannot resolve as unobservable, and the confidence tests (T19)-(T21) of
+:mod:`.confidence` that mark a fix whose covariance would be too small ``low_confidence``.
+Conventions as :mod:`bearing_loc_ros.core.tma`.
 """
 
 import numpy as np
 
 from ..crlb import angle_jacobians, safe_inverse
-from ..fix import FixResult, STATUS_MAX_ITERATIONS, STATUS_OK, STATUS_UNOBSERVABLE
+from ..fix import (FixResult, STATUS_LOW_CONFIDENCE, STATUS_MAX_ITERATIONS, STATUS_OK,
+                   STATUS_UNOBSERVABLE)
+from .confidence import assess
 from .model import observer_track
 
 
@@ -84,7 +88,13 @@ def tma_crlb(bearings, times, p0, v, speed_reference='relative'):
 
 
 def finish(method, data, p0, v, status, reason, iterations, converged, opts):
-    """Target state (T1), covariance (T15)-(T16), range gate (T18); NaN if unusable."""
+    """Target state (T1), covariance (T15)-(T16), range gate (T18), confidence (T19)-(T21).
+
+    With ``covariance`` on, an ``ok`` fix that passes the range gate is tested by
+    :func:`.confidence.assess`; one that fails keeps its state and covariance with the
+    status ``low_confidence`` (``converged`` False) and the failed tests in ``reason``.
+    State NaN (covariance inf) unless the status is ok, max_iterations or low_confidence.
+    """
     M = data.M
     tau_l = data.tau[:, -1]
     status = np.asarray(status, dtype=object).copy()
@@ -116,6 +126,11 @@ def finish(method, data, p0, v, status, reason, iterations, converged, opts):
             reason[m] = (f'range not resolved: CRLB range std is {100 * ratio[i]:.3g}% of the '
                          f'range (limit {100 * opts["max_range_ratio"]:.3g}%)')
             good[m] = False
+        chk = g[(status[g] == STATUS_OK) & ~gate]
+        if len(chk):
+            passed, why = assess(data.take(chk), p0[chk], v[chk], C[np.isin(g, chk)], opts)
+            status[chk[~passed]] = STATUS_LOW_CONFIDENCE
+            reason[chk[~passed]] = why[~passed]
     pos0 = data.obs[:, 0] + p0
     vel = v + data.v_o
     pos = pos0 + vel * tau_l[:, None]
@@ -123,7 +138,7 @@ def finish(method, data, p0, v, status, reason, iterations, converged, opts):
         arr[~good] = np.nan
     rng = np.where(good, rng, np.nan)
     cov[~good] = np.inf
-    converged = np.asarray(converged, dtype=bool) & good
+    converged = np.asarray(converged, dtype=bool) & good & (status != STATUS_LOW_CONFIDENCE)
     return FixResult(pos, cov, np.asarray(iterations, dtype=int), converged,
                      status.astype(str), 'tma_' + method, velocity=vel, t=data.t0 + tau_l,
                      t0=data.t0.copy(), position0=pos0, relative_position0=p0,
