@@ -36,10 +36,10 @@ import os
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from .core.conventions import (bearing_covariance6, IDX_AZ_VAR, IDX_EL_VAR,  # noqa: F401
                                NO_ELEVATION_VARIANCE, quaternion_from_azel)
+from .core.yaml_file import read_yaml
 
 #: rosbag2 metadata version written (Jazzy, rosbag2 0.26.x, see module docstring).
 BAG_VERSION = 9
@@ -394,15 +394,7 @@ def read_metadata(path):
     meta = Path(path) / 'metadata.yaml'
     if not meta.is_file():
         raise ValueError(f'bag: {path} has no metadata.yaml (not a rosbag2 directory?)')
-    try:
-        with open(meta, encoding='utf-8') as f:
-            doc = yaml.safe_load(f)
-    except OSError as exc:
-        raise ValueError(f'bag: {meta}: cannot read ({exc.strerror or exc})') from None
-    except UnicodeDecodeError:
-        raise ValueError(f'bag: {meta}: not a UTF-8 text file') from None
-    except yaml.YAMLError as exc:
-        raise ValueError(f'bag: {meta}: invalid YAML ({_one_line(exc)})') from None
+    doc = read_yaml(meta, f'bag: {meta}', 'metadata')
     if doc is None:
         raise ValueError(f'bag: {meta}: empty file (not rosbag2 metadata)')
     if not isinstance(doc, dict):

@@ -33,15 +33,11 @@ def load_yaml(path, name):
     An unreadable file or invalid YAML is an :class:`InputError` ``<name>: ...`` naming the
     file (``name``: the option or parameter that gave the path).
     """
-    import yaml
+    from ..core.yaml_file import read_yaml
     try:
-        with open(path, encoding='utf-8') as f:
-            return yaml.safe_load(f)
-    except OSError as exc:
-        raise InputError(f'{name}: cannot read {path} ({exc.strerror})') from None
-    except yaml.YAMLError as exc:
-        raise InputError(f'{name}: {path}: invalid YAML ({" ".join(str(exc).split())})') \
-            from None
+        return read_yaml(path, f'{name}: {path}')
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
 
 
 def single_blas_thread():

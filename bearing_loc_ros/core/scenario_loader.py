@@ -13,6 +13,7 @@ import numpy as np
 
 from .bearings import SIGMA_MIN
 from .geodesy import geodetic_to_enu
+from .yaml_file import read_yaml
 from .scenario_model import (DEFAULT_EPOCH, DEFAULT_FRAME, DEFAULT_TRUTH_RATE, Scenario,
                              SIGMA_REPORTS, SigmaGrowth, Station, Target, TARGET_KINDS,
                              Trajectory)
@@ -435,19 +436,8 @@ def load_scenario(path):
 
     Raises ValueError naming the file and the offending key (or the YAML syntax error).
     """
-    import yaml
     path = os.fspath(path)
-    try:
-        with open(path, encoding='utf-8') as f:
-            data = yaml.safe_load(f)
-    except OSError as exc:
-        raise ValueError(f'{path}: cannot read scenario ({exc.strerror or exc})') from None
-    except UnicodeDecodeError:
-        raise ValueError(f'{path}: not a UTF-8 text file (a YAML scenario is expected)') \
-            from None
-    except yaml.YAMLError as exc:
-        msg = ' '.join(str(exc).split())
-        raise ValueError(f'{path}: invalid YAML ({msg})') from None
+    data = read_yaml(path, path, 'scenario')
     if data is None:
         raise ValueError(f'{path}: empty scenario file')
     return parse_scenario(data, source=path)
