@@ -428,6 +428,23 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
     """
     from .bearings import BearingSet
     from .fix import STATUS_LOW_CONFIDENCE, STATUS_OK, STATUSES
+    if bearings.M == 1:
+        # One problem (the fusion's and locate's case): on floats, no array bookkeeping.
+        if str(result.status[0]) != STATUS_OK:
+            return result
+        x, C = result.position[0].tolist(), result.covariance[0].tolist()
+        good = False
+        if all(map(math.isfinite, x + C[0] + C[1] + C[2])):
+            from .robust_single import consistent_one, Fallback
+            try:
+                good = consistent_one(bearings, x, C, probability)
+            except Fallback:
+                good = None         # the batch path below decides
+        if good is not None:
+            wide = f'<U{max(map(len, STATUSES))}'
+            return result if good else replace(
+                result, status=np.array([STATUS_LOW_CONFIDENCE], dtype=wide),
+                converged=np.zeros(1, dtype=bool))
     status = np.asarray(result.status)
     X = np.asarray(result.position, dtype=float)
     P = np.asarray(result.covariance, dtype=float)
@@ -435,13 +452,6 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
           & np.all(np.isfinite(P), axis=(1, 2)))
     idx = np.flatnonzero(ok)
     bad = (status == STATUS_OK) & ~ok
-    if bearings.M == 1 and idx.size:
-        from .robust_single import consistent_one, Fallback
-        try:
-            bad[0] = not consistent_one(bearings, X[0].tolist(), P[0].tolist(), probability)
-            idx = idx[:0]
-        except Fallback:
-            pass
     if idx.size:
         sub = BearingSet(bearings.positions[idx], bearings.azimuth[idx],
                          bearings.elevation[idx], bearings.sigma_az[idx],
@@ -456,26 +466,42 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
 
 def _consistent(data, X, P, probability):
     """(M,) bool: checks (a)-(d) of :func:`consistency_status` at fixes X (M, 3) with
-    covariances P (M, 3, 3), all finite."""
+    covariances P (M, 3, 3), all finite: (a), (c) and (d) by :func:`screen_decision` (its
+    one-sided χ² test) on χ²_min and the linearised residuals, (b) here."""
     ra, re, ga, ge, _, _, _ = data.evaluate(X)
-    we = data.has_el.astype(float)
     ra = np.where(np.isfinite(ra), ra, np.inf)
     re = np.where(data.has_el, re, 0.0)
     ge = np.where(data.has_el[..., None], ge, 0.0)
-    F = fisher(ga, ge, np.ones_like(we), we)
+    F = fisher(ga, ge, np.ones_like(ra), data.has_el.astype(float))
     b = np.einsum('mn,mni->mi', ra, ga) + np.einsum('mn,mni->mi', re, ge)
     with np.errstate(invalid='ignore', over='ignore'):
-        delta = np.einsum('mij,mj->mi', safe_inverse(F), b)
+        delta = np.einsum('mij,mj->mi', _inverse3(F), b)
         chi2_min = (ra * ra + re * re).sum(axis=-1) - np.einsum('mi,mi->m', delta, b)
-        m2 = np.einsum('mi,mi->m', delta, np.einsum('mij,mj->mi', safe_inverse(P), delta))
+        m2 = np.einsum('mi,mi->m', delta, np.einsum('mij,mj->mi', _inverse3(P), delta))
         la = ra - np.einsum('mni,mi->mn', ga, delta)
         le = re - np.einsum('mni,mi->mn', ge, delta)
         worst = np.maximum(la * la, le * le).max(axis=-1)
-    dof = (data.az.shape[1] + data.has_el.sum(axis=-1) - 3).astype(int)
-    nu = region_nonlinearity(P, horizontal_ranges(data, X), np.ones(ra.shape, dtype=bool))
-    return ((chi2_min <= chi2_upper(np.maximum(dof, 1), probability))
-            & (m2 <= chi2_upper(np.full(len(X), 3), probability))
-            & (worst <= outlier_c2()) & (nu <= MAX_REGION_NONLINEARITY))
+        rho2min = (horizontal_ranges(data, X) ** 2).min(axis=-1)
+    n_meas = data.az.shape[1] + data.has_el.sum(axis=-1)
+    return (~screen_decision(chi2_min, worst, rho2min, n_meas, P, probability=probability,
+                             two_sided=False)
+            & (m2 <= chi2_upper(np.full(len(X), 3), probability)))
+
+
+def _inverse3(A):
+    """crlb.safe_inverse of symmetric (M, 3, 3) matrices: cofactors where they are clear
+    (κ ≤ 1e5, :func:`.robust_single._cofactors`: LAPACK's inverse to about κ ε), LAPACK with
+    its rank test for the rest."""
+    from .robust_single import _cofactors
+    with np.errstate(all='ignore'):
+        (c00, c01, c02, c11, c12, c22), det, clear = _cofactors(
+            A[:, 0, 0], A[:, 0, 1], A[:, 0, 2], A[:, 1, 1], A[:, 1, 2], A[:, 2, 2])
+        out = (np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=-1)
+               / det[:, None]).reshape(-1, 3, 3)
+    if not clear.all():
+        rest = ~clear
+        out[rest] = safe_inverse(A[rest])
+    return out
 
 
 def confident_result(result, bearings, d_ref=None, screen_stats=None):

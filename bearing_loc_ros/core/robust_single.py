@@ -724,26 +724,53 @@ def _second_optimum(pb, X, wa, we, P, ls):
 def consistent_one(bearings, x, P, probability):
     """robust._consistent for one problem on floats: checks (a)-(d) of
     :func:`.robust.consistency_status` at the fix ``x`` (3,) m with covariance ``P`` (3, 3)
-    m² (finite; constant σ). Raises :class:`Fallback` where the batch path must decide."""
+    m² (nested lists, finite; constant σ). One pass over the stations for the whitened
+    residuals, gradients, F and Gᵀr (the quantities of :func:`_terms`), then the step and
+    the linearised residuals. Raises :class:`Fallback` where the batch path must decide."""
+    x0, x1, x2 = x
     try:
-        pb = Problem(bearings, None)
         f00 = f01 = f02 = f11 = f12 = f22 = b0 = b1 = b2 = chi2 = 0.0
         rows = []
         rho_min = inf
-        for (ra, re, a0, a1, h0, h1, h2, dx, dy, _, _), h in zip(_terms(pb, x), pb.hasf):
-            re, h0, h1, h2 = re * h, h0 * h, h1 * h, h2 * h
-            f00 += a0 * a0 + h0 * h0
-            f01 += a0 * a1 + h0 * h1
-            f02 += h0 * h2
-            f11 += a1 * a1 + h1 * h1
-            f12 += h1 * h2
-            f22 += h2 * h2
-            b0 += ra * a0 + re * h0
-            b1 += ra * a1 + re * h1
-            b2 += re * h2
-            chi2 += ra * ra + re * re
-            rows.append((ra, re, a0, a1, h0, h1, h2))
-            rho_min = min(rho_min, sqrt(dx * dx + dy * dy))
+        n_el = 0
+        for (px, py, pz), az, el, sa, se in zip(
+                bearings.positions[0].tolist(), bearings.azimuth[0].tolist(),
+                bearings.elevation[0].tolist(), bearings.sigma_az[0].tolist(),
+                bearings.sigma_el[0].tolist()):
+            dx, dy, dz = x0 - px, x1 - py, x2 - pz
+            rho2 = dx * dx + dy * dy
+            rho = sqrt(rho2)
+            e = az - atan2(dy, dx)
+            e -= _TWO_PI * ceil((e - pi) / _TWO_PI)
+            ra = e / sa
+            a0, a1 = -dy / (rho2 * sa), dx / (rho2 * sa)
+            f00 += a0 * a0
+            f01 += a0 * a1
+            f11 += a1 * a1
+            b0 += ra * a0
+            b1 += ra * a1
+            chi2 += ra * ra
+            if el == el:
+                r2 = rho2 + dz * dz
+                re = (el - atan2(dz, rho)) / se
+                t = dz / (rho * r2 * se)
+                h0, h1, h2 = -dx * t, -dy * t, rho / (r2 * se)
+                f00 += h0 * h0
+                f01 += h0 * h1
+                f02 += h0 * h2
+                f11 += h1 * h1
+                f12 += h1 * h2
+                f22 += h2 * h2
+                b0 += re * h0
+                b1 += re * h1
+                b2 += re * h2
+                chi2 += re * re
+                n_el += 1
+                rows.append((ra, a0, a1, re, h0, h1, h2))
+            else:
+                rows.append((ra, a0, a1, 0.0, 0.0, 0.0, 0.0))
+            if rho < rho_min:
+                rho_min = rho
         Fi = _safe_inverse_packed(f00, f01, f02, f11, f12, f22)
         Pp = (P[0][0], P[0][1], P[0][2], P[1][1], P[1][2], P[2][2])
         Pi = _safe_inverse_packed(*Pp)
@@ -755,14 +782,14 @@ def consistent_one(bearings, x, P, probability):
         d2 = i02 * b0 + i12 * b1 + i22 * b2
         chi2_min = chi2 - (d0 * b0 + d1 * b1 + d2 * b2)
         worst = 0.0
-        for ra, re, a0, a1, h0, h1, h2 in rows:
+        for ra, a0, a1, re, h0, h1, h2 in rows:
             la = ra - (a0 * d0 + a1 * d1)
             le = re - (h0 * d0 + h1 * d1 + h2 * d2)
             worst = max(worst, la * la, le * le)
         nu = sqrt(max(_eig_extremes(_full(*Pp))[2], 0.0)) / rho_min
     except (ZeroDivisionError, ValueError, OverflowError) as exc:
         raise Fallback(str(exc)) from exc
-    return (chi2_min <= _upper(max(pb.n + pb.n_has - 3, 1), probability)
+    return (chi2_min <= _upper(max(len(rows) + n_el - 3, 1), probability)
             and _quad_packed(d0, d1, d2, Pi) <= _upper(3, probability)
             and worst <= outlier_c2() and nu <= MAX_REGION_NONLINEARITY)
 
