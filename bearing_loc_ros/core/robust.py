@@ -476,7 +476,10 @@ def _consistent(data, X, P, probability):
     b = np.einsum('mn,mni->mi', ra, ga) + np.einsum('mn,mni->mi', re, ge)
     with np.errstate(invalid='ignore', over='ignore'):
         delta = np.einsum('mij,mj->mi', _inverse3(F), b)
-        chi2_min = (ra * ra + re * re).sum(axis=-1) - np.einsum('mi,mi->m', delta, b)
+        # (≥ 0: rounding can leave a tiny negative where the fix fits the data exactly,
+        # and screen_decision's one-sided band starts at 0)
+        chi2_min = np.maximum((ra * ra + re * re).sum(axis=-1)
+                              - np.einsum('mi,mi->m', delta, b), 0.0)
         m2 = np.einsum('mi,mi->m', delta, np.einsum('mij,mj->mi', _inverse3(P), delta))
         la = ra - np.einsum('mni,mi->mn', ga, delta)
         le = re - np.einsum('mni,mi->mn', ge, delta)
