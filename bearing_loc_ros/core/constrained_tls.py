@@ -244,6 +244,28 @@ def _rms_range(sub, X):
     return np.sqrt(np.mean(np.sum((X[:, None, :] - sub.positions) ** 2, axis=-1), axis=1))
 
 
+def station_centroid(positions):
+    """Mean station position (M, 3), m, of ``positions`` (M, N, 3): the origin ``ctls_am`` is
+    solved in (:func:`constrained_tls`).
+
+    Summed station by station in station order (Python floats for M = 1, one numpy addition
+    per station otherwise): the same IEEE operations in the same order, so the one-problem
+    and batch paths use the same centre to the bit.
+    """
+    M, N, _ = positions.shape
+    if M == 1:
+        sx = sy = sz = 0.0
+        for x, y, z in positions[0].tolist():
+            sx += x
+            sy += y
+            sz += z
+        return np.array([[sx / N, sy / N, sz / N]])
+    c = np.zeros((M, 3))
+    for n in range(N):
+        c += positions[:, n]
+    return c / N
+
+
 def constrained_tls(bearings, weighting='paper', **options):
     """CTLS by the Newton iteration of Wang, Zhang & Wu eq. (20), batch over M problems.
 
@@ -266,19 +288,59 @@ def constrained_tls(bearings, weighting='paper', **options):
     results to rounding). ``ctls`` keeps the batch path: its G holds the station coordinates,
     so with coordinates of tens of km a rounding difference grows to ~1e-9 of the covariance.
 
+    Centring (``ctls_am`` only, both paths): the problem is solved in coordinates centred on
+    the stations, p_i − c and X − c with c the station centroid (:func:`station_centroid`;
+    option ``initial`` shifted alike), and c is added back to the estimate. With G⁻¹ = P_E
+    everything depends on X and the stations only through X − p_i: the rows h_i hold angles
+    only, r_i = h_i X − h_i p_i = h_i (X − p_i), H_X = Σ_j a_j F_j − F_4 has the entries
+    −(cos θ (x − x_i) + sin θ (y − y_i)) etc. (F_4 is linear in p_i, F_1..F_3 hold angles
+    only), X_LS (eq. (4)) moves with the origin, and the step test's rms range and eq. (30)
+    (at the angles predicted from X − p_i) do not change; so f, T_n, H_n, the iterates and
+    P are translation invariant in exact arithmetic, and centring changes results only by
+    rounding (measured on ordinary problems, stations ±50 km from the origin: median 1e-13
+    of the range; up to 1e-9 where the old or new fix stopped one Newton step of that size
+    short of the optimum, the stopping point being decided by rounding of f). It matters in
+    large absolute coordinates (UTM-like, stations near (8e6, 9e6) m): Y_i = h_i p_i ~ 1e7 m
+    and r_i = h_i X − Y_i cancels to metres, so f carried rounding of 1e-11..1e-10 relative
+    (1e-13 centred), above the 1e-12 f of the rounding stop; the backtracking's f_t ≤ f
+    compared rounding noise, and the one-problem and batch paths (different summation
+    order) stopped differently: ``ok`` against ``max_iterations`` or ``diverged``, fixes up
+    to 3e-8 of the range apart (test/test_ctls_utm.py). ``ctls`` (the paper's G holds p_i
+    through F_4) is not translation invariant (module doc, bench/ctls_origin.py) and is
+    solved in the given coordinates.
+
     ``weighting``: ``'paper'`` (estimator ``ctls``) or ``'am'`` (``ctls_am``), see module doc.
     Options: ``step_decay``, ``max_iterations``, ``tolerance``, ``initial``.
     """
     if weighting not in WEIGHTINGS:
         raise ValueError(f'weighting: must be one of {WEIGHTINGS}, got {weighting!r}')
     spec = (ctls if weighting == 'paper' else ctls_am).spec
-    name = spec.name
     bearings.validate()
+    if weighting == 'paper':
+        return _solve(spec, bearings, weighting, options)
+    centre = station_centroid(bearings.positions)       # ctls_am: centred (see above)
+    centred = BearingSet(bearings.positions - centre[:, None, :], bearings.azimuth,
+                         bearings.elevation, bearings.sigma_az, bearings.sigma_el,
+                         bearings.stations)
+    res = _solve(spec, centred, weighting, options, centre)
+    res.position = res.position + centre
+    return res
+
+
+def _solve(spec, bearings, weighting, options, centre=None):
+    """:func:`constrained_tls` for validated ``bearings``; option ``initial`` minus
+    ``centre`` (M, 3) when given (the bearings are then centred on it)."""
+    name = spec.name
     if bearings.M == 1 and weighting == 'am':
-        res = solve_one(name, bearings, spec.parse(options, 1))
+        opts = spec.parse(options, 1)
+        if opts.get('initial') is not None:
+            opts['initial'] = opts['initial'] - centre
+        res = solve_one(name, bearings, opts)
         if res is not None:
             return res
     opts, x0 = start(spec, bearings, options, validated=True)
+    if centre is not None and opts.get('initial') is not None:
+        x0 = x0 - centre
     problem = _CTLSProblem(bearings, weighting)
     mu, tol = opts['step_decay'], opts['tolerance']
     dof = np.maximum(bearings.N + np.count_nonzero(bearings.has_elevation, axis=1) - 3, 1)

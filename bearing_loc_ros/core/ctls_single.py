@@ -12,6 +12,15 @@ Python floats; the 3 × 3 eigenvalue tests and inverses use the same numpy calls
 the batch path to rounding (test/test_estimators.py compares them, and
 test/test_estimators_reference.py checks both against stored fixes).
 
+Coordinates: the caller (constrained_tls.constrained_tls) hands both paths the same bearings
+centred on the station centroid c (station_centroid, summed in the same order on both paths)
+and shifts option ``initial`` and the estimate by c. CTLS-AM is translation invariant in exact
+arithmetic (f, T_n, H_n and eq. (30) depend on X and p_i only through X − p_i, X_LS moves
+with the origin), so this only removes rounding: with UTM-like coordinates (~1e7 m) the
+pseudo-linear residual h_i X − h_i p_i cancels ~1e7 m to metres and f carried 1e-11..1e-10
+relative rounding, and the two paths stopped differently (``ok`` against ``max_iterations``
+or ``diverged``, fixes ~1e-8 of the range apart).
+
 Whenever floats would need IEEE special values (division by zero, overflow, a degenerate
 start) :func:`solve_one` returns None and the caller runs the batch path.
 """
