@@ -483,3 +483,85 @@ def test_bag_simulate_refuses_an_unbounded_scenario(tmp_path, capsys):
     assert len(lines) == 1 and f'{path}: stations[1].clock_jitter: must be' in lines[0], \
         captured.err
     assert captured.out == '' and not out.exists()
+
+
+# --- overrides of a valid scenario (Python API and `bag simulate --duration`) -----------------
+
+def _slow_scenario(**top):
+    """One station at 1e-6 Hz (no bearing in 1e5 s), no truth: only the duration matters."""
+    return parse_scenario(dict({'duration': 10.0, 'truth_rate': 0.0,
+                                'stations': [{'id': 'a', 'position': [0.0, 0.0, 0.0],
+                                              'rate': 1e-6, 'phase': 1e5}],
+                                'targets': [{'position': [100.0, 0.0, 0.0]}]}, **top), 'x.yaml')
+
+
+def test_duration_override_has_the_scenario_bounds():
+    """simulate(duration=...) is checked as the scenario's duration: MAX_TIME, the truth
+    samples and the bearings of one run (each made a MemoryError or a multi-GB run)."""
+    from bearing_loc_ros.core.scenario_loader import MAX_TIME, MAX_TRUTH_SAMPLES
+    from bearing_loc_ros.core.simulation import MAX_SIMULATED_BEARINGS
+    sc = _slow_scenario(epoch=2e9)
+    for bad in (MAX_TIME * 1.001, 5e8, math.inf, math.nan, -1.0):
+        with pytest.raises(ValueError, match=r'^duration: '):
+            simulate(sc, duration=bad)
+    assert simulate(sc, duration=MAX_TIME).duration == MAX_TIME     # the bound itself is valid
+    truthy = _slow_scenario(truth_rate=1e4, duration=1.0)          # 1e4 samples: valid
+    n = MAX_TRUTH_SAMPLES / 1e4
+    with pytest.raises(ValueError, match=r'^duration: .*truth samples'):
+        simulate(truthy, duration=2.0 * n)
+    assert len(simulate(truthy, duration=n / 100.0).truth) == MAX_TRUTH_SAMPLES / 100.0
+    fast = parse_scenario({'duration': 1.0, 'truth_rate': 0.0,
+                           'stations': [{'id': 'a', 'position': [0.0, 0.0, 0.0], 'rate': 1e3}],
+                           'targets': [{'position': [100.0, 0.0, 0.0]}]}, 'x.yaml')
+    with pytest.raises(ValueError, match=r'^duration: .*bearings'):
+        simulate(fast, duration=2.0 * MAX_SIMULATED_BEARINGS / 1e3)
+
+
+def test_bag_simulate_duration_override_is_bounded(tmp_path, capsys):
+    """`bag simulate --duration` beyond MAX_TIME (a MemoryError building /clock at epoch 2e9)
+    or giving more /clock messages than a bag holds: exit 2, one line naming duration."""
+    from bearing_loc_ros.cli import main
+    from bearing_loc_ros.core.simulation import MAX_CLOCK_TICKS
+    path = tmp_path / 'slow.yaml'
+    path.write_text(yaml.safe_dump({'duration': 10.0, 'epoch': 2e9, 'truth_rate': 0.0,
+                                    'stations': [{'id': 'a', 'position': [0.0, 0.0, 0.0],
+                                                  'rate': 1e-6, 'phase': 1e5}],
+                                    'targets': [{'position': [100.0, 0.0, 0.0]}]}))
+    ticks = 2.0 * MAX_CLOCK_TICKS / 100.0         # seconds of /clock at 100 Hz
+    for duration in ('5e8', '1.0000001e7', f'{ticks:g}'):
+        out = tmp_path / f'bag{duration}'
+        assert main(['bag', 'simulate', '--scenario', str(path), '--duration', duration,
+                     '--out', str(out)]) == 2
+        captured = capsys.readouterr()
+        lines = captured.err.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith('bearing_loc bag: error: duration: '), \
+            captured.err
+        assert captured.out == '' and not out.exists()
+    # a lower --clock-rate makes the same duration valid
+    out = tmp_path / 'ok'
+    assert main(['bag', 'simulate', '--scenario', str(path), '--duration', f'{ticks:g}',
+                 '--clock-rate', '0.01', '--out', str(out)]) == 0
+    assert 'clock messages' in capsys.readouterr().out and out.is_dir()
+
+
+def test_range_grown_sigma_is_clipped_to_a_valid_bearing_sigma():
+    """σ(r) = σ·clip(r/r_ref, min, max) with report: actual and no max_factor reached 1e4 rad
+    (1e-15 rad at min_factor), outside core.bearings' [SIGMA_MIN, SIGMA_MAX]; it is capped
+    at π (a wider σ carries no information) and floored at SIGMA_MIN."""
+    from bearing_loc_ros.core.bearings import SIGMA_MIN
+    sc = parse_scenario({
+        'duration': 10.0,
+        'stations': [{'id': 'far', 'position': [0.0, 0.0, 0.0], 'sigma_az': 0.01,
+                      'sigma_growth': {'range_ref': 1.0, 'report': 'actual'}},
+                     {'id': 'near', 'position': [1e6, 0.0, 0.0], 'sigma_az': 1e-12,
+                      'sigma_growth': {'range_ref': 1e8, 'report': 'actual'}}],
+        'targets': [{'position': [1e6, 0.0, 1.0]}]}, 'x.yaml')
+    sim = simulate(sc, seed=3)
+    far, near = sim.stream('far'), sim.stream('near')
+    assert np.all(far.range_ > 1e5) and np.all(near.range_ < 2.0)
+    for s, sigma in ((far, math.pi), (near, SIGMA_MIN)):
+        for name in ('sigma_az', 'sigma_el', 'sigma_az_actual', 'sigma_el_actual'):
+            assert np.all(getattr(s, name) == sigma), (s.station, name)
+    assert len(sim.bearings) == 20
+    for ev in sim.bearings:
+        ev.bearing.validate()

@@ -128,30 +128,52 @@ def simulate_bag(scenario, out, duration=None, seed=0, storage='mcap', clock_rat
     observation + latency; truth: the true time), so the bag is what ``ros2 bag record``
     would have captured from simulator_node with no transport delay. Ties are written
     truth, bearings, then /clock, so a clock tick never precedes data of the same instant.
+
+    ``duration`` (s; None or 0: the scenario's) has the bounds of a scenario's duration
+    (``core.simulation.check_duration``), and the /clock messages are at most
+    ``MAX_CLOCK_TICKS`` (1e7); beyond either it raises ValueError ``duration: ...``
+    (``clock_rate: ...`` for the ticks when the scenario's own duration is used) before
+    anything is written. Messages are built while writing (the three streams are merged in
+    time order), so memory is that of the simulation alone.
     """
+    import heapq
     from .. import bagio
-    from ..core.simulation import bearing_topic, simulate, truth_topic
-    if not (clock_rate >= 0 and math.isfinite(clock_rate)):
-        raise InputError(f'clock_rate: must be >= 0 (got {clock_rate})')
+    from ..core.scenario_loader import RATE_RANGE
+    from ..core.simulation import (bearing_topic, check_duration, MAX_CLOCK_TICKS, simulate,
+                                   truth_topic)
+    if not (clock_rate == 0 or RATE_RANGE[0] <= clock_rate <= RATE_RANGE[1]):
+        raise InputError(f'clock_rate: must be 0 or within [{RATE_RANGE[0]:g}, '
+                         f'{RATE_RANGE[1]:g}] Hz (got {clock_rate:g})')
+    period = int(round(NS_PER_S / clock_rate)) if clock_rate > 0 else 0
+
+    def check_clock(span):           # span: ns of /clock from the epoch; returns the count
+        n = span // period + 1 + (span % period != 0) if period else 0
+        if n > MAX_CLOCK_TICKS:
+            raise InputError(f'{"duration" if duration else "clock_rate"}: '
+                             f'{span / NS_PER_S:g} s of /clock at {clock_rate:g} Hz is {n} '
+                             f'messages, more than {MAX_CLOCK_TICKS:g} (lower --duration or '
+                             f'--clock-rate)')
+        return n
+
+    check_clock(int(round(check_duration(scenario, duration or None) * NS_PER_S)))  # fast
     sim = simulate(scenario, duration=duration or None, seed=seed)
+    n_clock = check_clock(sim.end_ns - scenario.epoch_ns)     # latency may lengthen the run
     custom = {'generator': 'bearing_loc bag simulate', 'scenario': scenario.source,
               'scenario_name': scenario.name, 'seed': str(seed),
               'duration': repr(sim.duration)}
-    events = []
-    for k, ev in enumerate(sim.truth):
-        events.append((ev.publish_ns, 0, k, _abs(ev.topic),
-                       bagio.truth_message(ev.position, ev.stamp_ns, scenario.frame_id)))
-    for k, ev in enumerate(sim.bearings):
-        events.append((ev.publish_ns, 1, k, _abs(ev.topic), bagio.bearing_message(ev.bearing)))
-    if clock_rate > 0:
-        period = int(round(NS_PER_S / clock_rate))
-        if period <= 0:
-            raise InputError(f'clock_rate: too high ({clock_rate} Hz)')
-        ticks = list(range(scenario.epoch_ns, sim.end_ns + 1, period))
-        if ticks[-1] != sim.end_ns:
-            ticks.append(sim.end_ns)
-        events.extend((t, 2, k, bagio.CLOCK_TOPIC, None) for k, t in enumerate(ticks))
-    events.sort(key=lambda e: e[:3])
+
+    def ticks():
+        k = -1
+        for k, t in enumerate(range(scenario.epoch_ns, sim.end_ns + 1, period)):
+            yield t, 2, k, bagio.CLOCK_TOPIC, None
+        if (sim.end_ns - scenario.epoch_ns) % period:
+            yield sim.end_ns, 2, k + 1, bagio.CLOCK_TOPIC, None
+
+    # Each stream is sorted by (time, index): the merge is the order of sorting them all.
+    streams = [((ev.publish_ns, 0, k, _abs(ev.topic), ev) for k, ev in enumerate(sim.truth)),
+               ((ev.publish_ns, 1, k, _abs(ev.topic), ev) for k, ev in enumerate(sim.bearings))]
+    if period:
+        streams.append(ticks())
     with bagio.BagWriter(out, storage=storage, custom_data=custom) as bag:
         for tg in sim.targets:
             if scenario.truth_rate > 0:
@@ -160,13 +182,18 @@ def simulate_bag(scenario, out, duration=None, seed=0, storage='mcap', clock_rat
             for st in scenario.stations:
                 bag.add_topic(_abs(bearing_topic(tg.namespace, st.id)),
                               bagio.POSE_COV_STAMPED, bagio.SIM_BEARING_QOS)
-        if clock_rate > 0:
+        if period:
             bag.add_topic(bagio.CLOCK_TOPIC, bagio.CLOCK, bagio.CLOCK_QOS)
-        for t, kind, _, topic, msg in events:
-            bag.write(topic, t, bagio.clock_message(t) if kind == 2 else msg)
-    return {'bearings': len(sim.bearings), 'truth': len(sim.truth),
-            'clock': sum(1 for e in events if e[1] == 2), 'start_ns': scenario.epoch_ns,
-            'end_ns': sim.end_ns, 'duration': sim.duration}
+        for t, kind, _, topic, ev in heapq.merge(*streams, key=lambda e: e[:3]):
+            if kind == 0:
+                msg = bagio.truth_message(ev.position, ev.stamp_ns, scenario.frame_id)
+            elif kind == 1:
+                msg = bagio.bearing_message(ev.bearing)
+            else:
+                msg = bagio.clock_message(t)
+            bag.write(topic, t, msg)
+    return {'bearings': len(sim.bearings), 'truth': len(sim.truth), 'clock': n_clock,
+            'start_ns': scenario.epoch_ns, 'end_ns': sim.end_ns, 'duration': sim.duration}
 
 
 def check_out_parent(out):

@@ -14,15 +14,21 @@ d = X(t_k) − s_i(t_k):
 
     θ_ik = wrap(atan2(d_y, d_x) + σ_θ(r) n_ik + o_ik a_θ),
     ψ_ik = clip(atan2(d_z, hypot(d_x, d_y)) + σ_ψ(r) m_ik + o_ik a_ψ),   (2D stations only)
-    σ(r) = σ_ref · clip(r / r_ref, f_min, f_max)   (Zong & Cui (2015) eqs. (9)-(10);
-                                                    σ(r) = σ_ref when no ``sigma_growth``
-                                                    is configured)
+    σ(r) = clip(σ_ref · clip(r / r_ref, f_min, f_max), SIGMA_MIN, π)
+                       (Zong & Cui (2015) eqs. (9)-(10); σ(r) = σ_ref when no
+                        ``sigma_growth`` is configured)
 
 with r = |d|, n, m ~ N(0, 1), o_ik ~ Bernoulli(outlier) and a = ±outlier_size (random sign);
 with ``outlier_size_max`` the magnitude is uniform in [outlier_size, outlier_size_max] (a
 reflection 20-90° off: u = Φ(z_out)/outlier, uniform given o_ik, sets |a| = size + (max −
 size)·u, so no extra random draw and the other bearings of a scenario do not change).
-ψ is clipped to |ψ| ≤ π/2 − 1e-9 so a noisy elevation stays a valid bearing.
+ψ is clipped to |ψ| ≤ π/2 − 1e-9 so a noisy elevation stays a valid bearing. The outer clip
+of σ(r), rad, to the loader's SIGMA_RANGE = [SIGMA_MIN, π] = [1e-12, π] (the bounds of
+``sigma_az``) keeps every σ a valid bearing σ (core.bearings accepts [1e-12, 1e3] rad): the
+growth has no upper clip by default (``max_factor`` = ∞), so σ_ref · r / r_ref reached 1e4
+rad, and σ_ref · f_min may fall below 1e-12 rad. A σ above π carries no information (the
+wrapped noise is nearly uniform already), so the cap changes no bearing's meaning; the
+clipped σ is both the one used for the noise and the one reported (``report: actual``).
 Each observation is dropped with probability ``dropout``. Timing of observation k:
 
     t_k       = phase + k / rate                          true time (scenario seconds)
@@ -32,6 +38,8 @@ Each observation is dropped with probability ``dropout``. Timing of observation 
 c, l ~ N(0, 1); drift = clock_drift_ppm·1e-6. The truth attached to a bearing is X(t_k).
 Observation times are the half-open interval [0, duration): section 4 of Wang, Zhang & Wu
 (2006) (every 2 s for 100 s) gives k = 0..49. Periods are rounded to whole nanoseconds.
+A duration given to :func:`simulate` (overriding the scenario's) has the scenario's bounds
+(:func:`check_duration`).
 
 Determinism: every random number comes from numpy Generators seeded with
 ``SeedSequence([seed, stream, index...])``: stream 0 = target j's random draws, stream 1 =
@@ -51,8 +59,8 @@ from .bearings import Bearing
 from .conventions import azimuth_elevation, wrap_angle
 # Re-exported: the scenario model and loader are part of this module's public interface.
 from .scenario_loader import (GEODETIC_KEYS, GROWTH_KEYS, load_scenario,  # noqa: F401
-                              MOTION_KEYS, parse_scenario, SCENARIO_KEYS, STATION_KEYS,
-                              TARGET_KEYS)
+                              MAX_TIME, MAX_TRUTH_SAMPLES, MOTION_KEYS, parse_scenario,
+                              SCENARIO_KEYS, SIGMA_RANGE, STATION_KEYS, TARGET_KEYS)
 from .scenario_model import (bearing_topic, DEFAULT_EPOCH, DEFAULT_FRAME,  # noqa: F401
                              DEFAULT_TRUTH_RATE, MAX_ELEVATION, MOTION_KINDS, NS_PER_S,
                              Scenario, SIGMA_REPORTS, SigmaGrowth, Station, station_position,
@@ -209,8 +217,17 @@ def realize_targets(scenario, seed=0):
     return out
 
 
-#: Most bearings one :func:`simulate` call produces (all are held in memory, ~1 kB each).
-MAX_SIMULATED_BEARINGS = 1e8
+#: Most scheduled observations (duration · Σ rate · targets, dropped ones included) of one
+#: :func:`simulate` call. All are held in memory: measured ~1.5 kB each (Stream arrays +
+#: BearingEvent; ``bag simulate`` builds messages while writing and adds nothing), so at most
+#: ~1.5 GB (ten stations at 10 Hz for 2.7 h). With the loader's MAX_TRUTH_SAMPLES = 1e6 truth
+#: samples (~0.55 kB each): seed000 for 1e5 s (1.5e5 bearings, 1e6 truth samples, 1e7 /clock
+#: messages) peaked at 0.79 GB.
+MAX_SIMULATED_BEARINGS = 1e6
+#: Most /clock messages of one ``bag simulate`` bag ((end − epoch) · clock_rate + 2). They are
+#: generated while writing (no memory per message); the bound keeps a bag below ~0.6 GB of
+#: disk (~57 B per message) and ~2 min of writing (27.8 h of simulated time at 100 Hz).
+MAX_CLOCK_TICKS = 1e7
 
 
 def observation_times_ns(station, duration):
@@ -239,7 +256,7 @@ def _simulate_stream(scenario, station, i, target, j, duration, seed, survey):
         f = station.sigma_growth.factor(rng_)
     else:
         f = np.ones(K)
-    saz_act = station.sigma_az * f
+    saz_act = np.clip(station.sigma_az * f, *SIGMA_RANGE)      # σ(r), rad (module doc)
     u_out = ndtr(z[:, _C_OUT])
     outlier = u_out < station.outlier
     size = station.outlier_size
@@ -249,7 +266,7 @@ def _simulate_stream(scenario, station, i, target, j, duration, seed, survey):
     sign_az = np.where(z[:, _C_SIGN_AZ] >= 0.0, 1.0, -1.0)
     az = wrap_angle(az0 + saz_act * z[:, _C_AZ] + outlier * sign_az * size)
     if station.dims == 2:
-        sel_act = station.sigma_el * f
+        sel_act = np.clip(station.sigma_el * f, *SIGMA_RANGE)
         sign_el = np.where(z[:, _C_SIGN_EL] >= 0.0, 1.0, -1.0)
         el = np.clip(el0 + sel_act * z[:, _C_EL] + outlier * sign_el * size,
                      -MAX_ELEVATION, MAX_ELEVATION)
@@ -272,12 +289,45 @@ def _simulate_stream(scenario, station, i, target, j, duration, seed, survey):
                   kept, outlier)
 
 
+def check_duration(scenario, duration=None):
+    """The simulated duration, s, of ``simulate(scenario, duration)``: ``duration`` (None or
+    0: ``scenario.duration``) checked against the bounds of a scenario's own duration, so an
+    override (the simulator node's ``duration``, ``bag simulate --duration``, the Python API)
+    cannot do what the loader refuses: 0 < duration <= MAX_TIME (1e7 s; every stamp stays
+    within int32 ROS seconds), truth_rate · duration · targets <= MAX_TRUTH_SAMPLES (1e6) and
+    duration · Σ rate · targets <= MAX_SIMULATED_BEARINGS (1e6 scheduled observations).
+
+    Raises ValueError ``duration: <problem>`` (the CLI prints it as one line, exit 2).
+    """
+    if duration is None or duration == 0:
+        duration = scenario.duration
+    if isinstance(duration, bool) or not isinstance(duration, (int, float, np.number)):
+        raise ValueError(f'duration: expected a number of seconds, got {duration!r}')
+    try:
+        duration = float(duration)
+    except OverflowError:        # an integer beyond the float range
+        duration = math.inf
+    if not 0.0 < duration <= MAX_TIME:      # NaN fails too
+        raise ValueError(f'duration: must be within (0, {MAX_TIME:g}] s (got {duration:g})')
+    n_truth = scenario.truth_rate * duration * len(scenario.targets)
+    if n_truth > MAX_TRUTH_SAMPLES:
+        raise ValueError(f'duration: {duration:g} s gives truth_rate x duration x targets = '
+                         f'{n_truth:.3g} truth samples, more than {MAX_TRUTH_SAMPLES:g}')
+    n_obs = duration * sum(st.rate for st in scenario.stations) * len(scenario.targets)
+    if n_obs > MAX_SIMULATED_BEARINGS:
+        raise ValueError(f'duration: {duration:g} s gives duration x rates x targets = '
+                         f'{n_obs:.3g} bearings, more than the {MAX_SIMULATED_BEARINGS:g} one '
+                         f'run holds in memory')
+    return duration
+
+
 def simulate(scenario, duration=None, seed=0):
     """Generate every bearing and truth sample of ``scenario`` (deterministic in ``seed``).
 
     Args:
         scenario: a :class:`Scenario`.
-        duration: simulated seconds; None or 0 uses ``scenario.duration``.
+        duration: simulated seconds; None or 0 uses ``scenario.duration``. Bounded as the
+            scenario's own duration (:func:`check_duration`: ValueError naming duration).
         seed: non-negative int; all randomness derives from it (module docstring).
 
     Returns:
@@ -285,15 +335,7 @@ def simulate(scenario, duration=None, seed=0):
         time (ties: station order, then target order), truth samples and per-stream arrays.
     """
     seed = _check_seed(seed)
-    if duration is None or duration == 0:
-        duration = scenario.duration
-    duration = float(duration)
-    if not math.isfinite(duration) or duration <= 0:
-        raise ValueError(f'duration: must be > 0 s (got {duration})')
-    n_obs = duration * sum(st.rate for st in scenario.stations) * len(scenario.targets)
-    if duration * NS_PER_S >= 2 ** 63 or n_obs > MAX_SIMULATED_BEARINGS:
-        raise ValueError(f'duration: {duration:g} s gives ~{n_obs:.3g} bearings, more than the '
-                         f'{MAX_SIMULATED_BEARINGS:.0e} one run holds in memory')
+    duration = check_duration(scenario, duration)
     targets = realize_targets(scenario, seed)
     streams, events = [], []
     for i, st in enumerate(scenario.stations):
