@@ -558,3 +558,14 @@ def test_unset_default_message_is_rejected():
     # ROS defaults the orientation to identity (w = 1), so the first broken field is the
     # zero azimuth variance.
     assert _reason(msg) == 'bad_azimuth_variance'
+
+
+def test_position_covariance_computed_in_single_precision_is_accepted():
+    # Rank-2 covariances (a GNSS fix without height information) built in float32: their
+    # smallest eigenvalue is rounding, down to a few 1e-7 of the largest.
+    rng = np.random.default_rng(4)
+    for _ in range(200):
+        A = rng.normal(size=(3, 2)).astype(np.float32) * np.float32(5.0)
+        P = (A @ A.T).astype(np.float32).astype(float)
+        b = rc.bearing_from_msg(_with_position_covariance(P), 's1')
+        np.testing.assert_array_equal(b.position_covariance, P)

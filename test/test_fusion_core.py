@@ -450,3 +450,48 @@ def test_a_closed_form_fix_the_data_contradict_is_low_confidence():
     sol = solve_epoch(bearings, 'ls')
     assert not sol.ok and sol.reason == 'low_confidence'
     assert solve_epoch(bearings, 'ls', outlier_gate=1.0).reason != 'low_confidence'
+
+
+@pytest.mark.parametrize('estimator', ['ls', 'tls', 'ctls_am'])
+def test_the_gate_drops_an_outlier_before_consistency_judges_the_fix(estimator):
+    # Five stations, σ 2 mrad, one azimuth 25σ off: the gate drops that station and the fix
+    # recomputed without it is ok. Option consistency judges the fix the gate leaves; run
+    # first, it made every such epoch low_confidence (no station dropped).
+    rng = np.random.default_rng(1)
+    st = np.array([[0, 0, 0], [3000, 0, 10], [3000, 3000, 5], [0, 3000, 0], [1500, -1000, 0]],
+                  dtype=float)
+    tgt = np.array([1400.0, 1700.0, 300.0])
+    for _ in range(20):
+        bs = []
+        for i, p in enumerate(st):
+            az, el = azimuth_elevation(tgt - p)
+            az = float(az) + 2e-3 * rng.standard_normal() + (0.05 if i == 2 else 0.0)
+            el = float(el) + 2e-3 * rng.standard_normal()
+            bs.append(Bearing(f's{i}', 0, p, az, el, 2e-3, 2e-3))
+        ep = solve_epoch(bs, estimator)
+        assert ep.ok and [b.station for b in ep.rejected] == ['s2']
+
+
+@pytest.mark.parametrize('gate', [0.999, 1.0])
+def test_window_mode_consistency_follows_the_gate(gate):
+    # Twelve bearings of one moving station, one 20σ off. Gate 0.999: the window's gate
+    # rounds drop it before option consistency judges the fix; gate 1 turns every outlier
+    # test off, consistency included (the fix is ok with the outlier kept).
+    import types
+    from bearing_loc_ros.core.fusion.window import WindowStrategy
+    rng = np.random.default_rng(2)
+    tgt = np.array([1500.0, 2000.0, 300.0])
+    for _ in range(10):
+        used = []
+        for k in range(12):
+            p = np.array([k * 300.0 - 1500, -1000 + 50 * k, 2.0])
+            az, el = azimuth_elevation(tgt - p)
+            az = float(az) + 2e-3 * rng.standard_normal() + (0.04 if k == 5 else 0.0)
+            el = float(el) + 2e-3 * rng.standard_normal()
+            used.append(Bearing('car', k, p, az, el, 2e-3, 2e-3))
+        w = WindowStrategy.__new__(WindowStrategy)
+        w.last_solve = 'none'
+        cfg = types.SimpleNamespace(estimator='ls', estimator_options={}, outlier_gate=gate)
+        ep = w._solve(used, cfg)
+        assert ep.ok, ep.reason
+        assert (len(ep.rejected) >= 1) == (gate < 1.0)

@@ -471,3 +471,29 @@ def test_consistency_keeps_honest_horizontal_fixes_ok(has, sz):
     for name in ('ls', 'tls', 'ctls', 'ctls_am'):
         r = locate_horizontal(name, bs, 600.0, sz)
         assert np.mean(r.status == 'ok') >= 0.989, name
+
+
+def test_consistency_marks_the_horizontal_tail_with_an_uncertain_altitude():
+    # One elevation station, σ_z = 300 m, the true altitude drawn from the prior: without
+    # the check about 1 % of the tls/ctls_am fixes are confidently wrong (Mahalanobis² above
+    # χ²₃ 0.9999 = 21.1); the check (Gauss-Newton iterated to the optimum) marks them, at
+    # most 3 % of the fixes, and leaves at most 2 of 2000 such ok fixes.
+    from bearing_loc_ros.core.horizontal import locate_horizontal
+    st = np.array([[0.0, 0.0, 0.0], [4000.0, 500.0, 20.0], [-2000.0, 3000.0, 5.0],
+                   [1000.0, -2500.0, 0.0], [3000.0, 4000.0, 10.0]])
+    rng = np.random.default_rng(2)
+    truth = np.tile([1500.0, 2500.0, 600.0], (2000, 1))
+    truth[:, 2] += 300.0 * rng.standard_normal(2000)
+    bs = simulate_bearings(truth, st, 0.6e-3, 0.6e-3,
+                           has_elevation=[False, True, False, False, False], rng=rng)
+    for name in ('tls', 'ctls_am'):
+        wrong = {}
+        for check in (False, True):
+            r = locate_horizontal(name, bs, 600.0, 300.0, consistency=check)
+            ok = r.status == 'ok'
+            e = r.position[ok] - truth[ok]
+            m2 = np.einsum('mi,mij,mj->m', e, np.linalg.inv(r.covariance[ok]), e)
+            wrong[check] = int(np.sum(m2 > 21.1))
+            if check:
+                assert ok.mean() >= 0.97, name
+        assert wrong[False] >= 8 and wrong[True] <= 2, (name, wrong)

@@ -92,6 +92,11 @@ def main(argv=None):
     except (InputError, ValueError) as exc:
         print(f'bearing_loc {args.verb}: error: {exc}', file=sys.stderr)
         return 2
+    except RecursionError:
+        # A JSON document nested deeper than Python's recursion limit (about 1000 levels;
+        # orjson parses up to 1024) fails in the checks that walk or echo it.
+        print(f'bearing_loc {args.verb}: error: input: nested too deeply', file=sys.stderr)
+        return 2
     except BrokenPipeError:
         return 0
 

@@ -64,7 +64,7 @@ def request_header(doc, top_fields, problem_key, names, default, override, kind=
     if canonical is not None:
         name = canonical(name)
     if not isinstance(name, str) or name not in names:
-        raise InputError(f'estimator: unknown {kind} {name!r}; choose one of '
+        raise InputError(f'estimator: unknown {kind} {str(name)[:60]!r}; choose one of '
                          f'{", ".join(sorted(names))}')
     options = doc.get('options', {})
     if not isinstance(options, dict):
@@ -105,9 +105,9 @@ def finite_rows(array):
 def read_json(path):
     """Parse the JSON document in file ``path`` ('-' = stdin); InputError when unreadable.
 
-    orjson parses; a document it rejects goes to the standard library's parser, which gives
-    the error message and also reads what strict JSON lacks (NaN literals, integers beyond
-    64 bits) for the field checks to name.
+    orjson parses (an integer beyond 64 bits becomes a float); a document it rejects goes
+    to the standard library's parser, which gives the error message and also reads what
+    strict JSON lacks (NaN literals) for the field checks to name.
     """
     try:
         if path == '-':

@@ -148,9 +148,11 @@ ROBUST_ON = Option('robust', True, 'flag', ROBUST.doc)
 
 #: Status rule of the estimators without ``robust`` (``ls``, ``tls``, ``ctls``, ``ctls_am``).
 CONSISTENCY = Option('consistency', True, 'flag',
-                     'status low_confidence for an ok fix whose residual chi-square fails its '
-                     '0.999 test, with an angle beyond 3.9 sigma or a nonlinearity above 0.2 '
-                     '(core.robust.consistency_status); false: the published statuses')
+                     'status low_confidence for an ok fix that, one Gauss-Newton step toward '
+                     'the likelihood optimum, fails the 0.999 chi-square test, lies outside its '
+                     'own covariance from that optimum, has an angle beyond 3.9 sigma or a '
+                     'nonlinearity above 0.2 (core.robust.consistency_status); false: the '
+                     'published statuses')
 
 #: Dimension choices of the solve (core.horizontal): 3D when the bearings observe the height,
 #: forced 3D, or the horizontal solve with the target altitude stated.

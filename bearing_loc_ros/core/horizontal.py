@@ -192,6 +192,49 @@ def _robust(method, bearings, res, p, options):
     return FixResult(method=method, excluded=excluded, nonlinearity=nu, **fields)
 
 
+def consistency(res, bearings, target_altitude=None, target_altitude_sigma=0.0,
+                use_elevations=True):
+    """``res`` (a FixResult of ``bearings`` from :func:`locate`) with option
+    ``consistency``'s status rule applied to its ``ok`` fixes: the 3D ones by
+    :func:`.robust.consistency_status`, the horizontal ones (``res.solve``) by
+    :func:`consistency_status` with the stated altitude. For a caller that ran the estimator
+    with ``consistency=False`` first (the fusion node's outlier gate drops stations before
+    the fix is judged)."""
+    from .robust import consistency_status as status_3d
+    from .robust import mark_low_confidence
+    solve = (np.full(bearings.M, SOLVE_3D) if res.solve is None else np.asarray(res.solve))
+    horiz = solve == SOLVE_HORIZONTAL
+    if not horiz.any():
+        return status_3d(res, bearings)
+    idx_h, idx_3 = np.flatnonzero(horiz), np.flatnonzero(~horiz)
+    bad = np.zeros(bearings.M, dtype=bool)
+    M = bearings.M
+    z0 = np.broadcast_to(np.asarray(target_altitude, dtype=float), (M,))[idx_h]
+    sz = np.broadcast_to(np.asarray(target_altitude_sigma, dtype=float), (M,))[idx_h]
+    sub = _subset(bearings, idx_h)
+    part = _take_result(res, idx_h)
+    p = _h.prepare(sub, z0, sz, use_elevations)
+    bad[idx_h] = np.asarray(consistency_status(part, p).status) == 'low_confidence'
+    if idx_3.size:
+        part = status_3d(_take_result(res, idx_3), _subset(bearings, idx_3))
+        bad[idx_3] = np.asarray(part.status) == 'low_confidence'
+    ok = np.asarray(res.status) == 'ok'
+    return mark_low_confidence(res, bad & ok)
+
+
+def _take_result(res, idx):
+    """Problems ``idx`` of a multi-station FixResult (the fields the status rules read)."""
+    return FixResult(position=np.asarray(res.position)[idx],
+                     covariance=np.asarray(res.covariance)[idx],
+                     iterations=np.asarray(res.iterations)[idx],
+                     converged=np.asarray(res.converged)[idx],
+                     status=np.asarray(res.status)[idx], method=res.method)
+
+
+#: Gauss-Newton iterations of the horizontal consistency check (:func:`consistency_status`).
+CONSISTENCY_ITERATIONS = 5
+
+
 def consistency_status(res, p, probability=CONSISTENCY_PROBABILITY):
     """``res`` (a horizontal FixResult of problem ``p``) with every ``ok`` fix that fails a
     consistency check marked ``low_confidence`` (``converged`` False).
@@ -199,18 +242,20 @@ def consistency_status(res, p, probability=CONSISTENCY_PROBABILITY):
     The horizontal twin of :func:`.robust.consistency_status` (option ``consistency`` of
     ``ls``, ``tls``, ``ctls``, ``ctls_am``). Unknowns x, y and, when σ_z > 0, z with the
     stated altitude as one more measurement (z₀ − z)/σ_z; measurements the azimuths and the
-    used elevations, whitened by their σ. At the fix X̂, with r the whitened residuals, G
-    their whitened gradients (crlb.angle_jacobians over σ), F = GᵀG and the Gauss-Newton step
-    δ = F⁻¹Gᵀr (Zong & Cui 2015 eq. (8)), the fix is ``ok`` only when rᵀr − δᵀFδ is at most
-    the χ²_max(dof, 1) quantile of ``probability`` (dof = angles − 2), δᵀP⁻¹δ is at most the
-    χ²_k quantile (k = 2, or 3 with σ_z > 0; P the fix's covariance over the same unknowns),
-    no linearised angle residual at X̂ + δ is beyond 3.9σ and ν ≤ 0.2
-    (:func:`.horizontal_robust.nonlinearity`). Units: m, rad.
+    used elevations, whitened by their σ. These fixes hold z = z₀, which with σ_z > 0 and an
+    elevation lies far from the likelihood's optimum, where one linearised step predicts
+    it poorly; so Gauss-Newton (Zong & Cui 2015 eq. (8), F = GᵀG, step F⁻¹Gᵀr, G the
+    whitened gradients of crlb.angle_jacobians) runs from the fix X̂ for up to
+    :data:`CONSISTENCY_ITERATIONS` steps while the χ² falls, to X*. The fix is ``ok`` only
+    when χ²(X*) is at most the χ²_max(dof, 1) quantile of ``probability`` (dof = angles −
+    2), δ = X* − X̂ has δᵀP⁻¹δ at most the χ²_k quantile (k = 2, or 3 with σ_z > 0; P the
+    fix's covariance over the same unknowns), no angle residual at X* is beyond 3.9σ and
+    ν ≤ 0.2 (:func:`.horizontal_robust.nonlinearity`). Units: m, rad.
     """
-    from dataclasses import replace
-    from .crlb import angle_jacobians, safe_inverse
-    from .fix import STATUS_LOW_CONFIDENCE, STATUS_OK, STATUSES
+    from .crlb import safe_inverse
+    from .fix import STATUS_OK
     from .horizontal_robust import nonlinearity
+    from .robust import mark_low_confidence
     from .robust_model import chi2_upper, MAX_REGION_NONLINEARITY, outlier_c2
     status = np.asarray(res.status)
     X = np.asarray(res.position, dtype=float)
@@ -221,51 +266,63 @@ def consistency_status(res, p, probability=CONSISTENCY_PROBABILITY):
     idx = np.flatnonzero(ok)
     if idx.size:
         q = p.take(idx)
-        Xq, Pq = X[idx], P[idx]
-        pos = np.stack([q.px, q.py, q.pz], axis=-1)
-        d = Xq[:, None, :] - pos
+        X0 = X[idx]
+        vertical = q.sz > 0.0
         with np.errstate(invalid='ignore', divide='ignore', over='ignore'):
-            ra = np.angle(np.exp(1j * (q.az - np.arctan2(d[..., 1], d[..., 0])))) / q.saz
-            sel = np.where(q.use_el, q.sel, 1.0)
-            el_pred = np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1]))
-            re = np.where(q.use_el, (q.el - el_pred) / sel, 0.0)
-            ga, ge = angle_jacobians(Xq, pos)
-            ga = ga / q.saz[..., None]
-            ge = np.where(q.use_el[..., None], ge / sel[..., None], 0.0)
-            vertical = q.sz > 0.0
-            sz = np.where(vertical, q.sz, 1.0)
-            rz = np.where(vertical, (q.z0 - Xq[:, 2]) / sz, 0.0)
-            F = (np.einsum('mni,mnj->mij', ga, ga) + np.einsum('mni,mnj->mij', ge, ge))
-            F[:, 2, 2] += np.where(vertical, 1.0 / (sz * sz), 0.0)
-            b = np.einsum('mn,mni->mi', ra, ga) + np.einsum('mn,mni->mi', re, ge)
-            b[:, 2] += rz / sz
-            # σ_z = 0: z is fixed, the step and the test are over (x, y) alone.
-            F[~vertical, 2, :] = F[~vertical, :, 2] = 0.0
-            F[~vertical, 2, 2] = 1.0
-            b[~vertical, 2] = 0.0
-            Pq = Pq.copy()
+            Xk = X0.copy()
+            r2, F, b = _plane_terms(q, Xk, vertical)
+            chi2 = r2.sum(axis=-1)
+            for _ in range(CONSISTENCY_ITERATIONS):
+                Xt = Xk + np.einsum('mij,mj->mi', safe_inverse(F), b)
+                r2t, Ft, bt = _plane_terms(q, Xt, vertical)
+                chi2t = r2t.sum(axis=-1)
+                take = chi2t < chi2            # NaN: not taken
+                if not take.any():
+                    break
+                Xk[take], r2[take], F[take], b[take] = Xt[take], r2t[take], Ft[take], bt[take]
+                chi2 = np.where(take, chi2t, chi2)
+            delta = Xk - X0
+            Pq = P[idx].copy()
             Pq[~vertical, 2, :] = Pq[~vertical, :, 2] = 0.0
             Pq[~vertical, 2, 2] = 1.0
-            delta = np.einsum('mij,mj->mi', safe_inverse(F), b)
-            chi2 = (ra * ra).sum(axis=-1) + (re * re).sum(axis=-1) + rz * rz
-            chi2_min = chi2 - np.einsum('mi,mi->m', delta, b)
-            m2 = np.einsum('mi,mi->m', delta,
-                           np.einsum('mij,mj->mi', safe_inverse(Pq), delta))
-            la = ra - np.einsum('mni,mi->mn', ga, delta)
-            le = np.where(q.use_el, re - np.einsum('mni,mi->mn', ge, delta), 0.0)
-            worst = np.maximum(la * la, le * le).max(axis=-1)
+            m2 = np.einsum('mi,mi->m', delta, np.einsum('mij,mj->mi', safe_inverse(Pq), delta))
+            worst = r2[:, :-1].max(axis=-1)           # the angles, not the altitude prior
             n_angles = q.N + np.count_nonzero(q.use_el, axis=1)
-            k = np.where(vertical, 3, 2)
-            nu = nonlinearity(Xq, P[idx], pos)
-            good = ((chi2_min <= chi2_upper(np.maximum(n_angles - 2, 1), probability))
-                    & (m2 <= chi2_upper(k, probability)) & (worst <= outlier_c2())
-                    & (nu <= MAX_REGION_NONLINEARITY))
+            nu = nonlinearity(X0, P[idx], np.stack([q.px, q.py, q.pz], axis=-1))
+            good = ((chi2 <= chi2_upper(np.maximum(n_angles - 2, 1), probability))
+                    & (m2 <= chi2_upper(np.where(vertical, 3, 2), probability))
+                    & (worst <= outlier_c2()) & (nu <= MAX_REGION_NONLINEARITY))
         bad[idx] = ~good
-    if not bad.any():
-        return res
-    wide = f'<U{max(map(len, STATUSES))}'
-    return replace(res, status=np.where(bad, STATUS_LOW_CONFIDENCE, status).astype(wide),
-                   converged=np.asarray(res.converged, dtype=bool) & ~bad)
+    return mark_low_confidence(res, bad)
+
+
+def _plane_terms(q, X, vertical):
+    """(r² (M, 2N + 1), F (M, 3, 3), Gᵀr (M, 3)) of :func:`consistency_status` at X (M, 3):
+    the squared whitened residuals of the azimuths, the used elevations (0 where unused) and
+    the altitude prior (last column, 0 without σ_z), the information F = GᵀG and Gᵀr; with
+    σ_z = 0 (``vertical`` False) z is held, F's z row and column are the unit vector and
+    Gᵀr's z entry 0."""
+    from .crlb import angle_jacobians
+    pos = np.stack([q.px, q.py, q.pz], axis=-1)
+    d = X[:, None, :] - pos
+    ra = np.angle(np.exp(1j * (q.az - np.arctan2(d[..., 1], d[..., 0])))) / q.saz
+    sel = np.where(q.use_el, q.sel, 1.0)
+    el_pred = np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1]))
+    re = np.where(q.use_el, (q.el - el_pred) / sel, 0.0)
+    ga, ge = angle_jacobians(X, pos)
+    ga = ga / q.saz[..., None]
+    ge = np.where(q.use_el[..., None], ge / sel[..., None], 0.0)
+    sz = np.where(vertical, q.sz, 1.0)
+    rz = np.where(vertical, (q.z0 - X[:, 2]) / sz, 0.0)
+    F = np.einsum('mni,mnj->mij', ga, ga) + np.einsum('mni,mnj->mij', ge, ge)
+    F[:, 2, 2] += np.where(vertical, 1.0 / (sz * sz), 0.0)
+    b = np.einsum('mn,mni->mi', ra, ga) + np.einsum('mn,mni->mi', re, ge)
+    b[:, 2] += rz / sz
+    F[~vertical, 2, :] = F[~vertical, :, 2] = 0.0
+    F[~vertical, 2, 2] = 1.0
+    b[~vertical, 2] = 0.0
+    r2 = np.concatenate([ra * ra, re * re, (rz * rz)[:, None]], axis=-1)
+    return r2, F, b
 
 
 def screen_passed(bearings, res, p, d_ref=None):

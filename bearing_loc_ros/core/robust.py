@@ -427,7 +427,7 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
     (:func:`.robust_single.consistent_one`, the same decisions), a batch as arrays.
     """
     from .bearings import BearingSet
-    from .fix import STATUS_LOW_CONFIDENCE, STATUS_OK, STATUSES
+    from .fix import STATUS_OK
     if bearings.M == 1:
         # One problem (the fusion's and locate's case): on floats, no array bookkeeping.
         if str(result.status[0]) != STATUS_OK:
@@ -441,10 +441,7 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
             except Fallback:
                 good = None         # the batch path below decides
         if good is not None:
-            wide = f'<U{max(map(len, STATUSES))}'
-            return result if good else replace(
-                result, status=np.array([STATUS_LOW_CONFIDENCE], dtype=wide),
-                converged=np.zeros(1, dtype=bool))
+            return mark_low_confidence(result, [not good])
     status = np.asarray(result.status)
     X = np.asarray(result.position, dtype=float)
     P = np.asarray(result.covariance, dtype=float)
@@ -457,10 +454,19 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
                          bearings.elevation[idx], bearings.sigma_az[idx],
                          bearings.sigma_el[idx])
         bad[idx] = ~_consistent(Data(sub, None), X[idx], P[idx], probability)
+    return mark_low_confidence(result, bad)
+
+
+def mark_low_confidence(result, bad):
+    """``result`` with the problems ``bad`` (M,) bool made ``low_confidence`` and not
+    converged (position and covariance kept); ``result`` itself when none is."""
+    from .fix import STATUS_LOW_CONFIDENCE, STATUSES
+    bad = np.asarray(bad, dtype=bool)
     if not bad.any():
         return result
     wide = f'<U{max(map(len, STATUSES))}'
-    return replace(result, status=np.where(bad, STATUS_LOW_CONFIDENCE, status).astype(wide),
+    return replace(result, status=np.where(bad, STATUS_LOW_CONFIDENCE,
+                                           np.asarray(result.status)).astype(wide),
                    converged=np.asarray(result.converged, dtype=bool) & ~bad)
 
 

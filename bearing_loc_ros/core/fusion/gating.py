@@ -276,6 +276,11 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     for name in ('robust', 'consistency'):
         if name not in kwargs and _registry.spec(estimator).accepts(name):
             kwargs[name] = float(outlier_gate) < 1.0     # gate 1: no outlier handling
+    # Option consistency judges the fix the gate leaves: the estimator runs without it, the
+    # gate drops outlier stations, and the final fix is then checked (below).
+    check = bool(kwargs.get('consistency', False))
+    if check:
+        kwargs['consistency'] = False
     horizontal = horizontal_capable(kwargs)
     if validated and not horizontal:
         make_set = _trusted_set
@@ -351,6 +356,12 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
             return Epoch(INCONSISTENT_BEARINGS,
                          detail=f'{used[worst].station} d2={d2[worst]:.3g} but too few '
                                 f'stations left to drop it', **common)
+        if check and str(_registry.consistency_status(estimator, res, bs, **kwargs)
+                         .status[0]) == STATUS_LOW_CONFIDENCE:
+            if trust is not None:
+                trust.defer_update(used, claims, pos, cov, rejected)
+            return Epoch(LOW_CONFIDENCE, position=pos, covariance=0.5 * (cov + cov.T),
+                         detail='failed the consistency checks (core.robust)', **common)
         if trust is not None:
             trust.defer_update(used, claims, pos, cov, rejected)
         residuals = {b.station: float(v) for b, v in zip(used, d2)}

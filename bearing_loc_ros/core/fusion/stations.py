@@ -137,8 +137,10 @@ def bearing_problem(b):
 
 
 #: Relative tolerance of the symmetry and positive semi-definiteness of a station position
-#: covariance (rounding of a sender's arithmetic; a real violation is of order 1).
-COVARIANCE_TOL = 1e-9
+#: covariance: the rounding of a sender's arithmetic, single precision included (float32 ε
+#: = 1.2e-7: a singular covariance built in float32 has λ_min down to a few 1e-7 λ_max);
+#: a real violation is of order 1.
+COVARIANCE_TOL = 1e-6
 
 
 def covariance3_problem(v):

@@ -175,6 +175,10 @@ class WindowStrategy:
         spec = _registry.spec(est)
         gate = float(cfg.outlier_gate)
         robust = spec.accepts('robust') and kwargs.setdefault('robust', gate < 1.0)
+        # Option consistency (gate 1: off) judges the fix the gate rounds leave (below).
+        check = spec.accepts('consistency') and bool(kwargs.pop('consistency', gate < 1.0))
+        if spec.accepts('consistency'):
+            kwargs['consistency'] = False
         horizontal = horizontal_capable(kwargs)
         n_el = sum(1 for b in used if b.has_elevation)
         if len(used) < 2 or (not horizontal and len(used) + n_el < 3):
@@ -225,6 +229,10 @@ class WindowStrategy:
         if bad.any() and not robust:
             return Epoch(NOT_CONVERGED, detail='residuals beyond the gate after '
                          f'{GATE_ROUNDS} rounds', **common)
+        if check and str(_registry.consistency_status(est, res, bs, **kwargs)
+                         .status[0]) == LOW_CONFIDENCE:
+            return Epoch(LOW_CONFIDENCE, position=pos, covariance=0.5 * (cov + cov.T),
+                         detail='failed the consistency checks', **common)
         P = 0.5 * (cov + cov.T)
         d = pos[None] - bs.positions[0]
         rng = np.linalg.norm(d, axis=1)
