@@ -184,6 +184,9 @@ def test_bad_input_in_process(tmp_path, capsys, doc, message):
     (b'{"bearings": "\xc3"}', 'input: invalid JSON'),
     (b'', 'input: invalid JSON'),
     (b'[' * 100000 + b']' * 100000, 'input: invalid JSON (nested too deeply)'),
+    # within orjson's 1024 levels but beyond Python's recursion limit in the checks
+    (b'{"estimator": ' + b'[' * 1010 + b']' * 1010 + b', "bearings": []}',
+     'input: nested too deeply'),
     # a UTF-8 byte order mark (as some editors write) is read past
     (b'\xef\xbb\xbf{"bearings": []}', 'bearings: 0 bearing(s)')])
 def test_undecodable_input_is_invalid_json(tmp_path, capsys, data, message):
