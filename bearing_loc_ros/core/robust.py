@@ -143,8 +143,10 @@ import math
 import numpy as np
 
 from .crlb import safe_inverse
+from .fix import STATUS_OK as _STATUS_OK
 # Re-exported: the model and the consensus are part of this module's interface.
 from .robust_consensus import consensus_fit, second_optimum  # noqa: F401
+from .robust_single import consistent_one as _consistent_one, Fallback as _Fallback
 from .robust_model import (chi2_band, chi2_upper, CONSISTENCY_PROBABILITY,  # noqa: F401
                            Data, DECISIVE_PROBABILITY, fisher, horizontal_ranges,
                            MAX_NONLINEARITY,
@@ -426,29 +428,29 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
     Units: m, rad; bearing σ as given (constant σ). One problem on Python floats
     (:func:`.robust_single.consistent_one`, the same decisions), a batch as arrays.
     """
-    from .bearings import BearingSet
-    from .fix import STATUS_OK
     if bearings.M == 1:
         # One problem (the fusion's and locate's case): on floats, no array bookkeeping.
-        if str(result.status[0]) != STATUS_OK:
+        if result.status[0] != _STATUS_OK:
             return result
         x, C = result.position[0].tolist(), result.covariance[0].tolist()
         good = False
         if all(map(math.isfinite, x + C[0] + C[1] + C[2])):
-            from .robust_single import consistent_one, Fallback
             try:
-                good = consistent_one(bearings, x, C, probability)
-            except Fallback:
+                good = _consistent_one(bearings, x, C, probability)
+            except _Fallback:
                 good = None         # the batch path below decides
+        if good:
+            return result
         if good is not None:
-            return mark_low_confidence(result, [not good])
+            return mark_low_confidence(result, [True])
+    from .bearings import BearingSet
     status = np.asarray(result.status)
     X = np.asarray(result.position, dtype=float)
     P = np.asarray(result.covariance, dtype=float)
-    ok = ((status == STATUS_OK) & np.all(np.isfinite(X), axis=1)
+    ok = ((status == _STATUS_OK) & np.all(np.isfinite(X), axis=1)
           & np.all(np.isfinite(P), axis=(1, 2)))
     idx = np.flatnonzero(ok)
-    bad = (status == STATUS_OK) & ~ok
+    bad = (status == _STATUS_OK) & ~ok
     if idx.size:
         sub = BearingSet(bearings.positions[idx], bearings.azimuth[idx],
                          bearings.elevation[idx], bearings.sigma_az[idx],
