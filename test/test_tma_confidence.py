@@ -34,7 +34,7 @@ def _nees(r, truth):
 
 
 def test_weakly_observable_20_s_gives_no_confidently_wrong_ok_fix():
-    # The review's case: seed001 cut to 20 s (target ~135 km away, range CRLB twice the range).
+    # seed001 cut to 20 s (target ~135 km away, range CRLB twice the range).
     # Before the tests (T20)-(T21), the ok fixes had median NEES 20-3e4 and 47-99 % of them
     # above 21.1. An honest covariance puts an ok fix above 21.1 with probability 1e-4, so
     # over at most N = 200 ok fixes none is expected (P(any) ≤ 2 %): none is allowed.
