@@ -192,45 +192,6 @@ def _robust(method, bearings, res, p, options):
     return FixResult(method=method, excluded=excluded, nonlinearity=nu, **fields)
 
 
-def consistency(res, bearings, target_altitude=None, target_altitude_sigma=0.0,
-                use_elevations=True):
-    """``res`` (a FixResult of ``bearings`` from :func:`locate`) with option
-    ``consistency``'s status rule applied to its ``ok`` fixes: the 3D ones by
-    :func:`.robust.consistency_status`, the horizontal ones (``res.solve``) by
-    :func:`consistency_status` with the stated altitude. For a caller that ran the estimator
-    with ``consistency=False`` first (the fusion node's outlier gate drops stations before
-    the fix is judged)."""
-    from .robust import consistency_status as status_3d
-    from .robust import mark_low_confidence
-    solve = (np.full(bearings.M, SOLVE_3D) if res.solve is None else np.asarray(res.solve))
-    horiz = solve == SOLVE_HORIZONTAL
-    if not horiz.any():
-        return status_3d(res, bearings)
-    idx_h, idx_3 = np.flatnonzero(horiz), np.flatnonzero(~horiz)
-    bad = np.zeros(bearings.M, dtype=bool)
-    M = bearings.M
-    z0 = np.broadcast_to(np.asarray(target_altitude, dtype=float), (M,))[idx_h]
-    sz = np.broadcast_to(np.asarray(target_altitude_sigma, dtype=float), (M,))[idx_h]
-    sub = _subset(bearings, idx_h)
-    part = _take_result(res, idx_h)
-    p = _h.prepare(sub, z0, sz, use_elevations)
-    bad[idx_h] = np.asarray(consistency_status(part, p).status) == 'low_confidence'
-    if idx_3.size:
-        part = status_3d(_take_result(res, idx_3), _subset(bearings, idx_3))
-        bad[idx_3] = np.asarray(part.status) == 'low_confidence'
-    ok = np.asarray(res.status) == 'ok'
-    return mark_low_confidence(res, bad & ok)
-
-
-def _take_result(res, idx):
-    """Problems ``idx`` of a multi-station FixResult (the fields the status rules read)."""
-    return FixResult(position=np.asarray(res.position)[idx],
-                     covariance=np.asarray(res.covariance)[idx],
-                     iterations=np.asarray(res.iterations)[idx],
-                     converged=np.asarray(res.converged)[idx],
-                     status=np.asarray(res.status)[idx], method=res.method)
-
-
 #: Gauss-Newton iterations of the horizontal consistency check (:func:`consistency_status`).
 CONSISTENCY_ITERATIONS = 5
 

@@ -183,20 +183,6 @@ def solve(name, bearings, **options):
     return _horizontal.locate(name, bearings, **solve_opts, **rest)
 
 
-def consistency_status(name, result, bearings, **options):
-    """``result`` of ``solve(name, bearings, consistency=False, **options)`` with option
-    ``consistency`` applied afterwards (core.horizontal.consistency: the 3D or horizontal
-    rule per problem; the solve options ``target_altitude``, ``target_altitude_sigma``,
-    ``use_elevations`` as given to the solve). ``result`` unchanged for an estimator without
-    that option."""
-    if not spec(name).accepts('consistency'):
-        return result
-    solve_opts, _ = split_solve_options(options, bearings.M)
-    return _horizontal.consistency(result, bearings, solve_opts['target_altitude'],
-                                   solve_opts['target_altitude_sigma'],
-                                   solve_opts['use_elevations'])
-
-
 def noise_sigmas(name, bearings, position, options):
     """(σ_θ, σ_ψ) (M, N), rad, that estimator ``name`` assumes at ``position`` (M, 3).
 

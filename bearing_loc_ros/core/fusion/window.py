@@ -57,6 +57,17 @@ GATE_ROUNDS = 3
 LOW_CONFIDENCE = 'low_confidence'
 
 
+def _window_gate(est, bs, pos, kwargs, gate):
+    """(d² (N,), dof (N,), threshold (N,)) of the window's gate at the fix ``pos`` (3,) m:
+    each bearing's normalised residual with the σ of the estimator's noise model and its
+    χ² threshold of level ``gate`` (1 or 2 dof)."""
+    saz, sel = _registry.noise_sigmas(est, bs, pos[None], kwargs)
+    d2, dof = normalized_residuals(
+        BearingSet(bs.positions, bs.azimuth, bs.elevation, saz, sel), pos)
+    d2, dof = d2[0], dof[0]
+    return d2, dof, np.where(dof == 2, gate_threshold(gate, 2), gate_threshold(gate, 1))
+
+
 class WindowStrategy:
     """Epochs of the window mode over a station registry (module docstring)."""
 
@@ -175,10 +186,11 @@ class WindowStrategy:
         spec = _registry.spec(est)
         gate = float(cfg.outlier_gate)
         robust = spec.accepts('robust') and kwargs.setdefault('robust', gate < 1.0)
-        # Option consistency (gate 1: off) judges the fix the gate rounds leave (below).
-        check = spec.accepts('consistency') and bool(kwargs.pop('consistency', gate < 1.0))
-        if spec.accepts('consistency'):
-            kwargs['consistency'] = False
+        # Option consistency (gate 1: off) checks every fix; a first fix that fails it gets
+        # one gate round and a re-solve, as in core.fusion.gating.solve_epoch.
+        retry = spec.accepts('consistency') and bool(kwargs.setdefault('consistency',
+                                                                       gate < 1.0)) \
+            and gate < 1.0
         horizontal = horizontal_capable(kwargs)
         n_el = sum(1 for b in used if b.has_elevation)
         if len(used) < 2 or (not horizontal and len(used) + n_el < 3):
@@ -210,17 +222,24 @@ class WindowStrategy:
             if status == 'degenerate_geometry' or not np.all(np.isfinite(pos)):
                 return Epoch(DEGENERATE_GEOMETRY, **common)
             if status == LOW_CONFIDENCE:
+                if retry and not robust:
+                    retry = False
+                    # (only the worst bearing: a fix dragged by an outlier can put honest
+                    # bearings beyond the gate too)
+                    d2, _, thr = _window_gate(est, bs, pos, kwargs, gate)
+                    ratio = np.where(np.isfinite(d2), d2 / thr, 0.0)
+                    k = int(np.argmax(ratio))
+                    if ratio[k] > 1.0 and len(used) - 1 >= 3:
+                        rejected = rejected + [used[k]]
+                        used = used[:k] + used[k + 1:]
+                        continue
                 return Epoch(LOW_CONFIDENCE, position=pos, covariance=0.5 * (cov + cov.T),
                              detail='failed the consistency checks', **common)
             if status != 'ok' or not bool(res.converged[0]):
                 return Epoch(NOT_CONVERGED, **common)
             if not covariance_ok(cov):
                 return Epoch(BAD_COVARIANCE, **common)
-            saz, sel = _registry.noise_sigmas(est, bs, pos[None], kwargs)
-            d2, dof = normalized_residuals(
-                BearingSet(bs.positions, bs.azimuth, bs.elevation, saz, sel), pos)
-            d2, dof = d2[0], dof[0]
-            thr = np.where(dof == 2, gate_threshold(gate, 2), gate_threshold(gate, 1))
+            d2, dof, thr = _window_gate(est, bs, pos, kwargs, gate)
             bad = np.isfinite(d2) & (d2 > thr)
             if robust or not bad.any() or len(used) - int(bad.sum()) < 3:
                 break
@@ -229,10 +248,6 @@ class WindowStrategy:
         if bad.any() and not robust:
             return Epoch(NOT_CONVERGED, detail='residuals beyond the gate after '
                          f'{GATE_ROUNDS} rounds', **common)
-        if check and str(_registry.consistency_status(est, res, bs, **kwargs)
-                         .status[0]) == LOW_CONFIDENCE:
-            return Epoch(LOW_CONFIDENCE, position=pos, covariance=0.5 * (cov + cov.T),
-                         detail='failed the consistency checks', **common)
         P = 0.5 * (cov + cov.T)
         d = pos[None] - bs.positions[0]
         rng = np.linalg.norm(d, axis=1)
