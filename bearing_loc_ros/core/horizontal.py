@@ -263,10 +263,11 @@ def _plane_terms(q, X, vertical):
     the altitude prior (last column, 0 without σ_z), the information F = GᵀG and Gᵀr; with
     σ_z = 0 (``vertical`` False) z is held, F's z row and column are the unit vector and
     Gᵀr's z entry 0."""
+    from .conventions import wrap_angle
     from .crlb import angle_jacobians
     pos = np.stack([q.px, q.py, q.pz], axis=-1)
     d = X[:, None, :] - pos
-    ra = np.angle(np.exp(1j * (q.az - np.arctan2(d[..., 1], d[..., 0])))) / q.saz
+    ra = wrap_angle(q.az - np.arctan2(d[..., 1], d[..., 0])) / q.saz
     sel = np.where(q.use_el, q.sel, 1.0)
     el_pred = np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1]))
     re = np.where(q.use_el, (q.el - el_pred) / sel, 0.0)

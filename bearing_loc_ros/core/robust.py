@@ -143,6 +143,7 @@ import math
 import numpy as np
 
 from .crlb import safe_inverse
+from .solvers import spd_inverse3
 from .fix import STATUS_OK as _STATUS_OK
 # Re-exported: the model and the consensus are part of this module's interface.
 from .robust_consensus import consensus_fit, second_optimum  # noqa: F401
@@ -483,12 +484,12 @@ def _consistent(data, X, P, probability):
     F = fisher(ga, ge, np.ones_like(ra), data.has_el.astype(float))
     b = np.einsum('mn,mni->mi', ra, ga) + np.einsum('mn,mni->mi', re, ge)
     with np.errstate(invalid='ignore', over='ignore'):
-        delta = np.einsum('mij,mj->mi', _inverse3(F), b)
+        delta = np.einsum('mij,mj->mi', spd_inverse3(F), b)
         # (≥ 0: rounding can leave a tiny negative where the fix fits the data exactly,
         # and screen_decision's one-sided band starts at 0)
         chi2_min = np.maximum((ra * ra + re * re).sum(axis=-1)
                               - np.einsum('mi,mi->m', delta, b), 0.0)
-        m2 = np.einsum('mi,mi->m', delta, np.einsum('mij,mj->mi', _inverse3(P), delta))
+        m2 = np.einsum('mi,mi->m', delta, np.einsum('mij,mj->mi', spd_inverse3(P), delta))
         la = ra - np.einsum('mni,mi->mn', ga, delta)
         le = re - np.einsum('mni,mi->mn', ge, delta)
         worst = np.maximum(la * la, le * le).max(axis=-1)
@@ -497,22 +498,6 @@ def _consistent(data, X, P, probability):
     return (~screen_decision(chi2_min, worst, rho2min, n_meas, P, probability=probability,
                              two_sided=False)
             & (m2 <= chi2_upper(np.full(len(X), 3), probability)))
-
-
-def _inverse3(A):
-    """crlb.safe_inverse of symmetric (M, 3, 3) matrices: cofactors where they are clear
-    (κ ≤ 1e5, :func:`.robust_single._cofactors`: LAPACK's inverse to about κ ε), LAPACK with
-    its rank test for the rest."""
-    from .robust_single import _cofactors
-    with np.errstate(all='ignore'):
-        (c00, c01, c02, c11, c12, c22), det, clear = _cofactors(
-            A[:, 0, 0], A[:, 0, 1], A[:, 0, 2], A[:, 1, 1], A[:, 1, 2], A[:, 2, 2])
-        out = (np.stack([c00, c01, c02, c01, c11, c12, c02, c12, c22], axis=-1)
-               / det[:, None]).reshape(-1, 3, 3)
-    if not clear.all():
-        rest = ~clear
-        out[rest] = safe_inverse(A[rest])
-    return out
 
 
 def confident_result(result, bearings, d_ref=None, screen_stats=None):
