@@ -392,6 +392,43 @@ def test_one_problem_path_gives_the_batch_paths_results(method):
     assert {'ok', 'max_iterations'} <= statuses
 
 
+@pytest.mark.parametrize('method', ['ls', 'tls'])
+def test_closed_form_one_problem_path_gives_the_batch_paths_results(method):
+    # M = 1 computes ls/tls on Python floats (core/pseudo_linear_single.py); the same problem
+    # twice in one batch runs the vectorised closed form. Same statuses (including the
+    # consistency check's low_confidence at high noise) and fixes to rounding, for N = 2-12,
+    # mixed azimuth-only stations, parallel bearings and a solution on a station (the last
+    # two are handed to the batch path).
+    from bearing_loc_ros.core.pseudo_linear_single import solve_one
+    rng = np.random.default_rng(22)
+    cases = []
+    for N, sigma in ((2, 2e-3), (3, 2e-3), (5, 2e-2), (8, 0.1), (12, 2e-3)):
+        _, bs = random_problems(rng, 40, N, sigma=sigma, noise=True)
+        cases += [bs.problem(m) for m in range(bs.M)]
+    st = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0], [2000.0, 0.0, 0.0]])
+    cases.append(BearingSet.from_arrays(st[None], np.zeros((1, 3)), np.full((1, 3), 0.1),
+                                        np.full((1, 3), 1e-3), np.full((1, 3), 1e-3)))
+    cases.append(simulate_bearings([[0.0, 0.0, 0.0]], st + [[0, 0, 0], [0, 0, 0], [1, 2, 3]],
+                                   1e-3))
+    statuses, fast = set(), 0
+    for one in cases:
+        fast += solve_one(method, one) is not None
+        res = locate(method, one)
+        two = locate(method, BearingSet(*(np.concatenate([a, a]) for a in (
+            one.positions, one.azimuth, one.elevation, one.sigma_az, one.sigma_el))))
+        assert res.status[0] == two.status[0]
+        statuses.add(str(res.status[0]))
+        if np.all(np.isfinite(two.position[0])):
+            np.testing.assert_allclose(res.position[0], two.position[0], rtol=0,
+                                       atol=1e-12 * np.max(np.abs(two.position[0])))
+            np.testing.assert_allclose(res.covariance[0], two.covariance[0], rtol=0,
+                                       atol=1e-11 * np.max(np.abs(two.covariance[0])))
+        else:
+            assert not np.any(np.isfinite(res.position[0]))
+    assert {'ok', 'low_confidence', 'degenerate_geometry'} <= statuses
+    assert fast >= 0.95 * (len(cases) - 2)      # the float path, not its fallback, is tested
+
+
 def test_one_problem_path_hands_ieee_cases_to_the_batch_path():
     # A start on a station's vertical axis divides by zero on floats: the batch path (inf
     # and NaN arithmetic) answers instead, identically to a batch of two.

@@ -14,6 +14,7 @@ import numpy as np
 from .crlb import safe_inverse
 from .estimator_spec import BEARING_SIGMA, COMMON_OPTIONS, CONSISTENCY, declare, MULTISTATION
 from .fix import FixResult, STATUS_DEGENERATE, STATUS_OK
+from .pseudo_linear_single import solve_one
 
 
 def start(spec, bearings, options, fast_start=None, validated=False):
@@ -115,7 +116,9 @@ def ls(bearings, **options):
     """
     bearings.validate()
     opts = ls.spec.parse(options)
-    return checked(ls_unchecked(bearings), bearings, opts['consistency'])
+    res = solve_one('ls', bearings) if bearings.M == 1 else None
+    return checked(ls_unchecked(bearings) if res is None else res, bearings,
+                   opts['consistency'])
 
 
 def checked(result, bearings, consistency):
@@ -163,6 +166,9 @@ def tls(bearings, **options):
     """
     bearings.validate()
     opts = tls.spec.parse(options)
+    res = solve_one('tls', bearings) if bearings.M == 1 else None
+    if res is not None:
+        return checked(res, bearings, opts['consistency'])
     H, Y, _ = pseudo_linear_system(bearings)
     A = np.einsum('mnki,mnkj->mij', H, H)
     b = np.einsum('mnki,mnk->mi', H, Y)
