@@ -56,5 +56,29 @@ def test_sub_command_help(capsys, argv):
 
 def test_no_verb_prints_help_and_exits_2(capsys):
     assert main([]) == 2
-    out, _ = capsys.readouterr()
-    assert out.startswith('usage: bearing_loc') and not MARKUP.search(out)
+    out, err = capsys.readouterr()
+    # Bad input writes nothing on stdout: the help goes to stderr.
+    assert out == '' and err.startswith('usage: bearing_loc') and not MARKUP.search(err)
+
+
+@pytest.mark.parametrize('argv, prog, words', [
+    (['locate', 'x.json', '--estimator', 'magic'], 'bearing_loc locate',
+     "invalid choice: 'magic'"),
+    (['locate', 'x.json', '--bogus'], 'bearing_loc locate', 'unrecognized arguments: --bogus'),
+    (['locate', 'x.json', '--indent', '-3'], 'bearing_loc locate', 'within 0..16'),
+    (['evaluate', '--scenario', 'seed000', '--robust', '--paper'], 'bearing_loc evaluate',
+     'not allowed with argument'),
+    (['bag', 'simulate', '--scenario', 'seed000', '--out', 'x', '--storage', 'foo'],
+     'bearing_loc bag simulate', "invalid choice: 'foo'"),
+])
+def test_usage_errors_are_one_line_naming_the_verb(capsys, argv, prog, words):
+    # The tool's contract (docs/cli.md): bad input exits 2 with one line on stderr and
+    # nothing on stdout; argparse alone would print its usage block first.
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    out, err = capsys.readouterr()
+    assert code == 2 and out == ''
+    assert len(err.splitlines()) == 1, err
+    assert err.startswith(f'{prog}: error: ') and words in err, err

@@ -55,6 +55,15 @@ def _load(verb):
     return importlib.import_module(f'{__name__}.{verb}')
 
 
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with the tool's error contract: a usage error is one line on stderr,
+    ``<prog>: error: <message> (see <prog> --help)``, and exit code 2 (argparse prints the
+    whole usage block first). Sub-parsers (verbs, ``bag play``) are of this class too."""
+
+    def error(self, message):
+        self.exit(2, f'{self.prog}: error: {message} (see {self.prog} --help)\n')
+
+
 def main(argv=None):
     """Entry point of the ``bearing_loc`` console script."""
     if argv is None:
@@ -64,7 +73,7 @@ def main(argv=None):
     argv = list(argv)
     from . import helptext
     argv = helptext.join_negative_lists(argv)
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog='bearing_loc', description=helptext.fill(helptext.DESCRIPTION),
         epilog=helptext.example_epilog(helptext.TOP_EXAMPLE, helptext.TOP_EPILOG),
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -83,9 +92,13 @@ def main(argv=None):
                 print(f'bearing_loc: verb {verb!r} is not available in this build',
                       file=sys.stderr)
                 return 1
-    args = parser.parse_args(argv)
+    args, extra = parser.parse_known_args(argv)
     if args.verb is None:
-        parser.print_help()
+        parser.print_help(sys.stderr)
+        return 2
+    if extra:               # named after the verb, not the top-level tool
+        print(f'bearing_loc {args.verb}: error: unrecognized arguments: {" ".join(extra)} '
+              f'(see bearing_loc {args.verb} --help)', file=sys.stderr)
         return 2
     try:
         return int(_load(args.verb).run(args) or 0)

@@ -57,14 +57,17 @@ def add_arguments(parser):
                         help="override the stations' σ growth reference range r_ref, m "
                              '(σ(r) = σ · r / r_ref, Zong & Cui 2015 eqs. (9)-(10)); 0: '
                              'constant σ')
-    parser.add_argument('--paper', dest='robust', action='store_false', default=None,
-                        help='the papers\' estimators alone: mle/wmle without option robust '
-                             '(mle is robust by default), ls/tls/ctls/ctls_am without option '
-                             'consistency (their low_confidence status)')
-    parser.add_argument('--robust', dest='robust', action='store_true', default=None,
-                        help='run mle/wmle with option robust and the others with option '
-                             'consistency (consensus, outlier exclusion, '
-                             'full likelihood, ok/low_confidence status; as the fusion node)')
+    paper_or_robust = parser.add_mutually_exclusive_group()
+    paper_or_robust.add_argument(
+        '--paper', dest='robust', action='store_false', default=None,
+        help='the papers\' estimators alone: mle/wmle without option robust (mle is robust by '
+             'default), ls/tls/ctls/ctls_am without option consistency (their '
+             'low_confidence status)')
+    paper_or_robust.add_argument(
+        '--robust', dest='robust', action='store_true', default=None,
+        help='run mle/wmle with option robust and the others with option consistency '
+             '(consensus, outlier exclusion, full likelihood, ok/low_confidence status; as '
+             'the fusion node)')
     parser.add_argument('--outliers', default=None, metavar='F,MIN_DEG,MAX_DEG',
                         help='outlier bearings: a fraction F of the bearings get an extra '
                              'error of ±U(MIN_DEG, MAX_DEG) on azimuth and elevation, e.g. '

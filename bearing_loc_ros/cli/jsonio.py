@@ -5,6 +5,7 @@ so every consumer's parser accepts the result. Errors are :class:`InputError` na
 field (exit code 2 through the dispatcher).
 """
 
+import argparse
 import json
 import math
 import numbers
@@ -21,8 +22,19 @@ def add_io_arguments(parser):
     """The positional ``input`` (file or stdin) and ``--indent`` flags of a JSON verb."""
     parser.add_argument('input', nargs='?', default='-',
                         help='input JSON file ("-" or absent: stdin)')
-    parser.add_argument('--indent', type=int, default=None,
-                        help='pretty-print the output with this indent')
+    parser.add_argument('--indent', type=_indent, default=None,
+                        help='pretty-print the output with this indent (0-16 spaces)')
+
+
+def _indent(text):
+    """``--indent``: an integer number of spaces, 0 to 16."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f'expected an integer, got {text!r}') from None
+    if not 0 <= value <= 16:
+        raise argparse.ArgumentTypeError(f'must be within 0..16 (got {value})')
+    return value
 
 
 def number(value, field, positive=False):
