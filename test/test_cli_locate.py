@@ -46,12 +46,39 @@ def test_single_problem_in_process(tmp_path, capsys):
     assert code == 0 and err == ''
     res = json.loads(out)
     assert set(res) == {'estimator', 'method', 'position', 'covariance', 'crlb', 'converged',
-                        'iterations', 'status', 'solve'}
+                        'iterations', 'status', 'solve', 'excluded'}
     assert res['estimator'] == 'mle' and res['status'] == 'ok' and res['converged'] is True
+    assert res['excluded'] == []
     np.testing.assert_allclose(res['position'], TARGET, atol=1e-3)
     assert np.array(res['covariance']).shape == (3, 3) and np.array(res['crlb']).shape == (3, 3)
     # mle's covariance is the CRLB at the estimate, which is the "crlb" field.
     np.testing.assert_allclose(res['covariance'], res['crlb'], rtol=1e-9)
+
+
+def test_an_excluded_angle_is_reported(tmp_path, capsys):
+    # A 3 degree reflection on the third station's azimuth (35 sigma): the robust default
+    # leaves that angle out and says so; an estimator without outlier handling has no
+    # "excluded" key. The same through a bearing table, per problem.
+    items = bearings_json(rng=np.random.default_rng(3))
+    items[2]['azimuth'] += float(np.radians(3.0))
+    code, out, _ = run_main(tmp_path, {'bearings': items}, capsys=capsys)
+    res = json.loads(out)
+    assert code == 0 and res['status'] == 'ok'
+    assert res['excluded'] == [{'bearing': 2, 'angle': 'azimuth'}]
+    assert np.linalg.norm(np.array(res['position']) - TARGET) < 3 * np.sqrt(
+        np.trace(res['covariance']))
+    code, out, _ = run_main(tmp_path, {'bearings': items}, '--estimator', 'ls', capsys=capsys)
+    assert code == 0 and 'excluded' not in json.loads(out)
+    rows = ['problem,x,y,z,azimuth,elevation,sigma_azimuth,sigma_elevation']
+    for pid, its in ((7, bearings_json(rng=np.random.default_rng(4))), (8, items)):
+        rows += [f"{pid},{','.join(map(repr, b['position']))},{b['azimuth']!r},"
+                 f"{b['elevation']!r},{b['sigma_azimuth']},{b['sigma_elevation']}" for b in its]
+    path = tmp_path / 'table.csv'
+    path.write_text('\n'.join(rows) + '\n')
+    assert main(['locate', str(path)]) == 0
+    out = json.loads(capsys.readouterr()[0])['results']
+    assert [r['problem'] for r in out] == [7, 8]
+    assert out[0]['excluded'] == [] and out[1]['excluded'] == res['excluded']
 
 
 @pytest.mark.parametrize('method', sorted(ESTIMATORS))

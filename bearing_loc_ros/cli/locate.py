@@ -23,7 +23,8 @@ estimator and its options then come from ``--estimator`` and ``--options``.
 Output (stdout): ``{"estimator", "method" (the same, deprecated), "position", "covariance",
 "crlb", "converged", "iterations", "status", "solve"}`` for one problem (``solve``: ``3d`` or
 ``horizontal``; a horizontal fix also gives ``target_altitude`` and
-``target_altitude_sigma``), ``{"results": [...]}``
+``target_altitude_sigma``; a robust estimator's fix (``mle`` by default) also gives
+``excluded``, the angles left out as outliers, :func:`excluded_angles`), ``{"results": [...]}``
 (same order) for a batch (for a table, each result also carries its ``problem`` id).
 Non-finite numbers (the inf covariance of a degenerate fix, its NaN
 position) are written as ``null``, so the output is always strict JSON. Exit 0 when every
@@ -233,10 +234,20 @@ class Solved:
                 if solved[j] == 'horizontal':
                     out[k]['target_altitude'] = float(res.target_altitude[j])
                     out[k]['target_altitude_sigma'] = float(res.target_altitude_sigma[j])
+                if res.excluded is not None:
+                    out[k]['excluded'] = excluded_angles(res.excluded[j])
         if self.ids is not None:
             for r, problem in zip(out, self.ids):
                 r['problem'] = problem
         return out
+
+
+def excluded_angles(mask):
+    """The ``excluded`` list of one robust fix: ``{"bearing": k, "angle": "azimuth" |
+    "elevation"}`` for each angle the fix left out as an outlier (``mask`` (N, 2) bool of
+    FixResult.excluded; k the bearing's index in the problem, 0-based)."""
+    return [{'bearing': int(n), 'angle': ('azimuth', 'elevation')[int(a)]}
+            for n, a in zip(*np.nonzero(mask))]
 
 
 def _name_problem(message, idx, batch, ids):
