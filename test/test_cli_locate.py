@@ -81,6 +81,26 @@ def test_an_excluded_angle_is_reported(tmp_path, capsys):
     assert out[0]['excluded'] == [] and out[1]['excluded'] == res['excluded']
 
 
+def test_target_altitude_and_ignored_elevations_are_never_silently_unused(tmp_path, capsys):
+    doc = {'bearings': bearings_json(rng=np.random.default_rng(6))}
+    code, out, err = run_main(tmp_path, doc, '--target-altitude', '5000', capsys=capsys)
+    assert code == 0 and json.loads(out)['solve'] == '3d'
+    assert err.startswith('bearing_loc locate: warning: target_altitude not used')
+    code, out, err = run_main(tmp_path, doc, '--target-altitude', '5000', '--dimension',
+                              'horizontal', capsys=capsys)
+    assert code == 0 and json.loads(out)['solve'] == 'horizontal' and err == ''
+    code, out, err = run_main(tmp_path, doc, '--ignore-elevations', '--target-altitude',
+                              '5000', capsys=capsys)
+    assert code == 0 and err == ''
+    res = json.loads(out)
+    assert res['solve'] == 'horizontal' and res['position'][2] == 5000.0
+    code, out, err = run_main(tmp_path, doc, '--ignore-elevations', capsys=capsys)
+    assert code == 2 and out == '' and 'target_altitude: required' in err
+    code, out, err = run_main(tmp_path, doc, '--ignore-elevations', '--dimension', '3d',
+                              capsys=capsys)
+    assert code == 2 and out == '' and 'error: use_elevations:' in err
+
+
 @pytest.mark.parametrize('method', sorted(ESTIMATORS))
 def test_every_method_matches_the_core(tmp_path, capsys, method):
     rng = np.random.default_rng(1)

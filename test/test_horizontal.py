@@ -139,6 +139,36 @@ def test_elevations_give_range_when_stations_and_target_share_a_line():
         assert np.all(np.isnan(no_el.position[0])) and np.all(np.isinf(no_el.covariance[0]))
 
 
+def test_ignored_elevations_mean_the_horizontal_solve():
+    # use_elevations=False (ground emitters, multipath-spoiled elevations): with auto the
+    # elevations can no longer observe the height, so the set is solved horizontally with
+    # the stated altitude (before, auto went 3D and used the spoiled elevations); 3d is an
+    # error naming the option, and without an altitude the error says why it is needed.
+    st = np.array([[0.0, 0.0, 0.0], [4000.0, 0.0, 10.0], [0.0, 5000.0, 20.0]])
+    tgt = np.array([3000.0, 3500.0, 300.0])
+    bs = simulate_bearings(tgt, st, 1e-3, has_elevation=True, rng=np.random.default_rng(5))
+    bs.elevation[0, 1] += 0.2                          # a spoiled elevation
+    assert locate('mle', bs).solve[0] == '3d'
+    auto = locate('mle', bs, target_altitude=300.0, use_elevations=False)
+    forced = locate('mle', bs, dimension='horizontal', target_altitude=300.0,
+                    use_elevations=False)
+    assert auto.solve[0] == 'horizontal' and auto.status[0] == 'ok'
+    np.testing.assert_array_equal(auto.position, forced.position)
+    assert np.linalg.norm(auto.position[0] - tgt) < 4 * np.sqrt(np.trace(auto.covariance[0]))
+    with pytest.raises(ValueError, match='^use_elevations:'):
+        locate('mle', bs, dimension='3d', use_elevations=False)
+    with pytest.raises(ValueError, match='^target_altitude: required because use_elevations'):
+        locate('mle', bs, use_elevations=False)
+    # The fusion node's epoch gate: the spoiled elevation does not get station 1 dropped.
+    from bearing_loc_ros.core.bearings import Bearing
+    from bearing_loc_ros.core.fusion.gating import solve_epoch
+    epoch = [Bearing(f's{i}', 0, st[i], float(bs.azimuth[0, i]), float(bs.elevation[0, i]),
+                     1e-3, 1e-3) for i in range(3)]
+    e = solve_epoch(epoch, 'mle', {'target_altitude': 300.0, 'use_elevations': False})
+    assert e.ok and not e.rejected and len(e.bearings) == 3
+    np.testing.assert_allclose(e.position, auto.position[0], rtol=0, atol=1e-6)
+
+
 def test_collinear_stations_with_the_target_on_the_line_never_give_a_confident_fix():
     st = np.array([[0.0, 0.0, 0.0], [2000.0, 0.0, 10.0], [-3000.0, 0.0, 0.0]])
     for tgt in ([6000.0, 0.0, 400.0], [500.0, 0.0, 400.0]):       # beyond / between stations

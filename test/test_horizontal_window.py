@@ -136,6 +136,42 @@ def test_window_mode_rejects_tma_estimators_and_horizontal_without_altitude():
         config(estimator_options={'dimension': 'horizontal'}).validate()
     with pytest.raises(ValueError, match='^options.target_altitude:'):
         config(estimator_options={'target_altitude': float('inf')}).validate()
+    # use_elevations false: every epoch is horizontal, so the altitude is required and a
+    # forced 3d solve is contradictory.
+    with pytest.raises(ValueError, match='^target_altitude: required when use_elevations'):
+        config(estimator_options={'use_elevations': False}).validate()
+    with pytest.raises(ValueError, match='^use_elevations:'):
+        config(estimator_options={'use_elevations': False, 'dimension': '3d',
+                                  'target_altitude': 0.0}).validate()
+
+
+@pytest.mark.parametrize('robust', [True, False])
+def test_ignored_elevations_are_not_gated(robust):
+    # A car whose elevations are spoiled by ground multipath (0.3 rad off) with
+    # use_elevations false: neither the fix nor the gate looks at them, so no bearing is
+    # rejected and the fixes are those of the same bearings without elevations (without
+    # option robust the χ² gate used to reject every window: not_converged).
+    fixes = {}
+    for spoiled in (True, False):
+        rng = np.random.default_rng(8)
+        opts = {'target_altitude': 0.0, 'use_elevations': False, 'robust': robust}
+        core = make_core(config(estimator_options=opts), stations=['car'], mode=MODE_WINDOW)
+        eps = []
+        for k in range(300):
+            t = k * 0.5
+            pos = car(t)
+            az = np.arctan2(TARGET[1] - pos[1], TARGET[0] - pos[0]) \
+                + SIGMA * rng.standard_normal()
+            el = 0.3 if spoiled else float('nan')
+            b = Bearing('car', int(t * 1e9), pos, float(az), el, SIGMA,
+                        SIGMA if spoiled else float('nan'))
+            eps += core.add_bearing(b, int(t * 1e9))
+            if k % 10 == 9:
+                eps += core.tick(int(t * 1e9))
+        ok = [e for e in eps if e.ok]
+        assert len(ok) >= 10 and all(not e.rejected for e in eps)
+        fixes[spoiled] = np.array([e.position for e in ok])
+    np.testing.assert_allclose(fixes[True], fixes[False], rtol=0, atol=1e-9)
 
 
 def test_backward_time_jump_empties_the_window():

@@ -35,6 +35,7 @@ Problems with the same number of bearings are checked and solved in one vectoris
 
 import json
 import math
+import sys
 
 import numpy as np
 
@@ -81,7 +82,8 @@ def add_dimension_arguments(parser):
     parser.add_argument('--target-altitude-sigma', type=float, default=None, metavar='M',
                         help='its standard deviation, m (default 0: exactly known)')
     parser.add_argument('--ignore-elevations', action='store_true',
-                        help='horizontal solve: do not use measured elevations')
+                        help='do not use measured elevations: the horizontal solve '
+                             '(needs --target-altitude)')
 
 
 def dimension_options(args, options):
@@ -292,6 +294,22 @@ def run(args):
     from . import gisargs
     gisargs.check(args)
     method, options, sets, batch = read_request(args)
-    results = solve_groups(method, dimension_options(args, options), sets).dicts()
+    options = dimension_options(args, options)
+    results = solve_groups(method, options, sets).dicts()
+    unused_altitude_warning(options, results)
     gisargs.export_locate(args, results, sets)
     return write_results(results, batch, args.indent)
+
+
+def unused_altitude_warning(options, results):
+    """One stderr line when a stated target altitude went unused: with ``dimension`` auto
+    the problems whose elevations observe the height are solved in 3D, which does not use it
+    (core.horizontal)."""
+    if options.get('target_altitude') is None or options.get('dimension', 'auto') != 'auto':
+        return
+    n = sum(r['solve'] == '3d' for r in results)
+    if n:
+        what = 'the problem' if len(results) == 1 else f'{n} of {len(results)} problems'
+        print(f'bearing_loc locate: warning: target_altitude not used for {what}: the '
+              'elevations observe the height (solve 3d); --dimension horizontal applies it',
+              file=sys.stderr)

@@ -166,7 +166,8 @@ TARGET_ALTITUDE = Option('target_altitude', None, 'altitude',
 TARGET_ALTITUDE_SIGMA = Option('target_altitude_sigma', 0.0, 'nonnegative',
                                'standard deviation of the stated altitude, m (0: exact)')
 USE_ELEVATIONS = Option('use_elevations', True, 'flag',
-                        'horizontal solve: use measured elevations (range information)')
+                        'use measured elevations; false ignores them, so every set is solved '
+                        'horizontally (needs target_altitude; dimension 3d is an error)')
 #: Solve-level options of every multi-station estimator (not TMA): the dimension selection
 #: and the horizontal solve's stated altitude (core.horizontal, core.registry.solve).
 SOLVE_OPTIONS = (DIMENSION, TARGET_ALTITUDE, TARGET_ALTITUDE_SIGMA, USE_ELEVATIONS)

@@ -408,7 +408,8 @@ def _horizontal_bound(bound, trials, noisy, saz, sel, solve_options):
     the horizontal CRLB (core.horizontal_crlb) at the true target (its z = the truth's)."""
     from .horizontal import select_dimension, SOLVE_HORIZONTAL
     from .horizontal_crlb import horizontal_crlb
-    horiz = select_dimension(noisy, solve_options.get('dimension', 'auto')) == SOLVE_HORIZONTAL
+    horiz = select_dimension(noisy, solve_options.get('dimension', 'auto'),
+                             solve_options.get('use_elevations', True)) == SOLVE_HORIZONTAL
     if not np.any(horiz):
         return bound
     M = trials.M

@@ -23,6 +23,8 @@ Dimension selection, per problem (:func:`select_dimension`):
   Without a stated altitude a set with any elevation is solved in 3D (as before the
   horizontal mode existed: the 3D estimator reports ``degenerate_geometry`` where the
   height is not observed); an azimuth-only set then raises ``target_altitude: required``.
+  With ``use_elevations=False`` no set observes the height: ``auto`` solves every set
+  horizontally, and ``3d`` is a ValueError naming ``use_elevations``.
 
 Height observed: at least one elevation, a 3D pseudo-linear solution (Wang, Zhang & Wu
 eq. (4)) exists, and the 3D Fisher information J (Zong & Cui 2015 eq. (7), core/crlb.py)
@@ -340,16 +342,24 @@ def height_observed(bearings):
     return out
 
 
-def select_dimension(bearings, dimension='auto'):
+def select_dimension(bearings, dimension='auto', use_elevations=True):
     """The solve (``'3d'`` or ``'horizontal'``) of each problem, (M,) str array.
 
     ``dimension``: ``auto`` (3D where :func:`height_observed`, else horizontal), ``3d`` or
     ``horizontal`` (forced). ValueError naming ``dimension`` for another value.
-    (:func:`locate` with ``auto`` and no stated altitude keeps the 3D solve for every set
-    with an elevation.)
+    ``use_elevations`` False: the elevations are ignored, so no problem observes the height:
+    ``auto`` gives horizontal everywhere and ``3d`` is a ValueError naming
+    ``use_elevations``. (:func:`locate` with ``auto`` and no stated altitude keeps the 3D
+    solve for every set with an elevation it may use.)
     """
     if dimension not in DIMENSIONS:
         raise ValueError(f'dimension: must be one of {", ".join(DIMENSIONS)}, got {dimension!r}')
+    if not use_elevations:
+        if dimension == SOLVE_3D:
+            raise ValueError('use_elevations: false leaves nothing to observe the height; the '
+                             '3d solve needs elevations (use dimension auto or horizontal '
+                             'with target_altitude)')
+        return np.full(bearings.M, SOLVE_HORIZONTAL, dtype=object).astype(str)
     if dimension == 'auto':
         return np.where(height_observed(bearings), SOLVE_3D, SOLVE_HORIZONTAL)
     return np.full(bearings.M, dimension, dtype=object).astype(str)
@@ -367,8 +377,9 @@ def locate(method, bearings, dimension='auto', target_altitude=None, target_alti
     method = _method(method)
     if not isinstance(bearings, BearingSet):
         raise ValueError(f'bearings: expected a BearingSet, got {type(bearings).__name__}')
-    solves = select_dimension(bearings, dimension)
-    if dimension == 'auto' and target_altitude is None:
+    use_elevations = _h.check_bool(use_elevations, 'use_elevations')
+    solves = select_dimension(bearings, dimension, use_elevations)
+    if dimension == 'auto' and target_altitude is None and use_elevations:
         # No altitude stated: a set with an elevation keeps the 3D solve (which reports
         # degenerate_geometry itself where the height is not observed).
         any_el = np.any(bearings.has_elevation, axis=1)
@@ -376,6 +387,7 @@ def locate(method, bearings, dimension='auto', target_altitude=None, target_alti
     horiz = solves == SOLVE_HORIZONTAL
     if np.any(horiz) and target_altitude is None:
         why = ('dimension is horizontal' if dimension == SOLVE_HORIZONTAL else
+               'use_elevations is false' if not use_elevations else
                'the bearings do not observe the height (no usable elevation geometry)')
         raise ValueError(f'target_altitude: required because {why}; state the target altitude '
                          '(m, world frame) and its standard deviation')

@@ -218,9 +218,9 @@ def _fusion_schema():
           example=[0.0], commented=True, **run),
         P('target_altitude_sigma', DOUBLE, 0.0, 'Standard deviation of target_altitude; 0 '
           '= exactly known', 'm', 0.0, 1e6, **run),
-        P('use_elevations', BOOL, True, 'Horizontal solve: use measured elevations (range '
-          'information); false for ground emitters with multipath-spoiled elevations',
-          **run),
+        P('use_elevations', BOOL, True, 'Use measured elevations; false ignores them '
+          '(ground emitters with multipath-spoiled elevations): every epoch is then solved '
+          'horizontally and needs target_altitude', **run),
         P('max_iterations', INTEGER, 50, 'Iterative estimators: iteration limit', '', 1,
           100000, **run),
         P('tolerance', DOUBLE, 1e-9, 'Iterative estimators: relative step tolerance', '',

@@ -194,10 +194,17 @@ class FusionConfig:
                 raise ValueError(f'max_iterations: must be an integer >= 1, got {it}')
         else:
             _registry.check(self.estimator, self.estimator_options)
-            if self.estimator_options.get('dimension') == 'horizontal' \
-                    and self.estimator_options.get('target_altitude') is None:
+            opts = self.estimator_options
+            if opts.get('dimension') == 'horizontal' and opts.get('target_altitude') is None:
                 raise ValueError('target_altitude: required when dimension is horizontal '
                                  '(m, world frame)')
+            if opts.get('use_elevations', True) is False:
+                if opts.get('dimension') == '3d':
+                    raise ValueError('use_elevations: false leaves nothing to observe the '
+                                     'height; dimension 3d needs elevations')
+                if opts.get('target_altitude') is None:
+                    raise ValueError('target_altitude: required when use_elevations is false '
+                                     '(every epoch is solved horizontally; m, world frame)')
         if int(self.window_max_bearings) < 3:
             raise ValueError(f'window_max_bearings: must be >= 3, got '
                              f'{self.window_max_bearings}')

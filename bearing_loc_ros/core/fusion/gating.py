@@ -12,6 +12,7 @@ dropped and the fix recomputed while enough stations remain. Angles in rad, ENU 
 eq. (1)).
 """
 
+from dataclasses import replace
 from functools import lru_cache
 import math
 import statistics
@@ -169,6 +170,16 @@ def horizontal_capable(kwargs):
     return False
 
 
+def ignoring_elevations(bearings, kwargs):
+    """``bearings`` as the solve sees them: with option ``use_elevations`` false (in the
+    solve options ``kwargs``) every bearing is azimuth-only (elevation and its σ NaN), so
+    neither the estimator nor the χ² gate uses an elevation the user said to ignore (a
+    multipath-spoiled elevation would otherwise get its station dropped as an outlier)."""
+    if kwargs.get('use_elevations', True) is not False:
+        return list(bearings)
+    return [replace(b, elevation=math.nan, sigma_elevation=math.nan) for b in bearings]
+
+
 def covariance_ok(cov):
     """True for a finite, positive semi-definite covariance with a positive largest
     eigenvalue (relative round-off −1e-9 tolerated), m².
@@ -284,6 +295,7 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     # too few stations are left to show the outlier.
     retry = bool(kwargs.get('consistency', False)) and float(outlier_gate) < 1.0
     horizontal = horizontal_capable(kwargs)
+    used = ignoring_elevations(used, kwargs)
     if validated and not horizontal:
         make_set = _trusted_set
 

@@ -46,7 +46,7 @@ from ..bearings import BearingSet
 from ..robust import MAX_NONLINEARITY, nonlinearity
 from .config import MODE_WINDOW, NS_PER_S, TRIGGER_EVENT, TRIGGER_TIMER
 from .gating import (_trusted_set as window_set, covariance_ok, gate_threshold,
-                     horizontal_capable, normalized_residuals)
+                     horizontal_capable, ignoring_elevations, normalized_residuals)
 from .results import (BAD_COVARIANCE, DEGENERATE_GEOMETRY, Epoch, ESTIMATOR_ERROR,
                       LEVEL_ERROR, LEVEL_OK, LEVEL_WARN, NO_ELEVATION, NOT_CONVERGED, OK,
                       TOO_FEW_STATIONS, UNOBSERVABLE)
@@ -192,6 +192,7 @@ class WindowStrategy:
                                                                        gate < 1.0)) \
             and gate < 1.0
         horizontal = horizontal_capable(kwargs)
+        used = ignoring_elevations(used, kwargs)
         n_el = sum(1 for b in used if b.has_elevation)
         if len(used) < 2 or (not horizontal and len(used) + n_el < 3):
             return Epoch(TOO_FEW_STATIONS, estimator=est, bearings=used,
