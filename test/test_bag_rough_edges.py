@@ -186,3 +186,14 @@ def test_negative_station_coordinates(capsys):
     assert cli_main(argv) == 0
     d = json.loads(capsys.readouterr().out)
     assert d['stations'][0]['position_m'] == [-10000.0, 0.0, 0.0]
+
+
+@pytest.mark.parametrize('verb', ['play', 'process', 'info'])
+def test_a_missing_bag_is_named_as_missing(verb, tmp_path, capsys):
+    # A path that does not exist is not "not a directory"; a file is.
+    afile = tmp_path / 'afile'
+    afile.write_text('x')
+    for path, words in ((tmp_path / 'nope', 'does not exist'), (afile, 'is not a directory')):
+        assert cli_main(['bag', verb, str(path)]) == 2
+        out, err = capsys.readouterr()
+        assert out == '' and len(err.splitlines()) == 1 and words in err, err

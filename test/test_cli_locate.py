@@ -179,6 +179,11 @@ def _bad(**change):
 BAD_CASES = [
     (_bad(b1__sigma_azimuth=0.0), 'bearings[1].sigma_azimuth: must be > 0'),
     (_bad(b1__sigma_azimuth=-1e-3), 'bearings[1].sigma_azimuth: must be > 0'),
+    (_bad(b1__sigma_azimuth=1e-300), 'bearings[1].sigma_azimuth: must be finite and in'),
+    (_bad(b2__position=[1e300, 0.0, 0.0]), 'bearings[2].position: |coordinate| must be <='),
+    ({'estimator': 'mle', 'problems': [{'bearings': bearings_json()},
+                                       {'bearings': _bad(b0__sigma_elevation=5e3)['bearings']}]},
+     'problems[1].bearings[0].sigma_elevation: must be finite and in'),
     (_bad(b0__azimuth='north'), 'bearings[0].azimuth: must be a number'),
     (_bad(b2__position=[1.0, 2.0]), 'bearings[2].position: must be a list'),
     (_bad(b2__position=[1.0, 2.0, True]), 'bearings[2].position[2]: must be a number'),

@@ -65,7 +65,7 @@ def test_vectorised_batch_equals_problem_by_problem():
 
 MUTATIONS = [
     (lambda b: b[1].update(sigma_azimuth=0.0), 'bearings[1].sigma_azimuth: must be > 0'),
-    (lambda b: b[1].update(sigma_azimuth=1e-300), 'bearings: sigma_azimuth: must be finite'),
+    (lambda b: b[1].update(sigma_azimuth=1e-300), 'bearings[1].sigma_azimuth: must be finite'),
     (lambda b: b[0].update(sigma_azimuth=True), 'bearings[0].sigma_azimuth: must be a number'),
     (lambda b: b[0].update(azimuth='north'), 'bearings[0].azimuth: must be a number'),
     (lambda b: b[0].update(azimuth=10 ** 400), 'bearings[0].azimuth: must be a finite number'),

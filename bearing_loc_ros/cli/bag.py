@@ -248,6 +248,7 @@ def format_qos(q):
 def run_info(args):
     """``bag info``: files, duration, start, message count, topics with type/count/QoS."""
     from .. import bagio
+    _check_bag_dir(args.bag)
     meta = bagio.read_metadata(args.bag)
     with bagio.BagReader(args.bag) as r:
         topics = r.topics
@@ -264,13 +265,19 @@ def run_info(args):
     return 0
 
 
+def _check_bag_dir(path):
+    """InputError unless ``path`` is a directory (a rosbag2 bag)."""
+    if not os.path.isdir(path):
+        why = 'is not a directory' if os.path.exists(path) else 'does not exist'
+        raise InputError(f'bag: {path} {why}')
+
+
 # -------------------------------------------------------------------------------------- play
 
 def run_play(args):
     """``bag play``."""
     from ..bag_player import play_bag
-    if not os.path.isdir(args.bag):
-        raise InputError(f'bag: {args.bag} is not a directory')
+    _check_bag_dir(args.bag)
     return play_bag(args.bag, args.rate, args.loop, args.clock_rate, args.delay,
                     args.wait_for_subscribers, args.topics, args.quiet)
 
@@ -280,8 +287,7 @@ def run_play(args):
 def run_process(args):
     """``bag process``: see bag_process.process_bag."""
     from ..bag_process import fusion_params, process_bag
-    if not os.path.isdir(args.bag):
-        raise InputError(f'bag: {args.bag} is not a directory')
+    _check_bag_dir(args.bag)
     params = fusion_params(args.params_file, args.param, args.estimator)
     if args.out is not None:
         check_out_parent(args.out)

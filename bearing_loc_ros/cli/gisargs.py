@@ -55,8 +55,10 @@ def origin_of(args, params=None):
     if origin is None and params and params.get('geodetic_origin'):
         origin = list(params['geodetic_origin'])
     if origin is None:
+        # Only the verbs that read node parameters (bag process) take -p.
+        hint = ' (or -p geodetic_origin=[lat,lon,alt])' if params is not None else ''
         raise InputError('origin: --geojson/--kml/--geo-csv need a geodetic origin: '
-                         '--origin LAT_DEG LON_DEG ALT_M (or -p geodetic_origin=[lat,lon,alt])')
+                         f'--origin LAT_DEG LON_DEG ALT_M{hint}')
     try:
         return gis.check_origin(origin)
     except ValueError as exc:

@@ -39,7 +39,7 @@ import sys
 
 import numpy as np
 
-from ..core.bearings import BearingSet
+from ..core.bearings import Bearing, BearingSet
 from ..core import registry
 from . import InputError
 from . import batch_input
@@ -147,11 +147,23 @@ def parse_bearings(items, where='bearings'):
             el.append(e)
             sel.append(number(b['sigma_elevation'], f'{f}.sigma_elevation', positive=True))
         names.append(station)
+    arrays = (np.array(pos), np.array(az), np.array(el), np.array(saz), np.array(sel))
     try:
-        return BearingSet.from_arrays(np.array(pos), np.array(az), np.array(el), np.array(saz),
-                                      np.array(sel), stations=names, require_elevation=False)
+        return BearingSet.from_arrays(*arrays, stations=names, require_elevation=False)
     except ValueError as exc:
-        raise InputError(f'{where}: {exc}') from None
+        raise InputError(_first_bad_bearing(arrays, where) or f'{where}: {exc}') from None
+
+
+def _first_bad_bearing(arrays, where):
+    """``<where>[i].<field>: <problem>`` of the first bearing whose fields fail the core's
+    checks on their own (a range such as 1e-12 <= sigma <= 1000 rad), or None when only the
+    set as a whole is bad."""
+    for i, (p, az, el, saz, sel) in enumerate(zip(*arrays)):
+        try:
+            Bearing('', 0, p, float(az), float(el), float(saz), float(sel)).validate()
+        except ValueError as exc:
+            return f'{where}[{i}].{exc}'
+    return None
 
 
 def parse_request(doc, method_override=None):
