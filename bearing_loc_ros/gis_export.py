@@ -81,11 +81,11 @@ def _name(props):
     if kind == 'station':
         return props.get('name', 'station')
     if kind == 'bearing':
-        return f'{props.get("station", "")} {props.get("time", "")}'
+        return f'{props.get("station", "")} {props.get("time") or ""}'.strip()
     if kind == 'fix':
-        return f'fix {props.get("time", "")}'
+        return f'fix {props.get("time") or ""}'.strip()
     if kind == 'ellipse':
-        return f'{100 * props.get("probability", 0):g}% ellipse {props.get("time", "")}'
+        return f'{100 * props.get("probability", 0):g}% ellipse {props.get("time") or ""}'.strip()
     return kind
 
 
@@ -145,7 +145,7 @@ def kml_document(fc, name='bearing_loc_ros', overlays=()):
         if kind not in folders:
             folders[kind] = kml.newfolder(name=FOLDERS.get(kind, kind))
         for obj in _add_geometry(folders[kind], ft['geometry'], _name(props)):
-            if 'time' in props and kind == 'fix':
+            if props.get('time') and kind == 'fix':
                 obj.timestamp.when = props['time']
             for key, value in props.items():
                 obj.extendeddata.newdata(name=key, value=_prop_text(value))
@@ -190,7 +190,9 @@ def write_geo_csv(path, fixes, origin):
             lon, lat, alt = gis.enu_to_lonlat(p, origin)
             d = np.diag(c)
             sig = [math.sqrt(v) if v >= 0 else float('nan') for v in d]
-            w.writerow([int(fx.stamp_ns), gis.iso_time(fx.stamp_ns), *map(repr, map(float, p)),
+            no_time = fx.stamp_ns is None            # (a locate fix): empty columns
+            w.writerow(['' if no_time else int(fx.stamp_ns),
+                        '' if no_time else gis.iso_time(fx.stamp_ns), *map(repr, map(float, p)),
                         f'{float(lat):.10f}', f'{float(lon):.10f}', f'{float(alt):.4f}',
                         *map(repr, sig), repr(math.sqrt(max(d[0] + d[1], 0.0))),
                         *(repr(float(c[i, j])) for i, j in UPPER),

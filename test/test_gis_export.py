@@ -208,6 +208,7 @@ def test_locate_geojson(tmp_path):
                 for i, s in enumerate(stations)]
     (tmp_path / 'in.json').write_text(json.dumps({'bearings': bearings}))
     out = run_cli('locate', tmp_path / 'in.json', '--geojson', tmp_path / 'l.geojson',
+                  '--geo-csv', tmp_path / 'l.csv', '--kml', tmp_path / 'l.kml',
                   '--origin', *ORIGIN)
     res = json.loads(out.stdout)
     fc = json.loads((tmp_path / 'l.geojson').read_text())
@@ -217,6 +218,12 @@ def test_locate_geojson(tmp_path):
     assert k['fix'][0]['properties']['position_enu_m'] == pytest.approx(res['position'])
     assert k['fix'][0]['properties']['position_enu_m'] == pytest.approx(target.tolist(),
                                                                         abs=1e-6)
+    # A locate request carries no time: no 1970-01-01 stamps in any of the three files.
+    assert all(f['properties'].get('time') is None for f in fc['features'])
+    with open(tmp_path / 'l.csv', newline='') as f:
+        row = next(csv.DictReader(f))
+    assert row['stamp_ns'] == '' and row['time'] == ''
+    assert '1970' not in (tmp_path / 'l.kml').read_text()
 
 
 @pytest.mark.parametrize('extra, message', [

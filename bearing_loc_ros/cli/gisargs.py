@@ -170,11 +170,11 @@ def export_locate(args, results, sets):
             continue
         cov = np.array([[np.nan if v is None else v for v in row] for row in res['covariance']])
         p = np.asarray(pos, dtype=float)
-        fixes.append(gis.GeoFix(0, p, cov, res['status'],
+        fixes.append(gis.GeoFix(None, p, cov, res['status'],       # locate: no time
                                 res.get('estimator') or res.get('method', ''),
                                 list(bs.stations)))
         for i, name in enumerate(bs.stations):
-            b = Bearing(name, 0, bs.positions[0, i], float(bs.azimuth[0, i]),
+            b = Bearing(name, None, bs.positions[0, i], float(bs.azimuth[0, i]),
                         float(bs.elevation[0, i]), float(bs.sigma_az[0, i]))
             rays.append((b, p))
             stations[name] = bs.positions[0, i]

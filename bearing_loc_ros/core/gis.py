@@ -30,6 +30,7 @@ builders share the origin checks and the ring/line builders and are read togethe
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 import math
+import typing
 
 import numpy as np
 from pymap3d import vincenty
@@ -298,16 +299,20 @@ def ray_lonlat(station_enu, azimuth, length, origin, points=RAY_POINTS):
 
 
 def iso_time(stamp_ns):
-    """Integer ns since the Unix epoch -> ISO 8601 UTC string with 'Z' (µs resolution)."""
+    """Integer ns since the Unix epoch -> ISO 8601 UTC string with 'Z' (µs resolution);
+    None (no time, e.g. a ``bearing_loc locate`` fix) -> None."""
+    if stamp_ns is None:
+        return None
     t = datetime.fromtimestamp(int(stamp_ns) // 1000 / 1e6, tz=timezone.utc)
     return t.isoformat().replace('+00:00', 'Z')
 
 
 @dataclass
 class GeoFix:
-    """One fix to draw: ENU position (3,) m, covariance (3, 3) m², stamp ns, and provenance."""
+    """One fix to draw: ENU position (3,) m, covariance (3, 3) m², stamp ns (None: no
+    time), and provenance."""
 
-    stamp_ns: int
+    stamp_ns: typing.Optional[int]
     position: np.ndarray
     covariance: np.ndarray
     status: str = 'ok'
@@ -320,6 +325,11 @@ class GeoFix:
         return cls(int(ep.stamp_ns), np.asarray(ep.position, float),
                    np.asarray(ep.covariance, float), ep.status or ep.reason,
                    ep.estimator, list(ep.stations))
+
+
+def _stamp(stamp_ns):
+    """int ns, or None for no time."""
+    return None if stamp_ns is None else int(stamp_ns)
 
 
 def _feature(geometry, props):
@@ -344,7 +354,7 @@ def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
         v = float(v)
         return v if math.isfinite(v) else None
 
-    props = {'kind': 'fix', 'time': iso_time(fix.stamp_ns), 'stamp_ns': int(fix.stamp_ns),
+    props = {'kind': 'fix', 'time': iso_time(fix.stamp_ns), 'stamp_ns': _stamp(fix.stamp_ns),
              'status': str(fix.status), 'estimator': str(fix.estimator),
              'stations': list(fix.stations), 'position_enu_m': [num(v) for v in p],
              'covariance_enu_m2': [num(v) for v in c.ravel()],
@@ -405,7 +415,7 @@ def bearing_feature(bearing, origin, length):
     lon, lat = ray_lonlat(pos, bearing.azimuth, length, origin)
     el = float(bearing.elevation)
     props = {'kind': 'bearing', 'station': str(bearing.station),
-             'time': iso_time(bearing.stamp_ns), 'stamp_ns': int(bearing.stamp_ns),
+             'time': iso_time(bearing.stamp_ns), 'stamp_ns': _stamp(bearing.stamp_ns),
              'azimuth_rad': float(bearing.azimuth),
              'compass_deg': compass_at(bearing.azimuth, pos, origin),
              'elevation_rad': el if math.isfinite(el) else None,
