@@ -271,6 +271,16 @@ def test_evaluate_cli_bad_input_names_the_field(capsys, tmp_path):
     assert cap.err == '' and 'joint' in cap.out and 'RMSE/CRLB' in cap.out
 
 
+def test_azimuth_only_scenario_runs_the_joint_sweep_only(capsys):
+    # Its azimuth sweep would repeat the joint rows and its elevation sweep vary an angle no
+    # station measures: the default --sweep both runs the joint sweep, with a note.
+    assert cli_main(['evaluate', '--scenario', 'seed000_azimuth_only', '--trials', '20',
+                     '--estimator', 'mle', '--sigma-deg', '1', '--quiet']) == 0
+    cap = capsys.readouterr()
+    rows = [line.split()[0] for line in cap.out.splitlines()[3:] if line.strip()]
+    assert rows == ['joint'] and 'only the joint sweep' in cap.err
+
+
 def test_track_crlb_statistics():
     from bearing_loc_ros.core.crlb import crlb
     rng = np.random.default_rng(3)

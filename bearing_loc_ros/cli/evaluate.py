@@ -198,6 +198,10 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
     tr = ev.trials_from_scenario(scenario, trials, seed, range_ref)
     sweeps = ('joint',) + {'none': (), 'azimuth': ('azimuth',), 'elevation': ('elevation',),
                            'both': ('azimuth', 'elevation')}[sweep]
+    if not tr.has_elevation.any():
+        # Azimuth-only stations: the azimuth sweep repeats the joint one and the elevation
+        # sweep varies nothing that is measured.
+        sweeps = ('joint',)
     options = {}
     ref = tr.reference_range()
     if ref is not None:     # d_ref of Zong & Cui 2015 eqs. (9)-(10), for who models it
@@ -366,6 +370,9 @@ def run(args):
                                 args.sweep, args.fixed_sigma_deg, progress, args.range_ref,
                                 outliers, args.robust, args.dimension, args.target_altitude,
                                 args.target_altitude_sigma)
+    if args.sweep != 'none' and meta['sweeps'] == ['joint']:
+        print('bearing_loc evaluate: note: no station measures elevation, so only the joint '
+              'sweep (σ_θ) is run', file=sys.stderr)
     print(f'{meta["scenario"]}: {args.trials} trials x {len(sigmas)} σ x '
           f'{len(meta["sweeps"])} sweeps x {len(estimators)} estimators, seed {args.seed}, '
           f'{meta["elapsed_s"]:.2f} s')
