@@ -86,6 +86,9 @@ def test_target_altitude_and_ignored_elevations_are_never_silently_unused(tmp_pa
     code, out, err = run_main(tmp_path, doc, '--target-altitude', '5000', capsys=capsys)
     assert code == 0 and json.loads(out)['solve'] == '3d'
     assert err.startswith('bearing_loc locate: warning: target_altitude not used')
+    code, out, err = run_main(tmp_path, doc, '--target-altitude', '5000', '--dimension', '3d',
+                              capsys=capsys)
+    assert code == 0 and 'target_altitude not used for the problem: --dimension 3d' in err
     code, out, err = run_main(tmp_path, doc, '--target-altitude', '5000', '--dimension',
                               'horizontal', capsys=capsys)
     assert code == 0 and json.loads(out)['solve'] == 'horizontal' and err == ''

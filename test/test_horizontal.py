@@ -164,9 +164,10 @@ def test_ignored_elevations_mean_the_horizontal_solve():
     from bearing_loc_ros.core.fusion.gating import solve_epoch
     epoch = [Bearing(f's{i}', 0, st[i], float(bs.azimuth[0, i]), float(bs.elevation[0, i]),
                      1e-3, 1e-3) for i in range(3)]
-    e = solve_epoch(epoch, 'mle', {'target_altitude': 300.0, 'use_elevations': False})
-    assert e.ok and not e.rejected and len(e.bearings) == 3
-    np.testing.assert_allclose(e.position, auto.position[0], rtol=0, atol=1e-6)
+    for flag in (False, np.False_):                  # a numpy bool from a Python caller too
+        e = solve_epoch(epoch, 'mle', {'target_altitude': 300.0, 'use_elevations': flag})
+        assert e.ok and not e.rejected and len(e.bearings) == 3
+        np.testing.assert_allclose(e.position, auto.position[0], rtol=0, atol=1e-6)
 
 
 def test_collinear_stations_with_the_target_on_the_line_never_give_a_confident_fix():

@@ -64,6 +64,15 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f'{self.prog}: error: {message} (see {self.prog} --help)\n')
 
 
+def _prog_of(args, extra, before_verb):
+    """The command an unrecognized argument belongs to: ``bearing_loc`` for one given
+    before the verb, else the verb and its sub-command (``bearing_loc bag play``)."""
+    if args.verb is None or extra[0] in before_verb:
+        return 'bearing_loc'
+    sub = getattr(args, f'{args.verb}_command', None)
+    return ' '.join(['bearing_loc', args.verb] + ([sub] if sub else []))
+
+
 def main(argv=None):
     """Entry point of the ``bearing_loc`` console script."""
     if argv is None:
@@ -79,7 +88,8 @@ def main(argv=None):
         formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest='verb', metavar='VERB')
     # Only the verb named on the command line is imported (keeps start-up fast).
-    wanted = argv[0] if argv and argv[0] in VERBS else None
+    at = next((k for k, a in enumerate(argv) if a in VERBS), None)
+    wanted = argv[at] if at is not None else None
     for verb, help_text in VERBS.items():
         p = helptext.verb_parser(sub, verb, help_text)
         if verb == wanted:
@@ -93,12 +103,13 @@ def main(argv=None):
                       file=sys.stderr)
                 return 1
     args, extra = parser.parse_known_args(argv)
+    if extra:
+        prog = _prog_of(args, extra, argv[:at] if at is not None else argv)
+        print(f'{prog}: error: unrecognized arguments: {" ".join(extra)} '
+              f'(see {prog} --help)', file=sys.stderr)
+        return 2
     if args.verb is None:
         parser.print_help(sys.stderr)
-        return 2
-    if extra:               # named after the verb, not the top-level tool
-        print(f'bearing_loc {args.verb}: error: unrecognized arguments: {" ".join(extra)} '
-              f'(see bearing_loc {args.verb} --help)', file=sys.stderr)
         return 2
     try:
         return int(_load(args.verb).run(args) or 0)

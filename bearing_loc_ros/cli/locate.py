@@ -314,14 +314,15 @@ def run(args):
 
 
 def unused_altitude_warning(options, results):
-    """One stderr line when a stated target altitude went unused: with ``dimension`` auto
-    the problems whose elevations observe the height are solved in 3D, which does not use it
+    """One stderr line when a stated target altitude went unused: the 3D solve (forced, or
+    with ``dimension`` auto where the elevations observe the height) does not use it
     (core.horizontal)."""
-    if options.get('target_altitude') is None or options.get('dimension', 'auto') != 'auto':
+    if options.get('target_altitude') is None:
         return
     n = sum(r['solve'] == '3d' for r in results)
     if n:
         what = 'the problem' if len(results) == 1 else f'{n} of {len(results)} problems'
-        print(f'bearing_loc locate: warning: target_altitude not used for {what}: the '
-              'elevations observe the height (solve 3d); --dimension horizontal applies it',
-              file=sys.stderr)
+        why = ('--dimension 3d' if options.get('dimension') == '3d' else
+               'the elevations observe the height (solve 3d)')
+        print(f'bearing_loc locate: warning: target_altitude not used for {what}: {why}; '
+              '--dimension horizontal applies it', file=sys.stderr)

@@ -198,7 +198,7 @@ class FusionConfig:
             if opts.get('dimension') == 'horizontal' and opts.get('target_altitude') is None:
                 raise ValueError('target_altitude: required when dimension is horizontal '
                                  '(m, world frame)')
-            if opts.get('use_elevations', True) is False:
+            if not bool(opts.get('use_elevations', True)):      # (checked a bool above)
                 if opts.get('dimension') == '3d':
                     raise ValueError('use_elevations: false leaves nothing to observe the '
                                      'height; dimension 3d needs elevations')

@@ -170,14 +170,27 @@ def horizontal_capable(kwargs):
     return False
 
 
+def ignores_elevations(kwargs):
+    """True when the solve options ``kwargs`` say ``use_elevations`` false (a bool or
+    numpy bool, validated by core.registry)."""
+    return not bool(kwargs.get('use_elevations', True))
+
+
 def ignoring_elevations(bearings, kwargs):
     """``bearings`` as the solve sees them: with option ``use_elevations`` false (in the
     solve options ``kwargs``) every bearing is azimuth-only (elevation and its σ NaN), so
-    neither the estimator nor the χ² gate uses an elevation the user said to ignore (a
-    multipath-spoiled elevation would otherwise get its station dropped as an outlier)."""
-    if kwargs.get('use_elevations', True) is not False:
+    neither the estimator, the χ² gate nor the station trust uses an elevation the user
+    said to ignore (a multipath-spoiled elevation would otherwise get its station dropped
+    as an outlier). The bearings are copies then."""
+    if not ignores_elevations(kwargs):
         return list(bearings)
     return [replace(b, elevation=math.nan, sigma_elevation=math.nan) for b in bearings]
+
+
+def without_elevations(bs):
+    """The BearingSet ``bs`` with every elevation (and its σ) NaN: azimuth-only."""
+    nan = np.full(bs.elevation.shape, np.nan)
+    return BearingSet(bs.positions, bs.azimuth, nan, bs.sigma_az, nan.copy(), bs.stations)
 
 
 def covariance_ok(cov):

@@ -46,7 +46,8 @@ from ..bearings import BearingSet
 from ..robust import MAX_NONLINEARITY, nonlinearity
 from .config import MODE_WINDOW, NS_PER_S, TRIGGER_EVENT, TRIGGER_TIMER
 from .gating import (_trusted_set as window_set, covariance_ok, gate_threshold,
-                     horizontal_capable, ignoring_elevations, normalized_residuals)
+                     horizontal_capable, ignores_elevations, normalized_residuals,
+                     without_elevations)
 from .results import (BAD_COVARIANCE, DEGENERATE_GEOMETRY, Epoch, ESTIMATOR_ERROR,
                       LEVEL_ERROR, LEVEL_OK, LEVEL_WARN, NO_ELEVATION, NOT_CONVERGED, OK,
                       TOO_FEW_STATIONS, UNOBSERVABLE)
@@ -192,8 +193,10 @@ class WindowStrategy:
                                                                        gate < 1.0)) \
             and gate < 1.0
         horizontal = horizontal_capable(kwargs)
-        used = ignoring_elevations(used, kwargs)
-        n_el = sum(1 for b in used if b.has_elevation)
+        # use_elevations false: the solve and the gate see azimuth-only sets, while the
+        # window keeps its own bearings (rejections are remembered by their identity).
+        ignore_el = ignores_elevations(kwargs)
+        n_el = 0 if ignore_el else sum(1 for b in used if b.has_elevation)
         if len(used) < 2 or (not horizontal and len(used) + n_el < 3):
             return Epoch(TOO_FEW_STATIONS, estimator=est, bearings=used,
                          detail=f'{len(used)} bearing(s) in the window')
@@ -202,7 +205,7 @@ class WindowStrategy:
                          detail='azimuth-only bearings: set target_altitude')
         rejected = []
         for _ in range(GATE_ROUNDS + 1):
-            bs = window_set(used)
+            bs = without_elevations(window_set(used)) if ignore_el else window_set(used)
             try:
                 res = _registry.solve(est, bs, **kwargs)
             except Exception as exc:  # noqa: B902 - any estimator failure is a counted no-fix
