@@ -119,12 +119,13 @@ class Harness:
         assert self.spin(lambda: any(predicate(d) for d in self.diags[n:]), timeout)
         return [d for d in self.diags[n:] if predicate(d)][-1]
 
-    def set_parameter(self, name, value):
-        """Set a parameter through the node's parameter service (like `ros2 param set`)."""
+    def set_parameter(self, name, value, ptype=None):
+        """Set a parameter through the node's parameter service (like `ros2 param set`);
+        ``ptype`` (a Parameter.Type) where the value does not tell, e.g. an empty list."""
         cli = self.node.create_client(SetParameters, f'/{self.ns}/fusion/set_parameters')
         assert cli.wait_for_service(timeout_sec=5.0)
-        req = SetParameters.Request(parameters=[Parameter(name, value=value)
-                                                .to_parameter_msg()])
+        prm = Parameter(name, value=value) if ptype is None else Parameter(name, ptype, value)
+        req = SetParameters.Request(parameters=[prm.to_parameter_msg()])
         fut = cli.call_async(req)
         assert self.spin(fut.done)
         self.node.destroy_client(cli)
@@ -282,6 +283,19 @@ def test_switch_estimator_at_run_time(harness):
     assert not res.successful
     res = h.set_parameter('outlier_gate', 0.9999)
     assert res.successful and h.fusion.core.config.outlier_gate == 0.9999
+    # target_altitude arrives as array('d') at run time: checked as at start-up (two values
+    # used to be accepted and fail every epoch as estimator_error).
+    for bad in ([10.0, 20.0], [1e300]):
+        res = h.set_parameter('target_altitude', bad)
+        assert not res.successful and 'target_altitude' in res.reason, res.reason
+    assert h.fusion.core.config.estimator_options.get('target_altitude') is None
+    res = h.set_parameter('target_altitude', [250.0])
+    assert res.successful and h.fusion.core.config.estimator_options['target_altitude'] == 250.0
+    h.set_clock(102 * S)
+    h.send_round(102 * S)
+    assert h.fusion.core.last_epoch.ok
+    res = h.set_parameter('target_altitude', [], Parameter.Type.DOUBLE_ARRAY)
+    assert res.successful and h.fusion.core.config.estimator_options['target_altitude'] is None
 
 
 def _probe_until_subscribed(h, station, t_ns, timeout=30.0):

@@ -86,12 +86,13 @@ class Option:
         if self.kind == 'point':
             return None if value is None else _initial(value, M)
         if self.kind in ('altitude', 'nonnegative'):
-            return _metres(name, value, self.kind == 'altitude')
+            return _metres(name, value, self.kind == 'altitude', self.upper)
         return value
 
 
-def _metres(name, value, optional):
-    """A finite length (m, scalar or (M,)) or None (``optional``); ``nonnegative``: ≥ 0."""
+def _metres(name, value, optional, upper=None):
+    """A finite length (m, scalar or (M,)) or None (``optional``); ``nonnegative``: ≥ 0;
+    |value| ≤ ``upper`` when given."""
     if value is None and optional:
         return None
     if isinstance(value, (bool, np.bool_)) or isinstance(value, str):
@@ -106,6 +107,8 @@ def _metres(name, value, optional):
         raise ValueError(f'options.{name}: must be finite (m), got NaN or inf')
     if not optional and np.any(v < 0):
         raise ValueError(f'options.{name}: must be >= 0 (m)')
+    if upper is not None and np.any(np.abs(v) > upper):
+        raise ValueError(f'options.{name}: |value| must be <= {upper:g} m')
     return float(v) if v.ndim == 0 else v
 
 
@@ -160,11 +163,17 @@ DIMENSIONS = ('auto', '3d', 'horizontal')
 DIMENSION = Option('dimension', 'auto', 'choice',
                    'auto (3d when the bearings observe the height, else horizontal), 3d or '
                    'horizontal', choices=DIMENSIONS)
+#: Bounds of the stated altitude (the stations' coordinate bound) and of its σ, m (beyond
+#: it σ_z² and the σ_z terms of the covariances overflow or lose every digit: σ_z = 1e155
+#: gave NaN); horizontal_estimators.prepare checks the same.
+MAX_ABS_ALTITUDE = MAX_ABS_POSITION
+MAX_ALTITUDE_SIGMA = 1.0e6
 TARGET_ALTITUDE = Option('target_altitude', None, 'altitude',
                          'target altitude z0 of the horizontal solve, m, world frame (None: '
-                         'not stated)')
+                         'not stated)', upper=MAX_ABS_ALTITUDE)
 TARGET_ALTITUDE_SIGMA = Option('target_altitude_sigma', 0.0, 'nonnegative',
-                               'standard deviation of the stated altitude, m (0: exact)')
+                               'standard deviation of the stated altitude, m (0: exact)',
+                               upper=MAX_ALTITUDE_SIGMA)
 USE_ELEVATIONS = Option('use_elevations', True, 'flag',
                         'use measured elevations; false ignores them, so every set is solved '
                         'horizontally (needs target_altitude; dimension 3d is an error)')

@@ -77,8 +77,9 @@ import numbers
 import numpy as np
 
 from .bearings import BearingSet, MAX_ABS_ANGLE, MAX_ABS_POSITION, SIGMA_MAX, SIGMA_MIN
-from .estimator_spec import (BEARING_SIGMA, EstimatorSpec, MAX_ITERATIONS, MULTISTATION, Option,
-                             RANGE_GROWN_SIGMA, REFERENCE_RANGE, STEP_DECAY, TOLERANCE)
+from .estimator_spec import (BEARING_SIGMA, EstimatorSpec, MAX_ABS_ALTITUDE, MAX_ALTITUDE_SIGMA,
+                             MAX_ITERATIONS, MULTISTATION, Option, RANGE_GROWN_SIGMA,
+                             REFERENCE_RANGE, STEP_DECAY, TOLERANCE)
 from .estimators import FixResult, STATUS_DEGENERATE, STATUS_OK
 from .horizontal_crlb import _as_problem_vector, inverse2
 
@@ -104,12 +105,6 @@ OPTION_DEFAULTS = {name: spec.defaults() for name, spec in SPECS.items()}
 #: target on the stations' line at this level are declared degenerate; small, so that a
 #: target truly on the line is practically never given a fix).
 LINE_CHI2_TAIL = 1e-6
-#: Largest stated |z₀|, m: the bound of every coordinate (core/bearings.py), so that a target
-#: altitude near stations the package accepts is accepted too.
-MAX_ABS_ALTITUDE = MAX_ABS_POSITION
-#: Largest σ_z, m (the fusion node's ``target_altitude_sigma`` range). Beyond it σ_z² and
-#: the σ_z terms of the covariances overflow or lose every digit (σ_z = 1e155 gave NaN).
-MAX_ALTITUDE_SIGMA = 1.0e6
 #: Nonzero nodes (ascending, symmetric) and weights of the five-point Gauss-Hermite rule of
 #: N(0, 1): ±1.3556, ±2.8570 with weights 0.2221, 0.0113 (the node 0 has weight 8/15);
 #: E[f(s)] exact for polynomials f of degree ≤ 9 (:func:`altitude_covariance`).

@@ -7,6 +7,7 @@ node reports as ``parameter '<field>': <problem>`` and ``bag process`` as one li
 
 from dataclasses import dataclass, field, replace
 import math
+import numbers
 import re
 
 from .. import parameters as _parameters
@@ -34,7 +35,9 @@ def _estimator_options(values):
     stated") becomes None and [z] becomes z (m); ValueError for more than one value."""
     out = dict(values)
     z = out.get('target_altitude')
-    if isinstance(z, (list, tuple)):
+    if z is not None and not isinstance(z, (numbers.Real, str, bytes)):
+        # A list from a parameter file, array('d') from a run-time parameter change.
+        z = list(z)
         if len(z) > 1:
             raise ValueError(f'target_altitude: expected [] (not stated) or [z] (m), got {z}')
         out['target_altitude'] = float(z[0]) if z else None
