@@ -50,12 +50,16 @@ def fusion_params(params_file=None, overrides=(), estimator=None):
     estimator; each checked against the schema (type, range, allowed values). Deprecated
     names are mapped to the current ones with a warning on stderr."""
     import yaml
+    from .core.yaml_file import load_text
     given = dict(read_params_file(params_file)) if params_file else {}
     for item in overrides:
         name, sep, value = item.partition('=')
         if not sep or not name:
             raise InputError(f'param: expected NAME=VALUE, got {item!r}')
-        given[name.strip()] = yaml.safe_load(value)
+        try:
+            given[name.strip()] = load_text(value)
+        except yaml.YAMLError:
+            raise InputError(f'param: {name.strip()}: invalid YAML value {value!r}') from None
     if estimator is not None:
         given['estimator'] = estimator
     given = {k: v for k, v in flatten(given).items() if k not in ROS_BUILTIN_PARAMS}
