@@ -145,6 +145,26 @@ def test_stamps_far_off_the_node_clock_are_explained_once(offset_s, cause):
     assert diag['fusion'].values['clock_warnings'] == 's1,s2'
 
 
+def test_one_stray_stamp_is_explained_as_such():
+    # A station whose clock is fine sends one bearing stamped an hour ahead: it is dropped
+    # as from_future, and the warning describes that stamp (the median offset of its recent
+    # stamps, about 0, used to be reported as "behind the node clock: NTP?").
+    core = FusionCore(FusionConfig(estimator='ls'), stations=['s1', 's2'])
+    now = 100 * S
+    for k in range(10):
+        t = now + k * 100 * MS
+        for s in ('s1', 's2'):
+            core.add_bearing(bearing(s, t), t)
+    core.drain_events()
+    t = now + 10 * 100 * MS
+    core.add_bearing(bearing('s1', t + 3600 * S), t)
+    assert core.station_stats('s1').dropped['from_future'] == 1
+    warnings = [text for _, text in core.drain_events() if 'node clock' in text]
+    assert len(warnings) == 1
+    assert 'a stamp 3.6e+03 s ahead of the node clock' in warnings[0]
+    assert 'corrupted stamp' in warnings[0] and 'NTP' not in warnings[0]
+
+
 def test_a_station_alternating_far_off_and_good_stamps_warns_throttled():
     # A good bearing clears the station's clock warning, so a station alternating between
     # far-off and good stamps sets it again each time: the log must still be throttled.

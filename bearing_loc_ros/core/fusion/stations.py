@@ -101,9 +101,15 @@ class StationStats:
         return statistics.median(self.offsets) / NS_PER_S if self.offsets else None
 
 
-def clock_hint(offset_s):
-    """The likely cause of a station's stamps being ``offset_s`` (stamp − now, s) off the
-    node clock, as one sentence for the log and /diagnostics."""
+def clock_hint(offset_s, stray_s=None):
+    """The likely cause of a station's stamps being ``offset_s`` (median of stamp − now, s)
+    off the node clock, as one sentence for the log and /diagnostics. ``stray_s``: the
+    dropped stamp's own offset, s, when the median is within the buffer (the station's
+    clock is fine and one stamp is far off: a corrupted or forged stamp)."""
+    if stray_s is not None:
+        side = 'behind' if stray_s < 0 else 'ahead of'
+        return (f'a stamp {abs(stray_s):.3g} s {side} the node clock, while its recent '
+                f'stamps are within {abs(offset_s):.3g} s of it: a corrupted stamp?')
     side = 'behind' if offset_s < 0 else 'ahead of'
     cause = ('is use_sim_time set on one side only?' if abs(offset_s) > SIM_TIME_OFFSET_S
              else 'is the station clock synchronised (NTP/PTP)?')
@@ -396,7 +402,10 @@ class StationRegistry:
             self.dropped[reason] += 1
             if reason in (TOO_LATE, FROM_FUTURE) and st.clock_warning is None \
                     and abs(stamp - now) > self.align.buffer_age_ns:
-                st.clock_warning = clock_hint(st.clock_offset_s())
+                median = st.clock_offset_s()
+                systematic = abs(median) * NS_PER_S > self.align.buffer_age_ns
+                st.clock_warning = clock_hint(median, None if systematic
+                                              else (stamp - now) / NS_PER_S)
                 # Throttled: a station alternating between far-off and good stamps sets the
                 # warning again after every good bearing.
                 self.warn_throttled(bearing.station, 'clock', f'{bearing.station}: '
