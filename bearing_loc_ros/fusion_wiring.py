@@ -378,7 +378,7 @@ class FusionOutputs:
         self.accuracy_map_ms = 1e3 * (time.perf_counter() - t0)
         log.info(f'accuracy_map: {len(self.accuracy_map.stations)} live station(s), '
                  f'{grid.width}x{grid.height} cells of {grid.resolution:g} m, '
-                 f'{self.accuracy_map_ms:.1f} ms')
+                 f'{self.accuracy_map_ms:.1f} ms', throttle_duration_sec=10.0)
 
     def publish_diagnostics(self, entries, now_ns, incompatible_qos):
         """Publish the core's diagnostic ``entries`` (overall first, then one per station)

@@ -3,7 +3,9 @@ settings (core.display) and core errors as ParameterError (ros_common)."""
 
 import pytest
 
-from bearing_loc_ros.core.display import AccuracyMapConfig
+import numpy as np
+
+from bearing_loc_ros.core.display import AccuracyMap, AccuracyMapConfig
 from bearing_loc_ros.core.fusion.config import check_station_ids
 from bearing_loc_ros.ros_common import core_parameter_error
 
@@ -22,6 +24,24 @@ def test_accuracy_map_settings_from_parameter_values():
         'accuracy_map.enabled': True, 'accuracy_map.center': [1.0, 2.0],
         'accuracy_map.size': 500.0, 'estimator': 'mle'})
     assert cfg.center == (1.0, 2.0) and cfg.size == 500.0 and cfg.model == 'crlb'
+
+
+def test_accuracy_map_follows_moving_stations_only_when_it_can_change():
+    # Two stations: a move beyond move_threshold recomputes the map. One station (a DF car
+    # driving): every cell is unobservable wherever it is, so its moves recompute nothing
+    # (it used to recompute and log about 10 maps a second).
+    cfg = AccuracyMapConfig.from_parameters({'accuracy_map.enabled': True,
+                                             'accuracy_map.move_threshold': 1.0})
+    m = AccuracyMap(cfg)
+    two = {'a': (np.zeros(3), 0.01, 0.01), 'b': (np.array([1000.0, 0, 0]), 0.01, 0.01)}
+    assert m.update(two) is not None and m.update(two) is None
+    two['b'] = (np.array([1010.0, 0, 0]), 0.01, 0.01)
+    assert m.update(two) is not None
+    one = {'car': (np.zeros(3), 0.05, float('nan'))}
+    grid, data = m.update(one)
+    assert np.all(data == 100)
+    for x in (10.0, 100.0, 1000.0):
+        assert m.update({'car': (np.array([x, 0, 0]), 0.05, float('nan'))}) is None
 
 
 def test_core_errors_name_the_parameter():

@@ -229,7 +229,8 @@ class AccuracyMap:
 
     :meth:`update` takes the pipeline's geometry (station -> (position (3,) m, σ_θ rad, σ_ψ
     rad or NaN), FusionCore.geometry()) and returns (GridSpec, int8 cell values) when the set
-    of live stations changed or one moved more than ``move_threshold``, else None. Cell value
+    of live stations changed or, with two or more, one moved more than ``move_threshold``,
+    else None. Cell value
     = error_to_occupancy(ε) of ε = sqrt(trace P) per cell (core.planning.occupancy_error_map,
     the CRLB or the CTLS first-order error of Wang, Zhang & Wu eqs. (30)-(32)). No live
     station: every cell −1 (unknown) on the last grid. ValueError from the planning core
@@ -249,7 +250,9 @@ class AccuracyMap:
         old_names, old_pos = self._key
         if names != old_names:
             return True
-        if not names:
+        if len(names) < 2:
+            # No station, or one: every cell is unobservable whatever its position, so a
+            # single moving station (a DF car) does not recompute the map as it drives.
             return False
         thr = self.config.move_threshold
         if thr <= 0.0 and self.grid is not None:
