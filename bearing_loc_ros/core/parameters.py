@@ -118,7 +118,12 @@ class Param:
 
 
 def _num(v):
-    return f'{v:g}' if isinstance(v, float) else str(v)
+    """A bound as text: 6 significant digits, more where they would round it to another
+    number (1 − 1e-9 is not 1)."""
+    if not isinstance(v, float):
+        return str(v)
+    short = f'{v:g}'
+    return short if float(short) == v else repr(v)
 
 
 def _estimator_names():
