@@ -164,7 +164,9 @@ def test_calibrate_cli_errors(tmp_path, capsys):
         'position': [0.0, 0.0, 0.0]}}}))
     code = cli_main(['calibrate', '--station', f'A={bad}', '--params', str(p),
                      '--transmitter', '0', '0', '0', '--out', str(tmp_path / 'o.yaml')])
-    assert code == 2 and 'usable readings' in capsys.readouterr().err
+    err = capsys.readouterr().err
+    # ... and why: the rejection reasons of the station's log.
+    assert code == 2 and 'usable readings' in err and '(A rejected malformed_csv 1)' in err
 
 
 def test_compass_residuals_convert_enu_azimuths_and_wrap():

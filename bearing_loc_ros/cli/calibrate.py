@@ -197,7 +197,10 @@ def run(args):
     try:
         fit = fit_calibration(res, conf, math.radians(args.max_residual_deg))
     except ValueError as exc:
-        raise InputError(str(exc)) from None
+        # Say why a station has too few readings: the rejection reasons of its log.
+        why = '; '.join(f'{s} rejected ' + ', '.join(f'{r} {n}' for r, n in sorted(
+            notes[s].items())) for s in stations if notes[s])
+        raise InputError(f'{exc}' + (f' ({why})' if why else '')) from None
     cov = fit.covariance
     S = len(fit.stations)
     se0 = fit.sigma_conf0_deg * math.sqrt(max(cov[S, S] + cov[S + 1, S + 1]
