@@ -25,6 +25,13 @@ Two parts, both on core.evaluation (the numbers of ``bearing_loc evaluate``):
     python bench/low_snr.py --acceptance [--trials 2000] [--seed 0]
     python bench/low_snr.py --seeds 0,1,2,3,4 [--trials 2000]     # pooled over seeds
     python bench/low_snr.py --near-stations     # robust wmle fixes that end near a station
+    python bench/low_snr.py --sigma-points --seeds 0,1,2,3,4    # a covariance not kept
+
+``--sigma-points``: the constant-sigma scenario's ok fixes of the default mle, their mean NEES
+and confidently wrong count per sweep point, pooled over ``--seeds``, with the reported
+covariance P (the CRLB at the fix) and with P averaged over the fix's own region along its
+major axis v (three Gauss-Hermite points: 2/3 P + (P(x + sqrt(3) s v) + P(x - sqrt(3) s v))/6,
+s^2 the major eigenvalue; the sigma-point spread of Julier & Uhlmann (1997) with n + kappa = 3).
 """
 
 import argparse
@@ -254,6 +261,55 @@ def plot(a):
     print(f'wrote {a.out}')
 
 
+def sigma_points(n, seeds):
+    """Print the ``--sigma-points`` table (module docstring)."""
+    from bearing_loc_ros.core.crlb import crlb
+    q = float(chisq.ppf(0.9999, 3))
+    acc = {}
+    for seed in seeds:
+        _, tr = trials_of_seed(CONST, n, seed)
+        for sweep in ('joint', 'azimuth', 'elevation'):
+            for k, lv in enumerate(ev.noise_levels([1.0, 2.0, 3.0, 4.0, 5.0], sweep)):
+                got = []
+                ev.run_level(['mle'], tr, lv, ev.level_rng(seed, sweep, k), sweep, {'mle': {}},
+                             lambda name, b, **o: got.append((b, locate(name, b, **o)))
+                             or got[-1][1])
+                b, r = got[0]
+                ok = r.status == 'ok'
+                X, P = r.position[ok], r.covariance[ok]
+                sel = np.where(b.has_elevation[ok], b.sigma_el[ok], np.nan)
+                w, V = np.linalg.eigh(P)
+                step = math.sqrt(3.0) * V[:, :, 2] * np.sqrt(w[:, 2:3])
+                at = [crlb(X + d, b.positions[ok], b.sigma_az[ok], sel, b.has_elevation[ok])
+                      for d in (step, -step)]
+                e = X - tr.targets[ok]
+                for name, C in (('P', P), ('sigma points', 2.0 / 3.0 * P + (at[0] + at[1]) / 6)):
+                    nees = np.einsum('mi,mij,mj->m', e, np.linalg.inv(C), e)
+                    a = acc.setdefault((sweep, lv.x_deg, name), [0, 0.0, 0])
+                    a[0] += nees.size
+                    a[1] += float(nees.sum())
+                    a[2] += int((nees > q).sum())
+    print(f'## {CONST}: mle (default) ok fixes, seeds {",".join(map(str, seeds))}, {n} trials')
+    print('sweep      sigma  ok fixes  NEES P (band)         wrong P   NEES sigma points  wrong')
+    for (sweep, s, name), (m, total, k) in acc.items():
+        if name != 'P':
+            continue
+        _, t2, k2 = acc[(sweep, s, 'sigma points')]
+        band = 2.576 * math.sqrt(6.0 / m)
+        print(f'{sweep:10s} {s:4.1f}  {m:8d}  {total / m:5.3f} (±{band:4.2f})  {k:6d}   '
+              f'{t2 / m:5.3f}             {k2:6d}')
+    for name in ('P', 'sigma points'):
+        k = sum(v[2] for key, v in acc.items() if key[2] == name)
+        m = sum(v[0] for key, v in acc.items() if key[2] == name)
+        print(f'pooled, {name}: confidently wrong {k} of {m} ({1e2 * k / m:.4f} %)')
+
+
+def trials_of_seed(path, n, seed):
+    """(scenario, trials) of ``path`` with ``n`` trials drawn with ``seed``."""
+    sc = load_scenario(resolve_scenario(path))
+    return sc, ev.trials_from_scenario(sc, n, seed)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument('--trials', type=int, default=2000)
@@ -266,10 +322,14 @@ def main():
                     help='comma-separated seeds: the acceptance tables pooled over them')
     ap.add_argument('--near-stations', action='store_true',
                     help='count the robust wmle fixes that end near a station')
+    ap.add_argument('--sigma-points', action='store_true',
+                    help='constant sigma: the ok fixes\' NEES with the sigma-point covariance')
     a = ap.parse_args()
     global SEED
     SEED = a.seed
-    if a.near_stations:
+    if a.sigma_points:
+        sigma_points(a.trials, [int(v) for v in (a.seeds or '0,1,2,3,4').split(',')])
+    elif a.near_stations:
         near_stations(a.trials)
     elif a.seeds:
         pooled_acceptance(a.trials, [int(v) for v in a.seeds.split(',')])
