@@ -81,6 +81,10 @@ class _Source:
             return self.state, self.last_error, dict(self.counts)
 
 
+#: Source states that mean the receiver cannot be read (logged when entered and left).
+FAILED_STATES = ('unreachable', 'error')
+
+
 class _NoRedirect(urllib.request.HTTPRedirectHandler):
     def redirect_request(self, req, fp, code, msg, headers, newurl):
         raise urllib.error.HTTPError(req.full_url, code, 'redirect refused (only the '
@@ -412,6 +416,7 @@ class KrakenInput:
         self.times = kraken.TimeFilter(int(max_age_s * 1e9), int(reset_s * 1e9))
         self.counts = Counter()
         self.published = Counter()
+        self._reported_state = None
 
     def start(self):
         """Start the source's worker (if it has one)."""
@@ -464,6 +469,19 @@ class KrakenInput:
             pose = pose_at(stamp) if pose_at is not None else None
         b = self.geometry.to_bearing(rec, pose, stamp_ns=stamp)
         return channel, b.validate()
+
+    def state_change(self):
+        """(state, last error) when the source's state moved into or out of a failure
+        (``unreachable``/``error``) since the last call, else None: what the node logs, once
+        per change (the counters stay in /diagnostics)."""
+        state, last_error, _ = self.source.snapshot()
+        failed = state in FAILED_STATES
+        was = self._reported_state in FAILED_STATES
+        if state == self._reported_state or (not failed and not was):
+            self._reported_state = state
+            return None
+        self._reported_state = state
+        return state, last_error
 
     def status(self):
         """(state, message, values) for the station's DiagnosticStatus: state is the

@@ -51,7 +51,7 @@ from .core.station import (ConfigError, parse_datagram, PoseBuffer, ReadingError
                            station_config, to_world_bearing)
 from .core.station_report import StationCounters
 from .core.udp import udp_drops
-from .receiver_inputs import KrakenInput, make_source
+from .receiver_inputs import FAILED_STATES, KrakenInput, make_source
 from .ros_conversions import (bearing_to_msg, ConversionError, pose_from_odometry,
                               raw_reading_from_msg)
 
@@ -193,6 +193,14 @@ class StationNode(Node):
         now = self.get_clock().now().nanoseconds
         pose_at = self.poses.interpolate if self.poses is not None else None
         bearings, rejected = self.kraken.poll(now, pose_at)
+        change = self.kraken.state_change()
+        if change is not None:
+            state, error = change
+            if state in FAILED_STATES:
+                self.get_logger().warning(f'receiver {state}: {error} (retrying; counts in '
+                                          '/diagnostics)')
+            else:
+                self.get_logger().info(f'receiver {state} again')
         self.received['kraken'] += len(bearings) + len(rejected)
         for channel, b in bearings:
             try:

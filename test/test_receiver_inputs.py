@@ -225,3 +225,27 @@ def test_kraken_input_polled_duplicates_are_unchanged(fake):
     src.poll_once()
     _, rejected = ki.poll(now_ns=None)
     assert rejected[0][0] == 'malformed_xml'
+
+
+class _Source:
+    """A source stub whose state the test sets (only snapshot() is used)."""
+
+    def __init__(self):
+        self.state, self.last_error = 'starting', ''
+
+    def snapshot(self):
+        return self.state, self.last_error, {}
+
+
+def test_state_changes_into_and_out_of_failure_are_reported_once():
+    # The station node logs these (an unreachable receiver used to appear only in
+    # /diagnostics): entering a failure, changing failure, and recovering; nothing else.
+    src = _Source()
+    ki = ri.KrakenInput(src, receiver_config('s1', position=[0.0, 0.0, 0.0]))
+    seen = []
+    for state in ('starting', 'ok', 'slow', 'unreachable', 'unreachable', 'error', 'ok',
+                  'ok', 'slow'):
+        src.state, src.last_error = state, f'{state} detail'
+        seen.append(ki.state_change())
+    assert seen == [None, None, None, ('unreachable', 'unreachable detail'), None,
+                    ('error', 'error detail'), ('ok', 'ok detail'), None, None]
