@@ -38,6 +38,17 @@ def subscription_qos(publishers):
                                   else DurabilityPolicy.VOLATILE))
 
 
+def _blamed(host):
+    """The parameter a failed listen is blamed on: ``host`` when it does not resolve to an
+    address, else ``port`` (busy, or not allowed)."""
+    import socket
+    try:
+        socket.getaddrinfo(host, None)
+    except (OSError, UnicodeError):
+        return 'host'
+    return 'port'
+
+
 class ViewNode(Node):
     """The view node (module docstring)."""
 
@@ -60,7 +71,8 @@ class ViewNode(Node):
                                      backlog=backlog, geojson_period=geo_period,
                                      probability=prob, log=self.get_logger().warning)
         except Exception as exc:  # foxglove-sdk raises RuntimeError for a busy port
-            raise ParameterError('port', f'cannot listen on {host}:{port}: {exc}') from None
+            raise ParameterError(_blamed(host), f'cannot listen on {host}:{port}: {exc}') \
+                from None
         self._subs = {}
         self._bad_topics = set()
         self._discover()

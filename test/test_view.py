@@ -243,6 +243,11 @@ def test_view_refuses_a_polar_origin_and_a_busy_port():
             assert "parameter 'port'" in busy.output(), busy.output()
     finally:
         s.close()
+    # A host that does not resolve is blamed on host, not port.
+    with start_node('bearing_loc_ros.view_node', ['-p', 'host:=not.a.host.invalid',
+                                                  '-p', 'port:=0']) as nohost:
+        assert nohost.wait(20.0) == 1
+        assert "parameter 'host'" in nohost.output(), nohost.output()
 
 
 def test_shipped_layout_is_the_generated_one_and_plots_served_fields():
