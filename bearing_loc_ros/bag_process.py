@@ -58,7 +58,7 @@ def fusion_params(params_file=None, overrides=(), estimator=None):
             raise InputError(f'param: expected NAME=VALUE, got {item!r}')
         try:
             given[name.strip()] = load_text(value)
-        except yaml.YAMLError:
+        except (yaml.YAMLError, ValueError):
             raise InputError(f'param: {name.strip()}: invalid YAML value {value!r}') from None
     if estimator is not None:
         given['estimator'] = estimator

@@ -82,7 +82,7 @@ class _Source:
 
 
 #: Source states that mean the receiver cannot be read (logged when entered and left).
-FAILED_STATES = ('unreachable', 'error')
+FAILED_STATES = ('unreachable', 'error', 'missing')
 
 
 class _NoRedirect(urllib.request.HTTPRedirectHandler):
@@ -472,8 +472,8 @@ class KrakenInput:
 
     def state_change(self):
         """(state, last error) when the source's state moved into or out of a failure
-        (``unreachable``/``error``) since the last call, else None: what the node logs, once
-        per change (the counters stay in /diagnostics)."""
+        (:data:`FAILED_STATES`: unreachable, error, a missing file) since the last call, else
+        None: what the node logs (the counters stay in /diagnostics)."""
         state, last_error, _ = self.source.snapshot()
         failed = state in FAILED_STATES
         was = self._reported_state in FAILED_STATES

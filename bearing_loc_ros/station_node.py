@@ -196,11 +196,12 @@ class StationNode(Node):
         change = self.kraken.state_change()
         if change is not None:
             state, error = change
+            # Throttled: a receiver flapping between ok and unreachable.
             if state in FAILED_STATES:
                 self.get_logger().warning(f'receiver {state}: {error} (retrying; counts in '
-                                          '/diagnostics)')
+                                          '/diagnostics)', throttle_duration_sec=10.0)
             else:
-                self.get_logger().info(f'receiver {state} again')
+                self.get_logger().info(f'receiver {state} again', throttle_duration_sec=10.0)
         self.received['kraken'] += len(bearings) + len(rejected)
         for channel, b in bearings:
             try:

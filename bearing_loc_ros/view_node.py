@@ -38,10 +38,14 @@ def subscription_qos(publishers):
                                   else DurabilityPolicy.VOLATILE))
 
 
-def _blamed(host):
-    """The parameter a failed listen is blamed on: ``host`` when it does not resolve to an
-    address, else ``port`` (busy, or not allowed)."""
+def _blamed(host, exc):
+    """The parameter a failed listen (``exc``) is blamed on: ``host`` when it does not
+    resolve, or is not an address of this machine (EADDRNOTAVAIL), else ``port`` (busy, or
+    not allowed)."""
+    import errno
     import socket
+    if f'os error {errno.EADDRNOTAVAIL}' in str(exc) or 'requested address' in str(exc):
+        return 'host'
     try:
         socket.getaddrinfo(host, None)
     except (OSError, UnicodeError):
@@ -71,8 +75,8 @@ class ViewNode(Node):
                                      backlog=backlog, geojson_period=geo_period,
                                      probability=prob, log=self.get_logger().warning)
         except Exception as exc:  # foxglove-sdk raises RuntimeError for a busy port
-            raise ParameterError(_blamed(host), f'cannot listen on {host}:{port}: {exc}') \
-                from None
+            raise ParameterError(_blamed(host, exc), f'cannot listen on {host}:{port}: '
+                                 f'{exc}') from None
         self._subs = {}
         self._bad_topics = set()
         self._discover()

@@ -165,6 +165,27 @@ def test_one_stray_stamp_is_explained_as_such():
     assert 'corrupted stamp' in warnings[0] and 'NTP' not in warnings[0]
 
 
+def test_a_clock_step_first_taken_for_a_stray_stamp_is_then_explained():
+    # A station's clock steps 30 s ahead mid-run: its first far-off stamp looks like a stray
+    # one, but once the median of its recent stamps follows the step the warning names the
+    # clock (it used to keep the stray-stamp text for good).
+    core = FusionCore(FusionConfig(estimator='ls'), stations=['s1', 's2'])
+    now = 100 * S
+    for k in range(10):
+        t = now + k * 100 * MS
+        for s in ('s1', 's2'):
+            core.add_bearing(bearing(s, t), t)
+    core.drain_events()
+    for k in range(10, 30):
+        t = now + k * 100 * MS
+        core.add_bearing(bearing('s1', t + 30 * S), t)
+    texts = [text for _, text in core.drain_events() if 'node clock' in text]
+    assert 'corrupted stamp' in texts[0]
+    assert 'stamps are 30 s ahead of the node clock: is the station clock synchronised' \
+        in texts[-1]
+    assert 'stamps are 30 s ahead' in core.station_stats('s1').clock_warning
+
+
 def test_a_station_alternating_far_off_and_good_stamps_warns_throttled():
     # A good bearing clears the station's clock warning, so a station alternating between
     # far-off and good stamps sets it again each time: the log must still be throttled.

@@ -249,3 +249,8 @@ def test_state_changes_into_and_out_of_failure_are_reported_once():
         seen.append(ki.state_change())
     assert seen == [None, None, None, ('unreachable', 'unreachable detail'), None,
                     ('error', 'error detail'), ('ok', 'ok detail'), None, None]
+    # A CSV file that is not there (a path typo) is a failure too.
+    missing = ri.KrakenInput(ri.CsvFileTail('/nonexistent/kraken.csv'),
+                             receiver_config('s1', position=[0.0, 0.0, 0.0]))
+    missing.poll(now_ns=None)
+    assert missing.state_change()[0] == 'missing' and missing.state_change() is None

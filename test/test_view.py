@@ -243,7 +243,12 @@ def test_view_refuses_a_polar_origin_and_a_busy_port():
             assert "parameter 'port'" in busy.output(), busy.output()
     finally:
         s.close()
-    # A host that does not resolve is blamed on host, not port.
+    # A host that is not an address of this machine, or does not resolve, is blamed on
+    # host, not port.
+    from bearing_loc_ros.view_node import _blamed
+    assert _blamed('192.0.2.1', RuntimeError('Failed to bind port: Cannot assign requested '
+                                             'address (os error 99)')) == 'host'
+    assert _blamed('127.0.0.1', RuntimeError('Address already in use (os error 98)')) == 'port'
     with start_node('bearing_loc_ros.view_node', ['-p', 'host:=not.a.host.invalid',
                                                   '-p', 'port:=0']) as nohost:
         assert nohost.wait(20.0) == 1

@@ -1,10 +1,11 @@
 """YAML as the ROS 2 parameter files read it: one file with one-line errors (scenario files,
 bag metadata, CLI files) and single values (``-p NAME:=VALUE``).
 
-PyYAML follows YAML 1.1, where a float needs a dot: ``1e3`` and ``1.0e7`` are strings
-there, while rcl's parameter parser (libyaml, as ``station_node --params-file`` reads the
-same file) and YAML 1.2 read them as numbers. :func:`loader` adds the YAML 1.2 float
-forms, so every file the package reads gives the numbers the nodes see.
+PyYAML follows YAML 1.1, where a float needs a dot and a signed exponent: ``1e3`` and
+``1.0e7`` are strings there, while rcl's parameter parser (as ``station_node
+--params-file`` reads the same file) and YAML 1.2 read them as numbers. :func:`loader` adds
+those exponent forms, so a number written that way gives the value the nodes see. (Other
+YAML 1.1 forms PyYAML keeps, such as ``1_000`` or ``12:30``, rcl reads as strings.)
 """
 
 import re
@@ -13,8 +14,8 @@ import re
 #: sign (``1e3``, ``1.0e7``, ``2E-6``), and ``.inf``/``.nan`` as before.
 _FLOAT = re.compile(r'''^(?:
     [-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
-  | [-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
-  | [-+]?\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+  | [-+]?[0-9]+[eE][-+]?[0-9]+
+  | [-+]?\.[0-9][0-9_]*(?:[eE][-+]?[0-9]+)?
   | [-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+\.[0-9_]*
   | [-+]?\.(?:inf|Inf|INF)
   | \.(?:nan|NaN|NAN))$''', re.X)
@@ -61,5 +62,5 @@ def read_yaml(path, label, kind='file'):
         raise ValueError(f'{label}: cannot read {kind} ({exc.strerror or exc})') from None
     except UnicodeDecodeError:
         raise ValueError(f'{label}: not a UTF-8 text file') from None
-    except yaml.YAMLError as exc:
+    except (yaml.YAMLError, ValueError) as exc:     # ValueError: a scalar's constructor
         raise ValueError(f'{label}: invalid YAML ({" ".join(str(exc).split())})') from None

@@ -94,6 +94,7 @@ class StationStats:
     clock_warning: str = None    # set while its stamps are far off the node clock
     lost: Counter = field(default_factory=Counter)   # losses reported by the transport
     _future_run: int = 0
+    _stray_warning: bool = False  # clock_warning is about one stray stamp, not the clock
 
     def clock_offset_s(self):
         """Median of (stamp − now) over the last OFFSET_WINDOW valid bearings, s (None
@@ -107,9 +108,10 @@ def clock_hint(offset_s, stray_s=None):
     dropped stamp's own offset, s, when the median is within the buffer (the station's
     clock is fine and one stamp is far off: a corrupted or forged stamp)."""
     if stray_s is not None:
-        side = 'behind' if stray_s < 0 else 'ahead of'
+        side, cause = (('behind', 'delivered late, or a corrupted stamp?') if stray_s < 0
+                       else ('ahead of', 'a corrupted stamp?'))
         return (f'a stamp {abs(stray_s):.3g} s {side} the node clock, while its recent '
-                f'stamps are within {abs(offset_s):.3g} s of it: a corrupted stamp?')
+                f'stamps are within {abs(offset_s):.3g} s of it: {cause}')
     side = 'behind' if offset_s < 0 else 'ahead of'
     cause = ('is use_sim_time set on one side only?' if abs(offset_s) > SIM_TIME_OFFSET_S
              else 'is the station clock synchronised (NTP/PTP)?')
@@ -400,17 +402,23 @@ class StationRegistry:
         if reason is not None:
             st.dropped[reason] += 1
             self.dropped[reason] += 1
-            if reason in (TOO_LATE, FROM_FUTURE) and st.clock_warning is None \
+            if reason in (TOO_LATE, FROM_FUTURE) \
                     and abs(stamp - now) > self.align.buffer_age_ns:
                 median = st.clock_offset_s()
                 systematic = abs(median) * NS_PER_S > self.align.buffer_age_ns
-                st.clock_warning = clock_hint(median, None if systematic
-                                              else (stamp - now) / NS_PER_S)
-                # Throttled: a station alternating between far-off and good stamps sets the
-                # warning again after every good bearing.
-                self.warn_throttled(bearing.station, 'clock', f'{bearing.station}: '
-                                    f'{st.clock_warning} (its bearings are dropped as '
-                                    f'{reason})', now)
+                # Said once; again when a stray stamp turns out to be a clock step (the
+                # median of the recent stamps follows it).
+                if st.clock_warning is None or (systematic and st._stray_warning):
+                    st._stray_warning = not systematic
+                    st.clock_warning = clock_hint(median, None if systematic
+                                                  else (stamp - now) / NS_PER_S)
+                    # Throttled: a station alternating between far-off and good stamps sets
+                    # the warning again after every good bearing. (Stray stamps apart: a
+                    # clock step first taken for one is still said.)
+                    kind = 'clock_stray' if st._stray_warning else 'clock'
+                    self.warn_throttled(bearing.station, kind, f'{bearing.station}: '
+                                        f'{st.clock_warning} (its bearings are dropped as '
+                                        f'{reason})', now)
             return False
         st.clock_warning = None
         last = self.last_epoch_ns
