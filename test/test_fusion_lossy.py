@@ -145,10 +145,8 @@ def test_stamps_far_off_the_node_clock_are_explained_once(offset_s, cause):
     assert diag['fusion'].values['clock_warnings'] == 's1,s2'
 
 
-def test_one_stray_stamp_is_explained_as_such():
-    # A station whose clock is fine sends one bearing stamped an hour ahead: it is dropped
-    # as from_future, and the warning describes that stamp (the median offset of its recent
-    # stamps, about 0, used to be reported as "behind the node clock: NTP?").
+def _on_time_core():
+    """(core, now): two stations that sent 1 s of bearings stamped on time, events drained."""
     core = FusionCore(FusionConfig(estimator='ls'), stations=['s1', 's2'])
     now = 100 * S
     for k in range(10):
@@ -156,6 +154,14 @@ def test_one_stray_stamp_is_explained_as_such():
         for s in ('s1', 's2'):
             core.add_bearing(bearing(s, t), t)
     core.drain_events()
+    return core, now
+
+
+def test_one_stray_stamp_is_explained_as_such():
+    # A station whose clock is fine sends one bearing stamped an hour ahead: it is dropped
+    # as from_future, and the warning describes that stamp (the median offset of its recent
+    # stamps, about 0, used to be reported as "behind the node clock: NTP?").
+    core, now = _on_time_core()
     t = now + 10 * 100 * MS
     core.add_bearing(bearing('s1', t + 3600 * S), t)
     assert core.station_stats('s1').dropped['from_future'] == 1
@@ -169,13 +175,7 @@ def test_a_clock_step_first_taken_for_a_stray_stamp_is_then_explained():
     # A station's clock steps 30 s ahead mid-run: its first far-off stamp looks like a stray
     # one, but once the median of its recent stamps follows the step the warning names the
     # clock (it used to keep the stray-stamp text for good).
-    core = FusionCore(FusionConfig(estimator='ls'), stations=['s1', 's2'])
-    now = 100 * S
-    for k in range(10):
-        t = now + k * 100 * MS
-        for s in ('s1', 's2'):
-            core.add_bearing(bearing(s, t), t)
-    core.drain_events()
+    core, now = _on_time_core()
     for k in range(10, 30):
         t = now + k * 100 * MS
         core.add_bearing(bearing('s1', t + 30 * S), t)
