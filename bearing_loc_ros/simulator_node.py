@@ -57,6 +57,11 @@ def resolve_scenario_path(path, cwd=None):
         raise ParameterError('scenario', exc.problem) from None
 
 
+#: Wall time the bearing topics' subscriber counts must hold before an early start, ns (as
+#: ``bag play`` waits for discovery to settle).
+SETTLE_NS = NS_PER_S
+
+
 class SimulatorNode(Node):
     """Replays a core Simulation in (scaled) real time over DDS."""
 
@@ -68,6 +73,7 @@ class SimulatorNode(Node):
         self._publish_clock = p['publish_clock']
         self._start_delay = p['start_delay']
         self._wait_for_subs = p['wait_for_subscribers']
+        self._matched = None             # (subscriber counts, since when) while they hold
         self._exit_when_done = p['exit_when_done']
         path = resolve_scenario_path(scenario)
         self.scenario = load_scenario(path)   # ValueError names the file and key -> exit 1
@@ -127,7 +133,7 @@ class SimulatorNode(Node):
         now = time.monotonic_ns()
         if self._wall0 is None:
             waited = now - self._created
-            if waited < int(self._start_delay * NS_PER_S) and not self._subscribers_ready():
+            if waited < int(self._start_delay * NS_PER_S) and not self._subscribers_ready(now):
                 self._publish_clock_at(self.scenario.epoch_ns)
                 return
             self._wall0 = now
@@ -149,10 +155,20 @@ class SimulatorNode(Node):
         if sim_ns >= self.sim.end_ns and self._next >= len(q):
             self._finish()
 
-    def _subscribers_ready(self):
-        """True when waiting may end early: every bearing topic has a matched subscriber."""
-        return self._wait_for_subs and all(p.get_subscription_count() > 0
-                                           for p in self._bearing_pubs.values())
+    def _subscribers_ready(self, now):
+        """True when waiting may end early: every bearing topic has a matched subscriber and
+        the counts have not changed for SETTLE_NS (``now``, monotonic ns). Several nodes
+        subscribe (a fusion node, a view): the first match must not start the run while the
+        others are still being discovered, or they lose its first seconds."""
+        if not self._wait_for_subs:
+            return False
+        counts = tuple(p.get_subscription_count() for p in self._bearing_pubs.values())
+        if not all(counts):
+            self._matched = None
+            return False
+        if self._matched is None or self._matched[0] != counts:
+            self._matched = (counts, now)
+        return now - self._matched[1] >= SETTLE_NS
 
     def _finish(self):
         self._done = True

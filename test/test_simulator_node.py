@@ -129,3 +129,24 @@ def test_resolve_scenario_path_cwd_then_share(tmp_path, monkeypatch):
     assert resolve_scenario_path('x.yaml', cwd=elsewhere) == str(target)
     with pytest.raises(ParameterError, match="parameter 'scenario': file not found"):
         resolve_scenario_path('y.yaml', cwd=elsewhere)
+
+
+def test_an_early_start_waits_for_the_subscriber_counts_to_settle():
+    # The run starts before start_delay only once every bearing topic has a subscriber and
+    # the counts held for 1 s: with a fusion node and a view both subscribing, the first
+    # match used to start a 10x run while the other was still being discovered (it then
+    # missed the first seconds: 30 of 60 epochs).
+    from types import SimpleNamespace
+    from bearing_loc_ros.simulator_node import SETTLE_NS, SimulatorNode
+    counts = {'a': 0, 'b': 0}
+    pubs = {t: SimpleNamespace(get_subscription_count=lambda t=t: counts[t]) for t in counts}
+    node = SimpleNamespace(_wait_for_subs=True, _matched=None, _bearing_pubs=pubs)
+    ready = SimulatorNode._subscribers_ready
+    assert not ready(node, 0)
+    counts.update(a=1, b=1)                              # the first subscriber matched
+    assert not ready(node, 10) and not ready(node, 10 + SETTLE_NS - 1)
+    counts['a'] = 2                                      # another node matches: wait again
+    assert not ready(node, 10 + SETTLE_NS)
+    assert ready(node, 10 + 2 * SETTLE_NS)
+    node._wait_for_subs = False
+    assert not ready(node, 10 + 3 * SETTLE_NS)

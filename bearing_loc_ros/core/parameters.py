@@ -338,8 +338,8 @@ def _simulator_schema():
           's', 0.0, None),
         P('start_delay', DOUBLE, 5.0, 'Longest wall-clock wait for subscribers before '
           'starting (the clock is held at the epoch meanwhile)', 's', 0.0, None),
-        P('wait_for_subscribers', BOOL, True, 'Start before start_delay has passed as soon as '
-          'every bearing topic has a matched subscriber'),
+        P('wait_for_subscribers', BOOL, True, 'Start before start_delay has passed once '
+          'every bearing topic has a matched subscriber and the counts held for 1 s'),
         P('exit_when_done', BOOL, True, 'Shut the node down once every message of the run '
           'has been published and acknowledged'),
     )
