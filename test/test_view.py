@@ -123,7 +123,7 @@ async def session(url, sim):
     await a.subscribe(['/fix', '/markers', '/accuracy_map', '/map_geojson', '/clock',
                        '/view/fix_stats'])
     slow = await slow_client(url)
-    sim.start()
+    await sim.start()
     # The crowd connects once fixes flow: a loaded machine may take seconds to start the
     # simulator, and the crowd's own wait must not race that start-up.
     await a.pump(30.0, lambda c: '/fix' in c.messages)
@@ -143,12 +143,19 @@ async def session(url, sim):
 
 
 class Sim:
-    """Starts the simulator on demand from the asyncio side."""
+    """Starts the simulator on demand from the asyncio side, once ``ready()`` (the view's
+    /fix reader is in the graph: fixes published before it matches would reach the test's
+    listener but not the view) and 1 s more for matching to settle."""
 
-    def __init__(self, args):
-        self.args, self.proc = args, None
+    def __init__(self, args, ready=lambda: True):
+        self.args, self.proc, self.ready = args, None, ready
 
-    def start(self):
+    async def start(self):
+        for _ in range(150):
+            if self.ready():
+                break
+            await asyncio.sleep(0.1)
+        await asyncio.sleep(1.0)
         self.proc = start_node('bearing_loc_ros.simulator_node', self.args)
 
     def done(self):
@@ -162,9 +169,10 @@ def test_live_view_serves_what_the_fusion_publishes(scenario_file):
                    '-p', 'estimator:=mle', '-p', f'geodetic_origin:={origin}']
     view_args = ['-p', 'port:=0', '-p', 'use_sim_time:=true', '-p', f'geodetic_origin:={origin}',
                  '-p', 'geojson_period:=0.2', '-p', 'discovery_period:=0.2']
-    sim = Sim(['-p', f'scenario:={scenario_file}', '-p', 'seed:=7', '-p', 'time_scale:=10.0',
-               '-p', 'start_delay:=10.0'])
     listener = Listener()
+    sim = Sim(['-p', f'scenario:={scenario_file}', '-p', 'seed:=7', '-p', 'time_scale:=10.0',
+               '-p', 'start_delay:=10.0'],
+              ready=lambda: listener.node.count_subscribers('/fix') >= 2)   # it and the view
     try:
         with start_node('bearing_loc_ros.fusion_node', fusion_args) as fusion, \
                 start_node('bearing_loc_ros.view_node', view_args) as view:
