@@ -26,12 +26,18 @@ Two parts, both on core.evaluation (the numbers of ``bearing_loc evaluate``):
     python bench/low_snr.py --seeds 0,1,2,3,4 [--trials 2000]     # pooled over seeds
     python bench/low_snr.py --near-stations     # robust wmle fixes that end near a station
     python bench/low_snr.py --sigma-points --seeds 0,1,2,3,4    # a covariance not kept
+    python bench/low_snr.py --line-posterior --seeds 0,1,2,3,4  # an estimate not kept
 
 ``--sigma-points``: the constant-sigma scenario's ok fixes of the default mle, their mean NEES
 and confidently wrong count per sweep point, pooled over ``--seeds``, with the reported
 covariance P (the CRLB at the fix) and with P averaged over the fix's own region along its
 major axis v (three Gauss-Hermite points: 2/3 P + (P(x + sqrt(3) s v) + P(x - sqrt(3) s v))/6,
 s^2 the major eigenvalue; the sigma-point spread of Julier & Uhlmann (1997) with n + kappa = 3).
+``--line-posterior``: the same fixes moved to the mean of the likelihood along the line
+x + t s v (a flat prior on t, v oriented away from the stations' centroid, t from -8 to 16 in
+steps of 0.1), with that likelihood's variance along v in place of s^2 (the Bayesian
+posterior moments of the range coordinate alone); the last column is the RMSE of the moved
+fixes over that of the fixes as reported.
 """
 
 import argparse
@@ -42,6 +48,7 @@ import numpy as np
 
 from bearing_loc_ros.core import chisq
 from bearing_loc_ros.core import evaluation as ev
+from bearing_loc_ros.core.bearings import BearingSet
 from bearing_loc_ros.core.estimators import locate
 from bearing_loc_ros.core.simulation import load_scenario
 from bearing_loc_ros.scenarios import resolve_scenario
@@ -261,11 +268,9 @@ def plot(a):
     print(f'wrote {a.out}')
 
 
-def sigma_points(n, seeds):
-    """Print the ``--sigma-points`` table (module docstring)."""
-    from bearing_loc_ros.core.crlb import crlb
-    q = float(chisq.ppf(0.9999, 3))
-    acc = {}
+def ok_fixes_const(n, seeds):
+    """Yield (sweep, sigma deg, bearings, X, P, targets) of the default mle's ok fixes in the
+    constant-sigma scenario, every sweep point of every seed (the --acceptance trials)."""
     for seed in seeds:
         _, tr = trials_of_seed(CONST, n, seed)
         for sweep in ('joint', 'azimuth', 'elevation'):
@@ -276,29 +281,74 @@ def sigma_points(n, seeds):
                              or got[-1][1])
                 b, r = got[0]
                 ok = r.status == 'ok'
-                X, P = r.position[ok], r.covariance[ok]
-                sel = np.where(b.has_elevation[ok], b.sigma_el[ok], np.nan)
-                w, V = np.linalg.eigh(P)
-                step = math.sqrt(3.0) * V[:, :, 2] * np.sqrt(w[:, 2:3])
-                at = [crlb(X + d, b.positions[ok], b.sigma_az[ok], sel, b.has_elevation[ok])
-                      for d in (step, -step)]
-                e = X - tr.targets[ok]
-                for name, C in (('P', P), ('sigma points', 2.0 / 3.0 * P + (at[0] + at[1]) / 6)):
-                    nees = np.einsum('mi,mij,mj->m', e, np.linalg.inv(C), e)
-                    a = acc.setdefault((sweep, lv.x_deg, name), [0, 0.0, 0])
-                    a[0] += nees.size
-                    a[1] += float(nees.sum())
-                    a[2] += int((nees > q).sum())
+                sub = BearingSet(b.positions[ok], b.azimuth[ok], b.elevation[ok],
+                                 b.sigma_az[ok], b.sigma_el[ok])
+                yield sweep, lv.x_deg, sub, r.position[ok], r.covariance[ok], tr.targets[ok]
+
+
+def major_axes(X, P, positions):
+    """(unit major axes v (M, 3) pointing away from the stations' centroid, s (M,) m)."""
+    w, V = np.linalg.eigh(P)
+    v = V[:, :, 2]
+    v = np.where(((v * (X - positions.mean(axis=1))).sum(axis=1) < 0)[:, None], -v, v)
+    return v, np.sqrt(w[:, 2])
+
+
+def line_posterior(b, X, P):
+    """(X', P') of the line-posterior variant (module docstring): the moments of the
+    likelihood along the major axis, t on a grid of -8 s ... 16 s in steps of 0.1 s."""
+    from bearing_loc_ros.core.conventions import wrap_angle
+    v, s = major_axes(X, P, b.positions)
+    t = np.linspace(-8.0, 16.0, 241)
+    pts = X[:, None, :] + (t[None, :, None] * s[:, None, None]) * v[:, None, :]
+    d = pts[:, :, None, :] - b.positions[:, None, :, :]
+    ea = wrap_angle(b.azimuth[:, None, :] - np.arctan2(d[..., 1], d[..., 0]))
+    ee = b.elevation[:, None, :] - np.arctan2(d[..., 2], np.hypot(d[..., 0], d[..., 1]))
+    has = b.has_elevation[:, None, :]
+    se = np.where(b.has_elevation, b.sigma_el, 1.0)[:, None, :]
+    cost = ((ea / b.sigma_az[:, None, :]) ** 2 + np.where(has, (ee / se) ** 2, 0.0)).sum(-1)
+    L = np.exp(-0.5 * (cost - cost.min(axis=1, keepdims=True)))
+    L /= L.sum(axis=1, keepdims=True)
+    mu = (L * t).sum(axis=1)
+    var = (L * (t - mu[:, None]) ** 2).sum(axis=1)
+    return (X + (mu * s)[:, None] * v,
+            P + ((var - 1.0) * s * s)[:, None, None] * v[:, :, None] * v[:, None, :])
+
+
+def covariance_variants(n, seeds, variant):
+    """Print the ``--sigma-points`` or ``--line-posterior`` table (module docstring)."""
+    from bearing_loc_ros.core.crlb import crlb
+    q = float(chisq.ppf(0.9999, 3))
+    acc = {}
+    for sweep, sig, b, X, P, tgt in ok_fixes_const(n, seeds):
+        if variant == 'sigma points':
+            v, s = major_axes(X, P, b.positions)
+            step = math.sqrt(3.0) * v * s[:, None]
+            sel = np.where(b.has_elevation, b.sigma_el, np.nan)
+            at = [crlb(X + d, b.positions, b.sigma_az, sel, b.has_elevation)
+                  for d in (step, -step)]
+            X2, P2 = X, 2.0 / 3.0 * P + (at[0] + at[1]) / 6
+        else:
+            X2, P2 = line_posterior(b, X, P)
+        for name, Xv, C in (('P', X, P), (variant, X2, P2)):
+            e = Xv - tgt
+            nees = np.einsum('mi,mij,mj->m', e, np.linalg.inv(C), e)
+            a = acc.setdefault((sweep, sig, name), [0, 0.0, 0, 0.0])
+            a[0] += nees.size
+            a[1] += float(nees.sum())
+            a[2] += int((nees > q).sum())
+            a[3] += float((e * e).sum())
     print(f'## {CONST}: mle (default) ok fixes, seeds {",".join(map(str, seeds))}, {n} trials')
-    print('sweep      sigma  ok fixes  NEES P (band)         wrong P   NEES sigma points  wrong')
-    for (sweep, s, name), (m, total, k) in acc.items():
+    print(f'sweep      sigma  ok fixes  NEES P (band)         wrong P   NEES {variant:13s} '
+          'wrong  RMSE ratio')
+    for (sweep, s, name), (m, total, k, se) in acc.items():
         if name != 'P':
             continue
-        _, t2, k2 = acc[(sweep, s, 'sigma points')]
+        _, t2, k2, se2 = acc[(sweep, s, variant)]
         band = 2.576 * math.sqrt(6.0 / m)
         print(f'{sweep:10s} {s:4.1f}  {m:8d}  {total / m:5.3f} (±{band:4.2f})  {k:6d}   '
-              f'{t2 / m:5.3f}             {k2:6d}')
-    for name in ('P', 'sigma points'):
+              f'{t2 / m:5.3f}              {k2:6d}  {math.sqrt(se2 / se):6.3f}')
+    for name in ('P', variant):
         k = sum(v[2] for key, v in acc.items() if key[2] == name)
         m = sum(v[0] for key, v in acc.items() if key[2] == name)
         print(f'pooled, {name}: confidently wrong {k} of {m} ({1e2 * k / m:.4f} %)')
@@ -324,11 +374,15 @@ def main():
                     help='count the robust wmle fixes that end near a station')
     ap.add_argument('--sigma-points', action='store_true',
                     help='constant sigma: the ok fixes\' NEES with the sigma-point covariance')
+    ap.add_argument('--line-posterior', action='store_true',
+                    help='constant sigma: the ok fixes\' NEES and RMSE with the moments of '
+                         'the likelihood along the major axis')
     a = ap.parse_args()
     global SEED
     SEED = a.seed
-    if a.sigma_points:
-        sigma_points(a.trials, [int(v) for v in (a.seeds or '0,1,2,3,4').split(',')])
+    if a.sigma_points or a.line_posterior:
+        covariance_variants(a.trials, [int(v) for v in (a.seeds or '0,1,2,3,4').split(',')],
+                            'sigma points' if a.sigma_points else 'line posterior')
     elif a.near_stations:
         near_stations(a.trials)
     elif a.seeds:
