@@ -37,7 +37,7 @@ def read_params_file(path):
     Accepts ``fusion:``, ``/fusion:``, ``/**:`` or ``/ns/fusion:`` keys (the forms
     ``--ros-args --params-file`` accepts). Raises InputError naming the file.
     """
-    data = load_yaml(path, 'params_file')
+    data = load_yaml(path, 'params_file', params=True)
     if isinstance(data, dict):
         for node, body in data.items():
             if isinstance(body, dict) and isinstance(body.get('ros__parameters'), dict):
@@ -50,14 +50,16 @@ def fusion_params(params_file=None, overrides=(), estimator=None):
     estimator; each checked against the schema (type, range, allowed values). Deprecated
     names are mapped to the current ones with a warning on stderr."""
     import yaml
-    from .core.yaml_file import load_text
+    from .core.yaml_file import load_param_text
     given = dict(read_params_file(params_file)) if params_file else {}
     for item in overrides:
         name, sep, value = item.partition('=')
         if not sep or not name:
             raise InputError(f'param: expected NAME=VALUE, got {item!r}')
         try:
-            given[name.strip()] = load_text(value)
+            given[name.strip()] = load_param_text(value)
+        except yaml.constructor.ConstructorError as exc:     # a value rcl refuses
+            raise InputError(f'param: {name.strip()}: {exc.problem} ({value!r})') from None
         except (yaml.YAMLError, ValueError):
             raise InputError(f'param: {name.strip()}: invalid YAML value {value!r}') from None
     if estimator is not None:

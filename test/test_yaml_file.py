@@ -69,3 +69,92 @@ def test_station_parameter_files_read_as_the_station_node_reads_them(tmp_path):
     path = tmp_path / 'station.yaml'
     path.write_text('/**:\n  ros__parameters:\n    kraken:\n      max_age: 1e3\n')
     assert station_params(load_station_params(str(path)), 's1')['kraken.max_age'] == 1000.0
+
+
+#: Plain scalars whose type rcl decides differently from YAML 1.1 or 1.2, and ordinary ones.
+RCL_SCALARS = ('1_000', '12:30', 'nan', 'NaN', '.nan', 'nan(x)', '-nan', 'inf', '-inf', '+inf',
+               '.inf', '-.inf', '+.Inf', '.NAN', '.nAn', '-.nan', '.infinity',
+               'Infinity', 'INF', 'y', 'Y', 'n', 'N', 'yes', 'No', 'on', 'OFF',
+               'True', 'tRue', 'yES', '1e3', '1.0e7', '2E-6', '0x10', '-0x1F', '010', '08',
+               '0o10', '0b11', '+5', '-0', '00', '1.', '.5', '5.', '+.5', '1e', '1d', '~',
+               'null', '1_0.5', '1.2.3', '0x1p3', '0x1.8p1', '1e400', '1e-310', '1e-400',
+               '0e400', '2.2250738585072014e-308', '9223372036854775807',
+               '9223372036854775808', '-9223372036854775809', '0xFFFFFFFFFFFFFFFF', 'a b',
+               '[1, 2]', '[y, n]', '[nan, 1.0]', '[a, "1"]', "'1'", '"yes"', '!!str 5')
+#: Values rcl refuses: no value, an empty list, lists mixing types.
+RCL_REFUSED = ('', '[]', '[1, 2.5]', "['1', 2]", '[true, 1]', '[[1], [2]]')
+
+
+def _same(a, b):
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a):
+        return math.isnan(b)
+    return type(a) is type(b) and a == b
+
+
+def _rcl_parameters(tmp_path, texts, cli):
+    """{name: value} rclpy's node gets for p0, p1, ... = ``texts``, by a parameter file or
+    by ``-p`` (None when rcl refuses the arguments)."""
+    rclpy = pytest.importorskip('rclpy')
+    from rclpy.context import Context
+    from rclpy.node import Node
+    if cli:
+        args = ['--ros-args'] + [a for k, t in enumerate(texts) for a in ('-p', f'p{k}:={t}')]
+    else:
+        path = tmp_path / 'rcl.yaml'
+        path.write_text('probe:\n  ros__parameters:\n'
+                        + ''.join(f'    p{k}: {t}\n' for k, t in enumerate(texts)))
+        args = ['--ros-args', '--params-file', str(path)]
+    ctx = Context()
+    try:
+        rclpy.init(context=ctx, args=args)
+    except Exception:       # rcl's parse error (RCLError)
+        return None
+    try:
+        try:
+            node = Node('probe', context=ctx,
+                        automatically_declare_parameters_from_overrides=True)
+        except ValueError:      # parsed without a type ([]): no node can declare it
+            return None
+        got = {f'p{k}': node.get_parameter(f'p{k}').value for k in range(len(texts))}
+        node.destroy_node()
+        return got
+    finally:
+        rclpy.shutdown(context=ctx)
+
+
+@pytest.mark.parametrize('cli', [False, True], ids=['params-file', '-p'])
+def test_parameter_values_are_typed_as_rcl_types_them(tmp_path, cli):
+    # bag process --params-file / -p, calibrate --params and bag import --params must see
+    # what the nodes see: rclpy's own parse of the same text is the reference.
+    from bearing_loc_ros.core.yaml_file import load_param_text, read_yaml
+    rcl = _rcl_parameters(tmp_path, RCL_SCALARS, cli)
+    assert rcl is not None
+    if cli:
+        ours = {f'p{k}': load_param_text(t) for k, t in enumerate(RCL_SCALARS)}
+    else:
+        ours = read_yaml(tmp_path / 'rcl.yaml', 'x', params=True)['probe']['ros__parameters']
+    wrong = {RCL_SCALARS[int(k[1:])]: (ours[k], v) for k, v in rcl.items()
+             if not _same(ours[k], v)}
+    assert not wrong
+
+
+@pytest.mark.parametrize('text', RCL_REFUSED)
+def test_values_rcl_refuses_are_errors(tmp_path, text):
+    import yaml
+    from bearing_loc_ros.core.yaml_file import load_param_text
+    assert _rcl_parameters(tmp_path, [text], cli=False) is None
+    path = tmp_path / 'rcl.yaml'
+    with pytest.raises(ValueError, match=r'^x: invalid YAML \(.*line 3'):
+        read_yaml(path, 'x', params=True)
+    if text:        # an empty -p value is not even an argument rcl accepts
+        with pytest.raises(yaml.YAMLError):
+            load_param_text(text)
+
+
+def test_bag_process_overrides_name_what_rcl_refuses():
+    with pytest.raises(InputError, match=r'^param: ema_alpha: a list must hold items of one '):
+        fusion_params(None, ['ema_alpha=[1, 2.5]'])
+    params = fusion_params(None, ['publish_low_confidence=y'])
+    assert params['publish_low_confidence'] is True

@@ -27,15 +27,16 @@ class InputError(ValueError):
     """Bad user input: reported as one line on stderr with exit code 2."""
 
 
-def load_yaml(path, name):
-    """The parsed YAML document of the file ``path`` (None when empty).
+def load_yaml(path, name, params=False):
+    """The parsed YAML document of the file ``path`` (None when empty); with ``params`` a
+    ROS 2 parameter file, typed as the nodes' parser types it (core.yaml_file).
 
     An unreadable file or invalid YAML is an :class:`InputError` ``<name>: ...`` naming the
     file (``name``: the option or parameter that gave the path).
     """
     from ..core.yaml_file import read_yaml
     try:
-        return read_yaml(path, f'{name}: {path}')
+        return read_yaml(path, f'{name}: {path}', params=params)
     except ValueError as exc:
         raise InputError(str(exc)) from None
 

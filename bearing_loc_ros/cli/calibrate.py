@@ -42,7 +42,7 @@ def add_arguments(parser):
 
 def load_station_params(path):
     """The parsed parameter YAML (dict) of ``path``; InputError naming the file."""
-    data = load_yaml(path, 'params')
+    data = load_yaml(path, 'params', params=True)
     if data is None:
         return {}
     if not isinstance(data, dict):
