@@ -282,6 +282,7 @@ class FusionOutputs:
         self.fixes_published = 0
         self.accuracy_maps = 0          # maps published
         self.accuracy_map_ms = None     # wall time of the last map computation
+        self._map_logged = (None, 0.0)  # (station names, time.monotonic()) of the last log
         if accuracy_map is not None and mode == MODE_MULTISTATION:
             self.map_pub = pub(OccupancyGrid, 'accuracy_map', keep_last_qos(1, latched=True))
 
@@ -376,9 +377,14 @@ class FusionOutputs:
         self.map_pub.publish(occupancy_grid_msg(grid, data, now_ns, self.frame_id))
         self.accuracy_maps += 1
         self.accuracy_map_ms = 1e3 * (time.perf_counter() - t0)
-        log.info(f'accuracy_map: {len(self.accuracy_map.stations)} live station(s), '
-                 f'{grid.width}x{grid.height} cells of {grid.resolution:g} m, '
-                 f'{self.accuracy_map_ms:.1f} ms', throttle_duration_sec=10.0)
+        # A new station set is logged at once; a recomputation for moved stations of the same
+        # set (mobile stations: every tick) at most every 10 s.
+        names, wall = tuple(self.accuracy_map.stations), time.monotonic()
+        if names != self._map_logged[0] or wall - self._map_logged[1] >= 10.0:
+            self._map_logged = (names, wall)
+            log.info(f'accuracy_map: {len(names)} live station(s) ({", ".join(names)}), '
+                     f'{grid.width}x{grid.height} cells of {grid.resolution:g} m, '
+                     f'{self.accuracy_map_ms:.1f} ms')
 
     def publish_diagnostics(self, entries, now_ns, incompatible_qos):
         """Publish the core's diagnostic ``entries`` (overall first, then one per station)

@@ -55,8 +55,25 @@ def check_map(msg, names):
     return om
 
 
+class MapLog:
+    """Stands in for the node's logger: keeps the accuracy_map info lines."""
+
+    def __init__(self, logger):
+        self.logger, self.lines = logger, []
+
+    def info(self, text, **kw):
+        if text.startswith('accuracy_map:'):
+            self.lines.append(text)
+        return self.logger.info(text, **kw)
+
+    def __getattr__(self, name):
+        return getattr(self.logger, name)
+
+
 def test_late_subscriber_gets_the_map_and_stale_station_recomputes(harness):
     h = harness(station_timeout=2.0, **MAP)
+    log = MapLog(h.fusion.get_logger())
+    h.fusion.get_logger = lambda: log
     for k in range(100, 103):
         h.set_clock(k * S)
         h.send_round(k * S)
@@ -75,6 +92,9 @@ def test_late_subscriber_gets_the_map_and_stale_station_recomputes(harness):
     om2 = check_map(msg, ['s1', 's2'])
     assert np.nanmean(om2.error[np.isfinite(om2.error)]) > \
         np.nanmean(om3.error[np.isfinite(om3.error)])   # coverage got worse
+    # each new station set is logged at once, within the 10 s of the previous line
+    sets = [line.split(' (')[1].split(')')[0] for line in log.lines]
+    assert sets == ['s1, s2, s3', 's1, s2']
     for k in range(107, 109):                        # same two stations: no recompute
         h.set_clock(k * S)
         h.send_round(k * S, stations=('s1', 's2'), wait_fix=False)
