@@ -93,12 +93,15 @@ def test_params_file_hostile_values(changes):
     check_fusion_params(yaml.safe_dump({'/**': {'ros__parameters': body}}))
 
 
-@pytest.mark.parametrize('key, value, limit', [
-    ('sync_tolerance', 10 ** 400, 'float'), ('rate', 10 ** 400, 'float'),
-    ('rate', -10 ** 400, 'float'), ('buffer_size', 10 ** 400, 'int64')])
-def test_params_file_numbers_beyond_float_range(key, value, limit):
+@pytest.mark.parametrize('key, value, kind', [
+    ('sync_tolerance', 10 ** 400, 'double'), ('rate', 10 ** 400, 'double'),
+    ('rate', -10 ** 400, 'double'), ('buffer_size', 10 ** 400, 'integer'),
+    ('buffer_size', 2 ** 63, 'integer')])
+def test_params_file_numbers_beyond_float_range(key, value, kind):
     """An integer that no double (or int64) holds is refused naming the parameter, never
-    escapes as OverflowError (float(10 ** 400) raises it)."""
+    escapes as OverflowError (float(10 ** 400) raises it). rcl reads 10 ** 400 as a string
+    (strtol and strtod both overflow) and 2 ** 63 as a double, so the node refuses their
+    type; so does bag process (the Python API's range check: test_params)."""
     body = dict(FUSION_YAML['/**']['ros__parameters'], **{key: value})
     path = _params_file(yaml.safe_dump({'/**': {'ros__parameters': body}}))
     try:
@@ -106,8 +109,8 @@ def test_params_file_numbers_beyond_float_range(key, value, limit):
             fusion_config(fusion_params(path))
     finally:
         os.unlink(path)
-    assert str(err.value).startswith(f'{key}: ')
-    assert str(err.value).endswith(f'is beyond the {limit} range')
+    assert str(err.value).startswith(f'{key}: expected {kind}, got ')
+    assert len(str(err.value)) <= 200
 
 
 @FUZZ
