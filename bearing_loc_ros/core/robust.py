@@ -17,9 +17,11 @@ Zong & Cui 2015 eqs. (3)-(11) (``mle``, ``wmle``):
    with range-grown σ (``wmle``, σ_j = σ_ref,j d_k / d_ref, eqs. (9)-(10)) every fix does.
 2. **Consensus**. Candidate points: X̂, the pseudo-linear ``ls`` fix of all bearings
    (Wang, Zhang & Wu eq. (4)) and the ``ls`` fixes leaving out one station and, for N ≥ 5,
-   every pair of stations. Each is scored by the truncated (mixture) negative
-   log-likelihood S(X) = Σ_j min(r_j², c²) + Σ_{inliers} log σ_j², the MSAC score (Torr &
-   Zisserman 2000) with the log σ term of the exact Gaussian likelihood, so that a
+   every pair of stations (above :data:`.robust_consensus.MAX_SUBSET_STATIONS` stations:
+   the ``ls`` fixes of the pairs among that many spread evenly over the set). Each is
+   scored by the truncated (mixture) negative log-likelihood S(X) = Σ_j min(r_j², c²) +
+   Σ_{inliers} log σ_j², the MSAC score (Torr & Zisserman 2000) with the log σ term of the
+   exact Gaussian likelihood, so that a
    range-grown σ cannot buy a small score by running away in range. The best candidate
    starts step 3.
 3. **Refit.** Maximum likelihood on the inliers (|r_j| ≤ c), Levenberg-Marquardt on the

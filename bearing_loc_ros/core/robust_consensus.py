@@ -40,7 +40,7 @@ def _psd_inverse(A, rcond=1e-12):
     ``rcond`` times the largest and the largest positive (+inf where it fails or A is not
     finite). The extreme eigenvalues come from the trigonometric solution of the
     characteristic cubic (Smith 1961), a few elementwise operations on the K matrices (the
-    consensus tests N(N + 1)/2 + 1 of them per problem) instead of LAPACK. Its smallest
+    consensus tests up to N(N + 1)/2 + 1 of them per problem) instead of LAPACK. Its smallest
     eigenvalue can be off by up to about sqrt(ε) λ_max when the two smallest nearly
     coincide, so every matrix whose closed-form λ_min is below :data:`_CLOSED_FORM_CLEAR`
     λ_max (or not finite) is decided by LAPACK's ``eigvalsh``, as in safe_inverse.
@@ -72,10 +72,29 @@ def _psd_inverse(A, rcond=1e-12):
 _CLOSED_FORM_CLEAR = 1e-5
 
 
+#: Largest N whose consensus tries every subset leaving out one or two stations.
+MAX_SUBSET_STATIONS = 16
+
+
 @lru_cache(maxsize=64)
 def _station_masks(N):
-    """Station subsets of the consensus: all, leave one out, leave two out (N ≥ 5)."""
+    """Station subsets of the consensus (K, N) of 0/1: all stations, then
+
+    - N ≤ :data:`MAX_SUBSET_STATIONS`: leaving out each station and, for N ≥ 5, each pair
+      (1 + N + N(N − 1)/2 subsets);
+    - larger N: every pair among :data:`MAX_SUBSET_STATIONS` stations spread evenly over
+      the set (minimal subsets, as in RANSAC; 121 subsets whatever N). Leaving out one or two
+      of hundreds of stations barely moves the all-station fix, and scoring N²/2 candidates
+      over N stations costs O(N³) time and memory (3 GB at N = 400).
+    """
     rows = [np.ones(N)]
+    if N > MAX_SUBSET_STATIONS:
+        idx = np.unique(np.round(np.linspace(0, N - 1, MAX_SUBSET_STATIONS)).astype(int))
+        for i, j in combinations(idx.tolist(), 2):
+            m = np.zeros(N)
+            m[[i, j]] = 1.0
+            rows.append(m)
+        return np.array(rows)
     for k in range(N):
         m = np.ones(N)
         m[k] = 0.0

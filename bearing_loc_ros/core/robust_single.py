@@ -12,7 +12,7 @@ the assessment (Fisher covariance, decisive exclusions, test-inversion widening 
 range-grown σ, nonlinearity ν, second optimum).
 
 Each Levenberg-Marquardt iterate is evaluated in one pass over the stations (cost, Fisher
-information and gradient together). The candidates of N ≥ 5 stations (N(N + 1)/2 + 2 of
+information and gradient together). The candidates of N ≥ 5 stations (up to N(N + 1)/2 + 2 of
 them) are solved and scored as arrays: the station subsets' normal equations are one
 product of the subset masks with the stations' packed equations, solved by cofactors.
 3 × 3 inverses and solves are cofactor formulas where tr(A) tr(adj A) ≤ 1e5 det(A) (then
@@ -540,8 +540,9 @@ def _best_candidate_arrays(pb, x_ml, c2):
 def _best_candidate(pb, X_ml, c2):
     """Step 2: (the best-scoring candidate, the all-station ls fix).
 
-    Candidates: the estimator's fix, the ls fix of all stations, leaving out one station
-    and, for N ≥ 5, every pair (robust_consensus._station_masks); the first lowest MSAC
+    Candidates: the estimator's fix, the ls fix of all stations and of the subsets of
+    robust_consensus._station_masks (leaving out one station and, for N ≥ 5, every pair; pairs
+    of spread stations for large N); the first lowest MSAC
     score wins, as the batch path's argmin. On floats for N < 5, as arrays from N = 5 on.
     """
     x_ml = X_ml if all(map(isfinite, X_ml)) else _NAN3
