@@ -55,6 +55,18 @@ def test_error_statistics_exact_values():
     assert s.sigma_az_deg == 1.0 and s.sigma_el_deg == 1.0
 
 
+def test_rmse_over_crlb_divides_by_the_bound_of_the_same_trials():
+    # Only the near target converges: its 1 m error against the 1 m bound of that target is
+    # ratio 1, not 1 / sqrt(mean(3, 3 * 100**2) / 3) of every trial's bound (was 0.014).
+    truth = np.zeros((2, 3))
+    crlb = np.array([np.eye(3) / 3.0, np.eye(3) * 1e4 / 3.0])     # traces 1 and 1e4 m²
+    lvl = ev.noise_levels([1.0], 'joint')[0]
+    s = ev.error_statistics('x', 'joint', lvl, truth,
+                            fix([[1.0, 0, 0], [50.0, 0, 0]], [np.eye(3)] * 2, [1, 0]), crlb, 0.0)
+    assert s.crlb == pytest.approx(math.sqrt((1.0 + 1e4) / 2))
+    assert s.rmse_over_crlb == pytest.approx(1.0)
+
+
 def test_error_statistics_never_reports_nan_as_a_value():
     lvl = ev.noise_levels([1.0], 'joint')[0]
     s = ev.error_statistics('x', 'joint', lvl, np.zeros((2, 3)),
