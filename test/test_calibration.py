@@ -97,6 +97,34 @@ def test_fit_recovers_bias_and_sigma_within_standard_errors(run):
     assert fit.b_se < 0.2 and fit.n_outliers == {'A': 0, 'B': 0, 'C': 0}
 
 
+def test_fit_of_fewer_stations_reports_convergence_at_the_optimum(run):
+    # trust-exact ends these at the optimum (gradient ~1e-8) with "a bad approximation caused
+    # failure to predict improvement"; they were printed as NOT converged.
+    _, logs, _ = run
+    res, conf = residuals_of(logs)
+    for subset in (['A', 'B'], ['B']):
+        fit = fit_calibration({s: res[s] for s in subset}, {s: conf[s] for s in subset})
+        assert fit.converged, subset
+        for k, s in enumerate(subset):
+            assert abs(fit.bias[k] - math.radians(STATIONS[s][2])) < 3.0 * fit.bias_se[k]
+
+
+def test_calibrate_checks_the_transmitter(run, tmp_path, capsys):
+    d, logs, _ = run
+    base = ['calibrate', '--params', str(d / 'stations.yaml'), '--out', str(tmp_path / 'o.yaml'),
+            '--station', f'A={logs["A"]}', '--station', f'B={logs["B"]}']
+    assert cli_main(base + ['--transmitter', '3000.5', '0', '0']) == 2
+    assert capsys.readouterr().err.strip().endswith(
+        'transmitter: within 1 m of station B (horizontally): its bearing is undefined')
+    assert cli_main(base + ['--transmitter', '1e300', '1200', '0']) == 2
+    assert 'transmitter: coordinates must be within 1e+07 m' in capsys.readouterr().err
+    # a wrong sign shows as a large bias: written, with a warning naming the station
+    assert cli_main(base + ['--transmitter', '-1800', '1200', '0']) == 0
+    out = capsys.readouterr().out
+    assert 'warning: A: heading bias' in out and 'warning: B:' not in out
+    assert 'maximum likelihood (converged)' in out
+
+
 def test_written_file_holds_the_correction(run):
     _, logs, written = run
     fit = fit_calibration(*residuals_of(logs))

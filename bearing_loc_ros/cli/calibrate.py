@@ -94,6 +94,16 @@ def parse_station_args(items):
     return out
 
 
+#: Largest |ENU coordinate| of the transmitter, m (the Earth's diameter is 1.3e7 m).
+MAX_TRANSMITTER_COORDINATE = 1e7
+#: Closest horizontal distance between a station and the transmitter, m (the bearing to a
+#: transmitter at the station is undefined).
+MIN_TRANSMITTER_DISTANCE = 1.0
+#: A fitted heading bias above this (deg) is reported as a likely wrong transmitter or
+#: heading parameter.
+LARGE_BIAS_DEG = 30.0
+
+
 def residuals(station, records, params, transmitter_enu):
     """Compass residuals (rad) and confidences of one station's readings.
 
@@ -121,6 +131,9 @@ def residuals(station, records, params, transmitter_enu):
         except KrakenError as exc:
             bad[exc.reason] += 1
             continue
+        if math.dist(b.position[:2], transmitter_enu[:2]) < MIN_TRANSMITTER_DISTANCE:
+            raise InputError(f'transmitter: within {MIN_TRANSMITTER_DISTANCE:g} m of station '
+                             f'{station} (horizontally): its bearing is undefined')
         az.append(b.azimuth)
         xy.append(b.position[:2])
         c.append(rec.confidence)
@@ -136,6 +149,9 @@ def transmitter_position(args, params):
         t = np.asarray(args.transmitter, dtype=float)
         if not np.all(np.isfinite(t)):
             raise InputError('transmitter: expected finite X Y Z')
+        if np.max(np.abs(t)) > MAX_TRANSMITTER_COORDINATE:
+            raise InputError(f'transmitter: coordinates must be within '
+                             f'{MAX_TRANSMITTER_COORDINATE:g} m of the ENU origin')
         return t
     origins = {tuple(p.get('geodetic_origin') or ()) for p in params.values()}
     origins.discard(())
@@ -216,6 +232,13 @@ def run(args):
         lines.append(f'{s}: heading bias {math.degrees(fit.bias[k]):+.3f} +- '
                      f'{math.degrees(fit.bias_se[k]):.3f} deg (clockwise), {fit.n_used[s]} '
                      f'readings, {fit.n_outliers[s]} outliers, rejected: {rejected}')
+    if not fit.converged:
+        lines.append('warning: the fit did not converge; the values above are not an optimum')
+    for k, s in enumerate(fit.stations):
+        if abs(math.degrees(fit.bias[k])) > LARGE_BIAS_DEG:
+            lines.append(f'warning: {s}: heading bias {math.degrees(fit.bias[k]):+.1f} deg is '
+                         'large: check the transmitter position and the station\'s position '
+                         'and heading parameters')
     for line in lines:
         print(line)
     write_params(args.out, corrected_params(params, fit), lines)

@@ -50,7 +50,10 @@ class CalibrationResult:
         a, b: the σ model's log-linear coefficients (ln rad); a_se, b_se their SEs.
         covariance: (S + 2, S + 2) inverse observed information of (δ, a, b).
         n_used, n_outliers: readings per station used and left out (dicts).
-        nll: the minimised negative log-likelihood; converged: optimiser status.
+        nll: the minimised negative log-likelihood; converged: the optimiser's success, or a
+            Newton decrement gᵀH⁻¹g at its end of at most :data:`CONVERGED_DECREMENT` with H
+            positive definite (the optimum within rounding, where trust-exact can stop
+            with "a bad approximation" because no step improves the cost any more).
     """
 
     stations: list
@@ -151,6 +154,11 @@ def _hess(theta, idx, r, x, S):
     return h
 
 
+#: Newton decrement gᵀH⁻¹g (twice the predicted decrease of the negative log-likelihood) at
+#: or below which the fit is at its optimum: parameters within about 3e-5 standard errors.
+CONVERGED_DECREMENT = 1e-9
+
+
 def fit_calibration(residuals, confidences, max_residual=math.radians(45.0), min_readings=5):
     """Fit heading biases and the confidence -> σ model (module docstring) by ML.
 
@@ -203,8 +211,12 @@ def fit_calibration(residuals, confidences, max_residual=math.radians(45.0), min
     except np.linalg.LinAlgError:
         raise ValueError('calibration: the observed information is singular') from None
     se = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+    g = _grad(sol.x, *args)
+    decrement = float(g @ cov @ g)
+    converged = bool(sol.success) or (0.0 <= decrement <= CONVERGED_DECREMENT
+                                      and bool(np.all(np.linalg.eigvalsh(H) > 0.0)))
     bias = np.asarray(wrap_angle(sol.x[:S]), dtype=float).reshape(S)
     return CalibrationResult(stations=stations, bias=bias, bias_se=se[:S],
                              a=float(sol.x[S]), b=float(sol.x[S + 1]), a_se=float(se[S]),
                              b_se=float(se[S + 1]), covariance=cov, n_used=used,
-                             n_outliers=out, nll=float(sol.fun), converged=bool(sol.success))
+                             n_outliers=out, nll=float(sol.fun), converged=converged)
