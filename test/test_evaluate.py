@@ -264,16 +264,18 @@ def test_progress_bar_plain_text_and_silent_when_disabled():
 
 def test_evaluate_cli_bad_input_names_the_field(capsys, tmp_path):
     base = ['evaluate', '--scenario', SEED003, '--trials', '5', '--quiet']
-    for extra, field in [(['--estimator', 'ls,nope'], 'estimator'),
-                         (['--sigma-deg', '1,-2'], 'sigma_deg'),
-                         (['--sigma-deg', 'a,b'], 'sigma_deg'),
-                         (['--trials', '0'], 'trials'),
-                         (['--seed', '-1'], 'seed'),
-                         (['--range-ref', '-5'], 'range_ref'),
-                         (['--fixed-sigma-deg', '0'], 'fixed_sigma_deg')]:
+    for extra, field in [(['--estimator', 'ls,nope'], '--estimator'),
+                         (['--sigma-deg', '1,-2'], '--sigma-deg'),
+                         (['--sigma-deg', 'a,b'], '--sigma-deg'),
+                         (['--sigma-deg', '1,2,1'], '--sigma-deg'),
+                         (['--trials', '0'], '--trials'),
+                         (['--seed', '-1'], '--seed'),
+                         (['--range-ref', '-5'], '--range-ref'),
+                         (['--fixed-sigma-deg', '0'], '--fixed-sigma-deg'),
+                         (['--fixed-sigma-deg', '100'], '--fixed-sigma-deg')]:
         assert cli_main(base + extra) == 2
         err = capsys.readouterr().err
-        assert field in err and err.count('\n') == 1, err
+        assert f'error: {field}: ' in err and err.count('\n') == 1, err
     assert cli_main(['evaluate', '--scenario', str(tmp_path / 'no.yaml')]) == 2
     assert 'scenario' in capsys.readouterr().err
     # no progress bar when stderr is not a TTY (pytest captures it)

@@ -33,6 +33,14 @@ def test_cut_angle_json(capsys):
     assert rc == 0 and json.loads(out)['feasible'] is False
 
 
+def test_cut_angle_echoes_the_elevation_as_given(capsys):
+    # degrees -> radians -> degrees printed 29.999999999999996
+    rc, out, _ = _run(capsys, 'cut-angle', '--elevation-deg', '30')
+    assert rc == 0 and json.loads(out)['elevation_deg'] == 30.0
+    rc, out, _ = _run(capsys, 'cut-angle', '--table', '--elevation-deg', '-30', '--json')
+    assert rc == 0 and {r['elevation_deg'] for r in json.loads(out)} == {-30.0}
+
+
 def test_cut_angle_table(capsys):
     rc, out, _ = _run(capsys, 'cut-angle', '--table', '--k1-values', '0.3:0.9:0.3',
                       '--k2-values', '0,0.5', '--json')
@@ -60,10 +68,18 @@ def test_cut_angle_table(capsys):
       '--extent-km', '10,5,0,1'], '--extent-km'),
     (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-deg', '0.06',
       '--resolution', '0'], '--resolution'),
+    (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-deg', '0.06',
+      '--extent-km', '-10,10,-1,1', '--resolution', '2500'], '--resolution'),
     (['place', '--stations', STATIONS, '--altitude', '5000', '--sigma-deg', '0.06',
       '--area-km', '0,1'], '--area-km'),
     (['place', '--stations', STATIONS, '--altitude', '5000', '--sigma-deg', '0.06',
       '--area-km=-5,5,-5,5', '--candidates', '1'], '--candidates'),
+    (['map', '--stations', STATIONS, '--altitude', '5000', '--sigma-deg', '0.06',
+      '--png', 'x.jpg2'], '--png'),
+    (['cut-angle', '--sigmas-deg', '1', '2', '--k1', '5'], '--sigmas-deg'),
+    (['cut-angle', '--sigmas-deg', '1', '2', '--table'], '--sigmas-deg'),
+    (['cut-angle', '--table', '--k1', '3'], '--k1'),
+    (['cut-angle', '--k2-values', '0,1'], '--k2-values'),
 ])
 def test_bad_input_exits_2_naming_the_flag(capsys, argv, flag):
     rc, out, err = _run(capsys, *argv)
@@ -85,6 +101,16 @@ def test_map_png_and_csv_from_stations(capsys, tmp_path):
     assert data.shape == (1600, 4)
     assert np.all(data[:, 2] == 5000.0)
     assert data[:, 3].max() == pytest.approx(d['stats']['max_m'], rel=1e-5)
+
+
+def test_map_png_without_an_extension_reports_the_file_written(capsys, tmp_path):
+    rc, out, _ = _run(capsys, 'map', '--stations', STATIONS, '--altitude', '5000',
+                      '--sigma-deg', '0.09', '--resolution', '6000', '--png',
+                      str(tmp_path / 'm'))
+    assert rc == 0
+    d = json.loads(out)
+    assert d['png'] == str(tmp_path / 'm.png') and d['csv'] == str(tmp_path / 'm.csv')
+    assert (tmp_path / 'm.png').read_bytes()[:4] == b'\x89PNG'
 
 
 def test_map_from_scenario_uses_the_scenario_loader(capsys, tmp_path):

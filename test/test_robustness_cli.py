@@ -124,11 +124,11 @@ STD = ['--stations', '0,0,0;1,0,0', '--altitude', '1000', '--sigma-deg', '0.06',
 
 
 @pytest.mark.parametrize('argv,field', [
-    (EVAL + ['--trials', '0'], 'trials'), (EVAL + ['--trials', str(10 ** 12)], 'trials'),
-    (EVAL + ['--trials', '2', '--seed', str(2 ** 70)], 'seed'),
-    (EVAL + ['--trials', '2', '--range-ref', '1e-300'], 'range_ref'),
-    (EVAL + ['--trials', '2', '--fixed-sigma-deg', '0'], 'fixed_sigma_deg'),
-    (EVAL[:5] + ['--sigma-deg', '0', '--trials', '2'], 'sigma_deg'),
+    (EVAL + ['--trials', '0'], '--trials'), (EVAL + ['--trials', str(10 ** 12)], '--trials'),
+    (EVAL + ['--trials', '2', '--seed', str(2 ** 70)], '--seed'),
+    (EVAL + ['--trials', '2', '--range-ref', '1e-300'], '--range-ref'),
+    (EVAL + ['--trials', '2', '--fixed-sigma-deg', '0'], '--fixed-sigma-deg'),
+    (EVAL[:5] + ['--sigma-deg', '0', '--trials', '2'], '--sigma-deg'),
     (['plan', 'cut-angle', '--k1', '1e308', '--k2', '1e308'], '--k1'),
     (['plan', 'cut-angle', '--table', '--k1-values', '0.1:1e9:1e-9'], '--k1-values'),
     (['plan', 'cut-angle', '--table', '--k1-values', '0:inf:1'], '--k1-values'),

@@ -182,19 +182,19 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
     known = registry.names(registry.MODE_MULTISTATION)
     unknown = [e for e in estimators if e not in known]
     if unknown:
-        raise InputError(f'estimator: unknown {", ".join(unknown)}; choose from '
+        raise InputError(f'--estimator: unknown {", ".join(unknown)}; choose from '
                          f'{", ".join(known)}')
     if len(set(estimators)) != len(estimators):
-        raise InputError('estimator: a name is repeated')
+        raise InputError('--estimator: a name is repeated')
     if not 1 <= trials <= MAX_TRIALS:
-        raise InputError(f'trials: must be in 1..{MAX_TRIALS} (got {trials})')
+        raise InputError(f'--trials: must be in 1..{MAX_TRIALS} (got {trials})')
     if not 0 <= seed <= 2 ** 63 - 1 - trials:
-        raise InputError(f'seed: must be in 0..2**63-1-trials (got {seed})')
+        raise InputError(f'--seed: must be in 0..2**63-1-trials (got {seed})')
     path = resolve_scenario(scenario_path)
     scenario = load_scenario(path)
     if range_ref is not None and not (math.isfinite(range_ref)
                                       and (range_ref == 0 or range_ref >= 1.0)):
-        raise InputError(f'range_ref: must be 0 (constant σ) or >= 1 m (got {range_ref})')
+        raise InputError(f'--range-ref: must be 0 (constant σ) or >= 1 m (got {range_ref})')
     tr = ev.trials_from_scenario(scenario, trials, seed, range_ref)
     sweeps = ('joint',) + {'none': (), 'azimuth': ('azimuth',), 'elevation': ('elevation',),
                            'both': ('azimuth', 'elevation')}[sweep]
@@ -349,14 +349,17 @@ def _decorate(ax, title, meta, ncol=1, fontsize=8):
 
 def run(args):
     """``bearing_loc evaluate``."""
-    estimators = _csv_list(args.estimator, 'estimator', str)
-    sigmas = _csv_list(args.sigma_deg, 'sigma_deg', float)
+    estimators = _csv_list(args.estimator, '--estimator', str)
+    sigmas = _csv_list(args.sigma_deg, '--sigma-deg', float)
     if any(not math.isfinite(s) or s <= 0 or s > MAX_SIGMA_DEG for s in sigmas):
-        raise InputError(f'sigma_deg: every value must be in (0, {MAX_SIGMA_DEG:g}] '
+        raise InputError(f'--sigma-deg: every value must be in (0, {MAX_SIGMA_DEG:g}] '
                          f'(got {args.sigma_deg})')
+    if len(set(sigmas)) != len(sigmas):
+        raise InputError(f'--sigma-deg: a value is repeated (got {args.sigma_deg})')
     outliers = parse_outliers(args.outliers)
-    if not math.isfinite(args.fixed_sigma_deg) or args.fixed_sigma_deg <= 0:
-        raise InputError(f'fixed_sigma_deg: must be > 0 (got {args.fixed_sigma_deg})')
+    if not (math.isfinite(args.fixed_sigma_deg) and 0 < args.fixed_sigma_deg <= MAX_SIGMA_DEG):
+        raise InputError(f'--fixed-sigma-deg: must be in (0, {MAX_SIGMA_DEG:g}] '
+                         f'(got {args.fixed_sigma_deg})')
     if args.out:    # checked before the (long) run, so nothing is printed for a bad --out
         try:
             os.makedirs(args.out, exist_ok=True)

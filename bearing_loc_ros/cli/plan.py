@@ -25,8 +25,8 @@ import numpy as np
 from . import InputError
 from .deprecation import DeprecatedOption
 from .helptext import sub_command
-from .plan_args import (contour_levels, ctls_unit, finite, grid_spec, KM, load_stations,
-                        num_or_none, parse_box_km, parse_values, writing)
+from .plan_args import (contour_levels, ctls_unit, finite, grid_spec, image_path, KM,
+                        load_stations, num_or_none, parse_box_km, parse_values, writing)
 
 
 def add_arguments(parser):
@@ -37,20 +37,20 @@ def add_arguments(parser):
     p = sub_command(sub, 'cut-angle', 'optimal cut angle of a 2D + 1D sensor pair (Wang, Su, '
                     'Bai & Zhong 2009)', 'bearing_loc plan cut-angle --k1 0.8 --k2 0.5 '
                     '--elevation-deg 10')
-    p.add_argument('--k1', type=float, default=1.0,
+    p.add_argument('--k1', type=float, default=None,
                    help='sigma_theta1^2 / sigma_theta2^2, azimuth variance ratio (default 1)')
-    p.add_argument('--k2', type=float, default=0.0,
+    p.add_argument('--k2', type=float, default=None,
                    help='sigma_eps1^2 / sigma_theta2^2, elevation variance ratio of the 2D '
                         'sensor (default 0: two 1D sensors when --elevation-deg is 0)')
-    p.add_argument('--elevation-deg', type=float, default=0.0,
+    p.add_argument('--elevation-deg', type=float, default=None,
                    help='target elevation eps1 seen from the 2D sensor, deg (default 0)')
     p.add_argument('--table', action='store_true',
                    help='print the tables of Wang, Su, Bai & Zhong 2009: every --k1-values x '
                         '--k2-values pair')
-    p.add_argument('--k1-values', default='0.1:1.0:0.1,1.2,1.5,2.0',
+    p.add_argument('--k1-values', default=None,
                    help='k1 list for --table: comma-separated numbers or start:stop:step '
                         'ranges (default 0.1:1.0:0.1,1.2,1.5,2.0)')
-    p.add_argument('--k2-values', default='0,0.2,0.5,0.8',
+    p.add_argument('--k2-values', default=None,
                    help='k2 list for --table (default 0,0.2,0.5,0.8: tables 1-4)')
     p.add_argument('--json', action='store_true', help='--table as a JSON list')
     p.add_argument('--sigmas-deg', type=float, nargs=2, default=None, metavar=('S1', 'S2'),
@@ -159,33 +159,49 @@ def _ratio_bound(values, flag):
 def run_cut_angle(args):
     """Print the optimum (JSON) or the tables of Wang, Su, Bai & Zhong 2009."""
     from ..core.cutangle import cut_angle_table, optimal_cut_angle
+    pair = {'--k1': args.k1, '--k2': args.k2, '--elevation-deg': args.elevation_deg,
+            '--table': args.table or None, '--k1-values': args.k1_values,
+            '--k2-values': args.k2_values}
+    given = [flag for flag, v in pair.items() if v is not None]
     if args.sigmas_deg is not None:
+        if given:
+            raise InputError(f'--sigmas-deg: not with {given[0]} (--sigmas-deg is a 1D + 1D '
+                             'pair; the other flags describe a 2D + 1D pair)')
         return run_two_azimuth(args)
-    el = math.radians(finite(args.elevation_deg, '--elevation-deg'))
-    if abs(args.elevation_deg) >= 89.0:
+    for flag in (('--k1', '--k2') if args.table else ('--k1-values', '--k2-values')):
+        if flag in given:
+            raise InputError(f'{flag}: only {"without" if args.table else "with"} --table')
+    elevation_deg = 0.0 if args.elevation_deg is None else args.elevation_deg
+    el = math.radians(finite(elevation_deg, '--elevation-deg'))
+    if abs(elevation_deg) >= 89.0:
         raise InputError('--elevation-deg: |elevation| must be < 89')
     if not args.table:
-        finite(args.k1, '--k1', True)
-        if not (math.isfinite(args.k2) and args.k2 >= 0):
-            raise InputError(f'--k2: must be a finite number >= 0, got {args.k2}')
-        _ratio_bound([args.k1], '--k1')
-        _ratio_bound([args.k2], '--k2')
-        print(json.dumps(optimal_cut_angle(args.k1, args.k2, el).as_dict()))
+        k1 = 1.0 if args.k1 is None else args.k1
+        k2 = 0.0 if args.k2 is None else args.k2
+        finite(k1, '--k1', True)
+        if not (math.isfinite(k2) and k2 >= 0):
+            raise InputError(f'--k2: must be a finite number >= 0, got {k2}')
+        _ratio_bound([k1], '--k1')
+        _ratio_bound([k2], '--k2')
+        # the elevation as given (its degrees -> radians -> degrees would print 29.999...96)
+        print(json.dumps(dict(optimal_cut_angle(k1, k2, el).as_dict(),
+                              elevation_deg=elevation_deg)))
         return 0
-    k1s = parse_values(args.k1_values, '--k1-values')
-    k2s = parse_values(args.k2_values, '--k2-values')
+    k1s = parse_values(args.k1_values or '0.1:1.0:0.1,1.2,1.5,2.0', '--k1-values')
+    k2s = parse_values(args.k2_values or '0,0.2,0.5,0.8', '--k2-values')
     if min(k1s) <= 0:
         raise InputError('--k1-values: every k1 must be > 0')
     if min(k2s) < 0:
         raise InputError('--k2-values: every k2 must be >= 0')
     _ratio_bound(k1s, '--k1-values')
     _ratio_bound(k2s, '--k2-values')
-    rows = [r.as_dict() for r in cut_angle_table(k1s, k2s, el)]
+    rows = [dict(r.as_dict(), elevation_deg=elevation_deg)
+            for r in cut_angle_table(k1s, k2s, el)]
     if args.json:
         print(json.dumps(rows, indent=1))
         return 0
     print('# optimal cut angle (Wang, Su, Bai & Zhong 2009), '
-          f'elevation {args.elevation_deg:g} deg '
+          f'elevation {elevation_deg:g} deg '
           '(f: E_r^2 = D^2 sigma_theta2^2 f; infeasible rows show the limit point)')
     head = f'{"k1":>6} {"k2":>6} {"eps1":>6} {"theta1":>9} {"theta2":>9} {"phi":>9} ' \
            f'{"f_min":>9}  feasible'
@@ -321,6 +337,8 @@ def run_map(args):
     st = load_stations(args)
     grid = grid_spec(args, parse_box_km('60', '--extent-km'))
     levels = contour_levels(args)
+    if args.png:
+        args.png = image_path('--png', args.png)
     for flag, v in (('--vmin', args.vmin), ('--vmax', args.vmax)):
         if v is not None:
             finite(v, flag, True)
@@ -352,6 +370,9 @@ def run_place(args):
     from ..core.planning import GridSpec, accuracy_map, place_station
     st = load_stations(args)
     area = parse_box_km(args.area_km, '--area-km')
+    for key in ('png_before', 'png_after'):
+        if getattr(args, key):
+            setattr(args, key, image_path('--' + key.replace('_', '-'), getattr(args, key)))
     region = parse_box_km(args.region_km, '--region-km') if args.region_km else area
     if args.area_cells < 2 or args.area_cells > 200:
         raise InputError(f'--area-cells: must be 2..200, got {args.area_cells}')

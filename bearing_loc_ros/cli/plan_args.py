@@ -5,6 +5,7 @@ Every function raises InputError naming the flag.
 
 import contextlib
 import math
+import os
 
 import numpy as np
 
@@ -156,7 +157,7 @@ def grid_spec(args, default_box):
     """GridSpec of --extent-km (else ``default_box`` (xmin, xmax, ymin, ymax), m), --resolution.
 
     Cell size in m (default: the longer side / 400; at least 1 mm, at most 4000 cells per
-    side) at target altitude --altitude (m, world z).
+    side and at most the shorter side) at target altitude --altitude (m, world z).
     """
     from ..core.planning import GridSpec
     box = parse_box_km(args.extent_km, '--extent-km') if args.extent_km else default_box
@@ -169,6 +170,9 @@ def grid_spec(args, default_box):
                          'or give a larger --resolution)')
     if max(box[1] - box[0], box[3] - box[2]) / res > 4000:
         raise InputError('--resolution: more than 4000 cells per side; use a larger cell')
+    if res > min(box[1] - box[0], box[3] - box[2]):
+        raise InputError(f'--resolution: cell size {res:g} m exceeds the map extent '
+                         f'({box[1] - box[0]:g} m x {box[3] - box[2]:g} m)')
     return GridSpec.from_extent(*box, res, finite(args.altitude, '--altitude'))
 
 
@@ -194,6 +198,21 @@ def writing(flag, path):
         yield
     except OSError as exc:
         raise InputError(f'{flag}: cannot write {path!r} ({exc.strerror or exc})') from None
+
+
+def image_path(flag, path):
+    """The file an image for ``path`` is written to: ``path`` + ``.png`` without an
+    extension (as matplotlib writes it); InputError naming ``flag`` for an extension
+    matplotlib cannot write."""
+    ext = os.path.splitext(path)[1].lower().lstrip('.')
+    if not ext:
+        return path + '.png'
+    from matplotlib.backend_bases import FigureCanvasBase
+    known = FigureCanvasBase.get_supported_filetypes()
+    if ext not in known:
+        raise InputError(f'{flag}: cannot write .{ext} images; use one of '
+                         f'{", ".join("." + k for k in sorted(known))}')
+    return path
 
 
 def num_or_none(v):

@@ -136,11 +136,16 @@ class GridSpec:
 
     @classmethod
     def from_extent(cls, xmin, xmax, ymin, ymax, resolution, altitude):
-        """Grid covering [xmin, xmax] × [ymin, ymax] (m) with cells of ``resolution`` m."""
+        """Grid covering [xmin, xmax] × [ymin, ymax] (m) with cells of ``resolution`` m (at
+        most the shorter side; ValueError otherwise)."""
         if not (np.isfinite([xmin, xmax, ymin, ymax]).all() and xmax > xmin and ymax > ymin):
             raise ValueError('extent: need finite xmin < xmax and ymin < ymax')
         if not np.isfinite(resolution) or resolution <= 0:
             raise ValueError(f'resolution: must be > 0 m, got {resolution}')
+        if resolution > min(xmax - xmin, ymax - ymin):
+            # (one cell larger than the extent would be centred outside it)
+            raise ValueError(f'resolution: cell size {resolution:g} m exceeds the extent '
+                             f'({xmax - xmin:g} m x {ymax - ymin:g} m)')
         width = max(1, int(round((xmax - xmin) / resolution)))
         height = max(1, int(round((ymax - ymin) / resolution)))
         return cls(float(xmin), float(ymin), float(resolution), width, height, float(altitude))
