@@ -113,6 +113,20 @@ def test_map_png_without_an_extension_reports_the_file_written(capsys, tmp_path)
     assert (tmp_path / 'm.png').read_bytes()[:4] == b'\x89PNG'
 
 
+def test_place_draws_an_unobservable_before_map(capsys, tmp_path):
+    # one station observes nothing: the documented null "before" with its map drawn
+    rc, out, err = _run(capsys, 'place', '--stations', '0,0,0', '--sigma-deg', '0.1',
+                        '--altitude', '3000', '--area-km', '-10,10,-10,10', '--area-cells',
+                        '10', '--candidates', '5', '--png-before', str(tmp_path / 'b.png'),
+                        '--png-after', str(tmp_path / 'a.png'))
+    assert rc == 0, err
+    d = json.loads(out)
+    assert d['before_m'] is None and d['after_m'] > 0
+    assert d['png_before'] == str(tmp_path / 'b.png')
+    for name in ('a.png', 'b.png'):
+        assert (tmp_path / name).read_bytes()[:4] == b'\x89PNG'
+
+
 def test_map_from_scenario_uses_the_scenario_loader(capsys, tmp_path):
     # seed000.yaml: 3 mrad stations at the Wang, Zhang & Wu (2006) positions; --sigma-deg
     # overrides σ.

@@ -265,24 +265,30 @@ def plot_map(amap, path, title=None, levels=None, vmax=None, extra=None, vmin=No
     g = amap.grid
     err = amap.error
     limits = log_color_limits(err, vmin, vmax)
-    if limits is None:
-        raise InputError('map: no finite error anywhere (unobservable layout); nothing to plot')
-    vmin, vmax = limits
     fig, ax = plt.subplots(figsize=(6.4, 5.2), dpi=100)
     ext = [v / KM for v in g.extent]
-    im = ax.imshow(np.where(np.isfinite(err), err, np.nan), origin='lower', extent=ext,
-                   norm=LogNorm(vmin, vmax), cmap='viridis', interpolation='nearest')
-    fig.colorbar(im, ax=ax, label='expected 3D position error (m)')
-    lv = levels if levels is not None else _nice_levels(err, vmax)
-    if lv:
-        cs = ax.contour(g.x / KM, g.y / KM, np.where(np.isfinite(err), err, np.nan),
-                        levels=lv, colors='white', linewidths=0.6)
-        ax.clabel(cs, fmt=lambda v: f'{v:g}', fontsize=7)
+    if limits is None:
+        # Nothing is observable (e.g. one station before a placement): the layout alone.
+        ax.set_facecolor('0.8')
+        ax.text(0.5, 0.75, 'no target here can be located\n(unobservable layout)',
+                transform=ax.transAxes, ha='center', va='center', fontsize=11)
+    else:
+        vmin, vmax = limits
+        im = ax.imshow(np.where(np.isfinite(err), err, np.nan), origin='lower', extent=ext,
+                       norm=LogNorm(vmin, vmax), cmap='viridis', interpolation='nearest')
+        kind = 'horizontal' if amap.solve == 'horizontal' else '3D'
+        fig.colorbar(im, ax=ax, label=f'expected {kind} position error (m)')
+        lv = levels if levels is not None else _nice_levels(err, vmax)
+        if lv:
+            cs = ax.contour(g.x / KM, g.y / KM, np.where(np.isfinite(err), err, np.nan),
+                            levels=lv, colors='white', linewidths=0.6)
+            ax.clabel(cs, fmt=lambda v: f'{v:g}', fontsize=7)
     st = amap.stations
     if st is not None:
         two = st.has_elevation
-        ax.plot(st.positions[two, 0] / KM, st.positions[two, 1] / KM, '^', color='red',
-                mec='black', ms=8, label='2D station')
+        if np.any(two):
+            ax.plot(st.positions[two, 0] / KM, st.positions[two, 1] / KM, '^', color='red',
+                    mec='black', ms=8, label='2D station')
         if np.any(~two):
             ax.plot(st.positions[~two, 0] / KM, st.positions[~two, 1] / KM, 'v',
                     color='orange', mec='black', ms=8, label='1D station')
