@@ -340,6 +340,29 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCENARIO = load_scenario(os.path.join(REPO, 'config', 'scenarios', 'seed000.yaml'))
 
 
+def test_replay_ticks_once_across_a_clock_jump():
+    # A /clock jump from simulated to wall time (1.7e9 s) ran one tick per skipped period
+    # (1.7e10 calls, hours). The replay ticks through the quiet horizon after the last
+    # arrival, then once at the jump, as rcl's timer does, and the fixes are unchanged.
+    sim = simulate(SCENARIO, seed=0)
+    items = [(e.publish_ns, e.bearing) for e in sim.bearings[:60]]
+    jump = items[-1][0] + 1_700_000_000 * S
+    runs = {}
+    for end in ((items[-1][0] + 60 * S, None), (jump, None)):
+        core = FusionCore(FusionConfig(trigger='timer'),
+                          stations=[s.id for s in SCENARIO.stations])
+        ticks = []
+        tick = core.tick
+        core.tick = lambda now, tick=tick, ticks=ticks: ticks.append(now) or tick(now)
+        epochs = [e for e in replay(core, items + [end]) if e.ok]
+        runs[end[0]] = (core, ticks, [(e.stamp_ns, e.position.tolist()) for e in epochs])
+    core, ticks, fixes = runs[jump]
+    period, horizon = core.tick_period_ns, core.quiet_horizon_ns
+    assert ticks[-1] == jump // period * period and ticks[-2] <= items[-1][0] + horizon
+    assert len(ticks) < (items[-1][0] + horizon - items[0][0]) // period + 3
+    assert fixes and fixes == runs[items[-1][0] + 60 * S][2]
+
+
 def _run(seed, estimator='mle', **cfg):
     sim = simulate(SCENARIO, seed=seed)
     core = FusionCore(FusionConfig(estimator=estimator, **cfg),

@@ -17,7 +17,7 @@ benchmarks. It is made of:
 from collections import Counter, deque
 
 from .. import registry as _registry
-from ..alignment import DROP_REASONS, INTERPOLATED, NEAREST
+from ..alignment import DROP_REASONS, INTERPOLATED, NEAREST, seconds_to_ns
 from .config import FusionConfig, MODE_MULTISTATION, MODE_TMA, MODE_WINDOW, NS_PER_S
 from .multistation import MultiStationStrategy
 from .results import DiagnosticEntry, LEVEL_OK, LEVEL_WARN, NO_FIX_REASONS, NOT_CONVERGED, \
@@ -75,6 +75,16 @@ class FusionCore:
     def tick_period_ns(self):
         """How often the owner should call :meth:`tick` (1 / rate), ns."""
         return self.config.period_ns
+
+    @property
+    def quiet_horizon_ns(self):
+        """Time after the last arrival beyond which ticks no longer change anything but the
+        no-fix counts of empty timer epochs, ns: every buffered bearing has aged out
+        (``buffer_age``, the ``window`` in window mode), its epochs were due (``max_latency``)
+        and its station is stale (``station_timeout``); plus two periods."""
+        c = self.config
+        return seconds_to_ns(max(c.buffer_age, c.window, c.max_latency, c.station_timeout)) \
+            + 2 * c.period_ns
 
     def check_config(self, **changes):
         """Validate ``changes`` to the configuration without applying them (ValueError)."""
@@ -362,8 +372,15 @@ def replay(core, items):
     called at every multiple of ``core.tick_period_ns`` up to now (the node's timer). A
     backward jump of now restarts the tick grid. Live and replayed fixes are identical when
     every bearing arrived before its epoch was due (now >= t + max_latency in timer mode).
+
+    A gap without arrivals longer than :meth:`FusionCore.quiet_horizon_ns` (a forward jump
+    of the clock, such as from simulated to wall time: 1e10 periods) is ticked through that
+    horizon after the last arrival, by which time every buffered bearing has aged out, its
+    epochs are formed and its stations are stale; then, like rcl's timer after a clock jump,
+    once at the last multiple up to now, not once per skipped period.
     """
     period = core.tick_period_ns
+    horizon = core.quiet_horizon_ns
     next_tick = None
     last = None
     for now, bearing in items:
@@ -371,6 +388,8 @@ def replay(core, items):
         if next_tick is None or (last is not None and now < last):
             next_tick = -(-now // period) * period
         while next_tick <= now:
+            if last is not None and next_tick > last + horizon:
+                next_tick += (now - next_tick) // period * period   # the quiet part skipped
             yield from core.tick(next_tick)
             next_tick += period
         last = now
