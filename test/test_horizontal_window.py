@@ -185,3 +185,35 @@ def test_backward_time_jump_empties_the_window():
     drive(core, rng, n=30)
     core.tick(int(1e9))
     assert core.strategy.window_bearings == 0
+
+
+def test_window_closed_forms_are_never_confidently_wrong():
+    # With hundreds of bearings at 4° the pseudo-linear fixes are biased by several of their
+    # own σ; the consistency check passed many of them (9 of 44 ls fixes beyond the χ²₂
+    # 0.9999 quantile on the shipped foxhunt without reflections). A passing fix now carries
+    # P + δδᵀ, δ its distance to the likelihood's optimum.
+    import os
+    from bearing_loc_ros.core.fusion.pipeline import replay
+    from bearing_loc_ros.core.simulation import load_scenario, simulate
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    from dataclasses import replace
+    sc = load_scenario(os.path.join(root, 'config', 'scenarios', 'mobile_foxhunt.yaml'))
+    sc = replace(sc, stations=tuple(replace(st, outlier=0.0) for st in sc.stations))
+    truth = sc.targets[0].trajectory.position(0.0)
+    nees, wrong = {}, {}
+    for est in ('ls', 'tls'):
+        nees[est] = []
+        for seed in range(4):
+            cfg = FusionConfig.from_parameters({
+                'target_altitude': [float(truth[2])], 'trigger': 'timer', 'rate': 1 / 30.0,
+                'window': 600.0, 'buffer_age': 30.0, 'window_max_bearings': 400,
+                'estimator': est})
+            core = make_core(cfg, stations=[s.id for s in sc.stations], mode=MODE_WINDOW)
+            sim = simulate(sc, seed=seed)
+            for ep in replay(core, [(e.publish_ns, e.bearing) for e in sim.bearings]):
+                if ep.ok:
+                    e = (ep.position - truth)[:2]
+                    nees[est].append(e @ np.linalg.solve(np.asarray(ep.covariance)[:2, :2], e))
+        wrong[est] = sum(v > 18.42 for v in nees[est])
+    assert len(nees['ls']) > 30 and len(nees['tls']) > 8
+    assert wrong == {'ls': 0, 'tls': 0}

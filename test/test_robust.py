@@ -206,6 +206,18 @@ def test_evaluate_completes_at_ten_degrees_and_reports_statuses():
         assert math.isfinite(r.p95_error) or r.converged == 0
 
 
+def test_consistency_covers_the_bias_of_pseudo_linear_fixes():
+    # ls at 5° on the six stations is biased (a mean error of 345 m in an RMSE of 710 m
+    # here); its own covariance left 18 of 1985 ok fixes (0.9 %) confidently wrong, and
+    # P + δδᵀ 5 (Poisson: 8 or more at a rate of 5 has probability 0.13).
+    from bearing_loc_ros.cli.evaluate import run_evaluation
+    rows, _ = run_evaluation('six_station_const', ['ls'], [5.0], 2000, sweep='none')
+    (r,) = rows
+    assert r.ok_fraction > 0.98
+    assert r.confident_wrong_fraction * r.ok_fraction * 2000 < 8
+    assert 2.5 < r.nees_ok < 3.5
+
+
 def test_one_fix_screen_and_lambda_max_agree_with_the_batch_screen():
     tr = trials('config/scenarios/six_station_const.yaml', 200)
     rng = np.random.default_rng(7)

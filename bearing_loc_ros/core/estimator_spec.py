@@ -154,8 +154,10 @@ CONSISTENCY = Option('consistency', True, 'flag',
                      'status low_confidence for an ok fix that, one Gauss-Newton step toward '
                      'the likelihood optimum, fails the 0.999 chi-square test, lies outside its '
                      'own covariance from that optimum, has an angle beyond 3.9 sigma or a '
-                     'nonlinearity above 0.2 (core.robust.consistency_status); false: the '
-                     'published statuses')
+                     'nonlinearity above 0.2, and for a fix that passes the covariance P + '
+                     'delta delta^T with delta that step (its estimated bias; '
+                     'core.robust.consistency_status); false: the published statuses and '
+                     'covariances')
 
 #: Dimension choices of the solve (core.horizontal): 3D when the bearings observe the height,
 #: forced 3D, or the horizontal solve with the target altitude stated.

@@ -35,6 +35,8 @@ plane, a single elevation constrains only a combination of the along-line positi
 height (J has rank 2); two elevations from that plane triangulate it.
 """
 
+from dataclasses import replace
+
 import numpy as np
 
 from . import horizontal_estimators as _h
@@ -200,7 +202,8 @@ CONSISTENCY_ITERATIONS = 5
 
 def consistency_status(res, p, probability=CONSISTENCY_PROBABILITY):
     """``res`` (a horizontal FixResult of problem ``p``) with every ``ok`` fix that fails a
-    consistency check marked ``low_confidence`` (``converged`` False).
+    consistency check marked ``low_confidence`` (``converged`` False) and every one that
+    passes widened to P + δδᵀ.
 
     The horizontal twin of :func:`.robust.consistency_status` (option ``consistency`` of
     ``ls``, ``tls``, ``ctls``, ``ctls_am``). Unknowns x, y and, when σ_z > 0, z with the
@@ -213,7 +216,9 @@ def consistency_status(res, p, probability=CONSISTENCY_PROBABILITY):
     when χ²(X*) is at most the χ²_max(dof, 1) quantile of ``probability`` (dof = angles −
     2), δ = X* − X̂ has δᵀP⁻¹δ at most the χ²_k quantile (k = 2, or 3 with σ_z > 0; P the
     fix's covariance over the same unknowns), no angle residual at X* is beyond 3.9σ and
-    ν ≤ 0.2 (:func:`.horizontal_robust.nonlinearity`). Units: m, rad.
+    ν ≤ 0.2 (:func:`.horizontal_robust.nonlinearity`). A fix that passes reports P + δδᵀ
+    (as in 3D: the covariance covers the bias of a pseudo-linear fix, which with hundreds of
+    bearings in window mode is several of its σ). Units: m, rad.
     """
     from .crlb import safe_inverse
     from .fix import STATUS_OK
@@ -256,6 +261,11 @@ def consistency_status(res, p, probability=CONSISTENCY_PROBABILITY):
                     & (m2 <= chi2_upper(np.where(vertical, 3, 2), probability))
                     & (worst <= outlier_c2()) & (nu <= MAX_REGION_NONLINEARITY))
         bad[idx] = ~good
+        widened = P.copy()
+        Pi = widened[idx]
+        Pi[good] += delta[good][:, :, None] * delta[good][:, None, :]
+        widened[idx] = Pi
+        res = replace(res, covariance=widened)
     return mark_low_confidence(res, bad)
 
 

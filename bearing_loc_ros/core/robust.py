@@ -411,7 +411,8 @@ def _band_table(dof, probability):
 
 def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
     """``result`` with every ``ok`` fix that fails a consistency check marked
-    ``low_confidence`` (``converged`` False); position and covariance unchanged.
+    ``low_confidence`` (``converged`` False), and the covariance of every fix that passes
+    widened to P + δδᵀ; positions unchanged.
 
     The status rule of the estimators without option ``robust`` (``ls``, ``tls``, ``ctls``,
     ``ctls_am``; their option ``consistency``). Such a fix X̂ is not the maximum likelihood
@@ -428,6 +429,10 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
     3.9σ): no outlier angle;
     (d) ν = sqrt(λ_max(P)) / min_k ρ_k ≤ :data:`MAX_REGION_NONLINEARITY` (0.2; module
     docstring): the covariance describes the confidence region.
+    A fix that passes reports P + δδᵀ: δ estimates its offset from the likelihood's optimum,
+    so the covariance bounds the mean squared error of a biased pseudo-linear fix (many
+    bearings or low SNR) and not only its spread (an unbiased, nearly efficient fix has
+    δ small against P and keeps about P).
     Units: m, rad; bearing σ as given (constant σ). One problem on Python floats
     (:func:`.robust_single.consistent_one`, the same decisions), a batch as arrays.
     """
@@ -439,11 +444,12 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
         good = False
         if all(map(math.isfinite, x + C[0] + C[1] + C[2])):
             try:
-                good = _consistent_one(bearings, x, C, probability)
+                good, delta = _consistent_one(bearings, x, C, probability)
             except _Fallback:
                 good = None         # the batch path below decides
         if good:
-            return result
+            d = np.array([delta])
+            return replace(result, covariance=result.covariance + d[:, :, None] * d[:, None, :])
         if good is not None:
             return mark_low_confidence(result, [True])
     from .bearings import BearingSet
@@ -458,7 +464,12 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
         sub = BearingSet(bearings.positions[idx], bearings.azimuth[idx],
                          bearings.elevation[idx], bearings.sigma_az[idx],
                          bearings.sigma_el[idx])
-        bad[idx] = ~_consistent(Data(sub, None), X[idx], P[idx], probability)
+        good, delta = _consistent(Data(sub, None), X[idx], P[idx], probability)
+        bad[idx] = ~good
+        d = np.where(good[:, None], delta, 0.0)
+        P = P.copy()
+        P[idx] += d[:, :, None] * d[:, None, :]
+        result = replace(result, covariance=P)
     return mark_low_confidence(result, bad)
 
 
@@ -476,8 +487,9 @@ def mark_low_confidence(result, bad):
 
 
 def _consistent(data, X, P, probability):
-    """(M,) bool: checks (a)-(d) of :func:`consistency_status` at fixes X (M, 3) with
-    covariances P (M, 3, 3), all finite: (a), (c) and (d) by :func:`screen_decision` (its
+    """((M,) bool, δ (M, 3) m): checks (a)-(d) of :func:`consistency_status` at fixes X (M, 3)
+    with covariances P (M, 3, 3), all finite, and the step δ: (a), (c) and (d) by
+    :func:`screen_decision` (its
     one-sided χ² test) on χ²_min and the linearised residuals, (b) here."""
     ra, re, ga, ge, _, _, _ = data.evaluate(X)
     ra = np.where(np.isfinite(ra), ra, np.inf)
@@ -499,7 +511,7 @@ def _consistent(data, X, P, probability):
     n_meas = data.az.shape[1] + data.has_el.sum(axis=-1)
     return (~screen_decision(chi2_min, worst, rho2min, n_meas, P, probability=probability,
                              two_sided=False)
-            & (m2 <= chi2_upper(np.full(len(X), 3), probability)))
+            & (m2 <= chi2_upper(np.full(len(X), 3), probability))), delta
 
 
 def confident_result(result, bearings, d_ref=None, screen_stats=None):

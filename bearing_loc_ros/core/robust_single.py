@@ -725,9 +725,10 @@ def _second_optimum(pb, X, wa, we, P, ls):
 def consistent_one(bearings, x, P, probability):
     """robust._consistent for one problem on floats: checks (a)-(d) of
     :func:`.robust.consistency_status` at the fix ``x`` (3,) m with covariance ``P`` (3, 3)
-    m² (nested lists, finite; constant σ). One pass over the stations for the whitened
-    residuals, gradients, F and Gᵀr (the quantities of :func:`_terms`), then the step and
-    the linearised residuals. Raises :class:`Fallback` where the batch path must decide."""
+    m² (nested lists, finite; constant σ): (passed, the step δ (3,) m or None). One pass over
+    the stations for the whitened residuals, gradients, F and Gᵀr (the quantities of
+    :func:`_terms`), then the step and the linearised residuals. Raises :class:`Fallback`
+    where the batch path must decide."""
     x0, x1, x2 = x
     try:
         f00 = f01 = f02 = f11 = f12 = f22 = b0 = b1 = b2 = chi2 = 0.0
@@ -776,7 +777,7 @@ def consistent_one(bearings, x, P, probability):
         Pp = (P[0][0], P[0][1], P[0][2], P[1][1], P[1][2], P[2][2])
         Pi = _safe_inverse_packed(*Pp)
         if Fi is None or Pi is None:
-            return False
+            return False, None
         i00, i01, i02, i11, i12, i22 = Fi
         d0 = i00 * b0 + i01 * b1 + i02 * b2
         d1 = i01 * b0 + i11 * b1 + i12 * b2
@@ -792,7 +793,7 @@ def consistent_one(bearings, x, P, probability):
         raise Fallback(str(exc)) from exc
     return (chi2_min <= _upper(max(len(rows) + n_el - 3, 1), probability)
             and _quad_packed(d0, d1, d2, Pi) <= _upper(3, probability)
-            and worst <= outlier_c2() and nu <= MAX_REGION_NONLINEARITY)
+            and worst <= outlier_c2() and nu <= MAX_REGION_NONLINEARITY), (d0, d1, d2)
 
 
 def refine(bearings, X_ml, d_ref=None):
