@@ -126,3 +126,20 @@ def test_plan_azimuth_sigma_keeps_the_scenario_elevation_sigma(capsys, monkeypat
     assert rc == rc2 == 0 and err == ''
     assert [s[0] for s in _stations(az)] == [2.0, 2.0, 2.0]
     assert [s[1] for s in _stations(az)] == [s[1] for s in _stations(base)]
+
+
+@pytest.mark.parametrize('argv', [
+    ['plan', 'map', '--scenario', 'seed000', '--altitude', '5000', '--sigma-mrad', '1.5',
+     '--sigma-deg', '0.1'],
+    ['plan', 'map', '--scenario', 'seed000', '--altitude', '5000', '--sigma-deg=0.1',
+     '--sigma-mrad', '1.5'],
+    ['locate', '--method', 'ls', '--estimator', 'tls', 'x.json'],
+    ['evaluate', '--scenario', 'seed003', '--estimator', 'mle', '--estimators', 'ls'],
+    ['tma', '--method', 'tma_mle', '--estimator', 'tma_ple', 'x.json'],
+])
+def test_a_deprecated_flag_with_its_replacement_is_an_error(capsys, argv):
+    # the later one used to win silently
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 2 and 'is deprecated' in err[0]
+    assert 'error: --' in err[1] and ': give only --' in err[1]

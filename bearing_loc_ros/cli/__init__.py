@@ -112,6 +112,11 @@ def main(argv=None):
     if args.verb is None:
         parser.print_help(sys.stderr)
         return 2
+    from .deprecation import conflict
+    clash = conflict(args, argv)
+    if clash:
+        print(f'bearing_loc {args.verb}: error: {clash}', file=sys.stderr)
+        return 2
     try:
         return int(_load(args.verb).run(args) or 0)
     except (InputError, ValueError) as exc:

@@ -32,9 +32,21 @@ class DeprecatedOption(argparse.Action):
         self.convert = convert
 
     def __call__(self, parser, namespace, values, option_string=None):
-        """Warn about ``option_string`` and store the converted value."""
+        """Warn about ``option_string`` and store the converted value (the use is recorded
+        for :func:`conflict`)."""
         warn(option_string, self.replacement)
         setattr(namespace, self.dest, self.convert(values) if self.convert else values)
+        uses = getattr(namespace, 'deprecated_uses', None) or []
+        setattr(namespace, 'deprecated_uses', uses + [(option_string, self.replacement)])
+
+
+def conflict(args, argv):
+    """An error message when a deprecated option and its replacement were both given on
+    the command line ``argv`` (the later one would silently win), else None."""
+    for old, new in getattr(args, 'deprecated_uses', None) or ():
+        if any(a == new or a.startswith(new + '=') for a in argv):
+            return f'{old}: give only {new} (the deprecated {old} is also given)'
+    return None
 
 
 def json_key(doc, old, new, where=''):
