@@ -80,6 +80,8 @@ def test_cut_angle_table(capsys):
     (['cut-angle', '--sigmas-deg', '1', '2', '--table'], '--sigmas-deg'),
     (['cut-angle', '--table', '--k1', '3'], '--k1'),
     (['cut-angle', '--k2-values', '0,1'], '--k2-values'),
+    (['map', '--stations', '0,0,0,1d;20,0,0,1d;20,20,0,1d', '--altitude', '1000',
+      '--sigma-deg', '1', '--model', 'ctls'], '--model'),
 ])
 def test_bad_input_exits_2_naming_the_flag(capsys, argv, flag):
     rc, out, err = _run(capsys, *argv)

@@ -345,6 +345,12 @@ def run_map(args):
     levels = contour_levels(args)
     if args.png:
         args.png = image_path('--png', args.png)
+    from ..core.planning import horizontal_solve
+    if args.model != 'crlb' and horizontal_solve(st, args.dimension):
+        # (auto keeps the 3D model for place, whose new station may measure elevation; a map
+        # of an azimuth-only layout would be unobservable everywhere)
+        raise InputError('--model: the CTLS error model (Wang, Zhang & Wu eq. (30)) is 3D; '
+                         'an azimuth-only layout needs --model crlb')
     for flag, v in (('--vmin', args.vmin), ('--vmax', args.vmax)):
         if v is not None:
             finite(v, flag, True)
