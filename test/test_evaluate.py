@@ -329,3 +329,13 @@ def test_confidently_wrong_uses_the_quantile_of_the_nees_degrees_of_freedom():
                                 fix([[e, 0.0, 0.0]], [cov]), np.array([np.eye(3)]), 0.1)
         assert s.nees_ok == pytest.approx(19.5)
         assert s.confident_wrong_fraction == wrong
+
+
+def test_evaluate_warns_when_no_trial_is_observable(capsys, tmp_path):
+    path = tmp_path / 'coloc.yaml'
+    path.write_text('duration: 10\nstations:\n  - id: a\n    position: [0, 0, 0]\n'
+                    '  - id: b\n    position: [0, 0, 0]\ntargets:\n'
+                    '  - position: [1000, 1000, 100]\n')
+    assert cli_main(['evaluate', '--scenario', str(path), '--trials', '5', '--sigma-deg', '1',
+                     '--estimator', 'ls', '--sweep', 'none', '--quiet']) == 0
+    assert 'warning: the CRLB is infinite for every trial' in capsys.readouterr().err

@@ -380,6 +380,10 @@ def run(args):
           f'{len(meta["sweeps"])} sweeps x {len(estimators)} estimators, seed {args.seed}, '
           f'{meta["elapsed_s"]:.2f} s')
     print(format_table(rows))
+    if rows and not any(math.isfinite(r.crlb) for r in rows):
+        print('bearing_loc evaluate: warning: the CRLB is infinite for every trial: these '
+              'stations cannot locate the targets (co-located stations, or azimuth-only '
+              'stations in line with them); the figures are not meaningful', file=sys.stderr)
     if args.out:
         try:
             files = write_outputs(rows, meta, args.out, plots=not args.no_plots)
