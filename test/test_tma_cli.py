@@ -127,6 +127,11 @@ def _good():
     (lambda d: d['observations'][0].update(elevation=2.0), 'observations[0].elevation'),
     (lambda d: d['observations'][4].update(t=None), 'observations[4].t: missing'),
     (lambda d: d['observations'][4].update(range=3), 'observations[4].range: unknown'),
+    (lambda d: d['observations'][3].update(azimuth=1e5), 'observations[3].azimuth: |azimuth|'),
+    (lambda d: d['observations'][2].update(observer=[1e13, 0, 0]),
+     'observations[2].observer: |coordinate|'),
+    (lambda d: d['observations'][1].update(sigma_azimuth=1e4), 'observations[1].sigma_azimuth'),
+    (lambda d: d.update(options={'max_iterations': 2.5}), 'options.max_iterations: must be an'),
 ])
 def test_bad_input_exits_2_naming_the_field(capsys, monkeypatch, mutate, field):
     doc = _good()

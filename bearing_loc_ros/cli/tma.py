@@ -33,7 +33,7 @@ import math
 
 import numpy as np
 
-from ..core.bearings import BearingSet
+from ..core.bearings import Bearing, BearingSet
 from ..core.conventions import compass_to_enu
 from ..core import registry
 from ..core.tma import SPEED_REFERENCES
@@ -92,9 +92,16 @@ def parse_observations(items, where, defaults, compass=False):
         el = number(ob['elevation'], f'{f}.elevation')
         if abs(el) >= math.pi / 2:
             raise InputError(f'{f}.elevation: |elevation| must be < pi/2 rad')
-        rows.append((number(ob['t'], f'{f}.t'), obs, compass_to_enu(az) if compass else az,
-                     el, number(ob['sigma_azimuth'], f'{f}.sigma_azimuth', positive=True),
-                     number(ob['sigma_elevation'], f'{f}.sigma_elevation', positive=True)))
+        row = (number(ob['t'], f'{f}.t'), obs, compass_to_enu(az) if compass else az, el,
+               number(ob['sigma_azimuth'], f'{f}.sigma_azimuth', positive=True),
+               number(ob['sigma_elevation'], f'{f}.sigma_elevation', positive=True))
+        try:        # the core's range checks, named by the observation's field
+            Bearing('', 0, *row[1:]).validate()
+        except ValueError as exc:
+            field, _, problem = str(exc).partition(': ')
+            raise InputError(f'{f}.{"observer" if field == "position" else field}: '
+                             f'{problem}') from None
+        rows.append(row)
     rows.sort(key=lambda r: r[0])
     t, obs, az, el, saz, sel = (np.array(c, dtype=float) for c in zip(*rows))
     bs = BearingSet.from_arrays(obs, az, el, saz, sel, validate=False)
@@ -113,6 +120,8 @@ def parse_request(doc, method_override=None, speed_override=None, compass=False)
                    'max_iterations', 'max_nonlinearity', 'max_ml_distance'):
             options[key] = number(value, f'options.{key}', positive=True)
             if key in ('min_bearings', 'max_iterations'):
+                if options[key] != int(options[key]):
+                    raise InputError(f'options.{key}: must be an integer >= 1')
                 options[key] = int(options[key])
         elif key == 'covariance' and not isinstance(value, bool):
             raise InputError('options.covariance: must be true or false')
