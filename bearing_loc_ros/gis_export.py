@@ -91,11 +91,19 @@ def _name(props):
 
 def _add_geometry(container, geom, name):
     """simplekml geometry for a GeoJSON geometry dict (Point/LineString/Polygon/Multi*)."""
+    import simplekml
     t, c = geom['type'], geom['coordinates']
-    if t == 'Point':
-        return [container.newpoint(name=name, coords=[tuple(c[:2])])]
-    if t == 'LineString':
-        return [container.newlinestring(name=name, coords=[tuple(p) for p in c])]
+    if t in ('Point', 'LineString'):
+        pts = [c] if t == 'Point' else c
+        if t == 'Point':
+            out = container.newpoint(name=name, coords=[tuple(c)])
+        else:
+            out = container.newlinestring(name=name, coords=[tuple(p) for p in c])
+        if all(len(p) == 3 for p in pts):
+            # heights above the ellipsoid, as in the GeoJSON (an aircraft's fix is not on the
+            # ground); 2D coordinates stay clamped to the ground
+            out.altitudemode = simplekml.AltitudeMode.absolute
+        return [out]
     if t == 'Polygon':
         return [container.newpolygon(name=name, outerboundaryis=[tuple(p) for p in c[0]])]
     multi = container.newmultigeometry(name=name)

@@ -152,9 +152,12 @@ def test_demo_kml_parses_and_matches(demo):
                 for d in pm.iter(f'{KML}Data')}
         stamp = int(data['stamp_ns'])
         nav = demo['fixes'][stamp][2]
-        lon, lat, _ = map(float, pm.findtext(f'.//{KML}coordinates').split(','))
+        lon, lat, alt = map(float, pm.findtext(f'.//{KML}coordinates').split(','))
         assert lon == pytest.approx(nav.longitude, abs=2e-9)
         assert lat == pytest.approx(nav.latitude, abs=2e-9)
+        # at the fix's height, not clamped to the ground (they were written at 0)
+        assert alt == pytest.approx(nav.altitude, abs=1e-3)
+        assert pm.findtext(f'.//{KML}altitudeMode') == 'absolute'
         assert pm.findtext(f'.//{KML}when') == data['time']
         assert data['status'] == 'ok' and data['estimator'] == 'mle'
         assert len(data['covariance_enu_m2'].split()) == 9
