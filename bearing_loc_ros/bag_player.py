@@ -17,6 +17,8 @@ NS_PER_S = 1_000_000_000
 DEFAULT_WAIT_S = 5.0
 #: The ROS graph must be unchanged this long (s) before playing (subscriber discovery).
 SETTLE_S = 1.0
+#: Upper bound (s) of ``delay`` and ``wait_for_subscribers`` (one day).
+MAX_WAIT_S = 86400.0
 
 
 def _import_msg_class(msgtype):
@@ -49,10 +51,13 @@ def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0,
     ``/clock``: with ``clock_rate`` > 0, a rosgraph_msgs/Clock with the playback time
     t0 + (wall − wall0) · rate is published at ``clock_rate`` Hz wall and the bag's own
     /clock is skipped; otherwise the bag's /clock messages are replayed, or, if it has none,
-    a clock is generated at 100 Hz. Messages of one bag instant go out before its clock tick.
+    a clock is generated at 100 Hz. Messages of one bag instant go out before its clock tick,
+    except on the passes of a ``loop`` after the first: there the clock jumps back to the
+    bag's first /clock message before the first instant's data go out.
     Topics whose message type is not installed are skipped with a warning (as rosbag2 does).
     Before playing, waits up to ``wait_for_subscribers`` s (see :func:`wait_for_subscribers`;
-    0: no wait). Returns 0; Ctrl-C stops cleanly.
+    0: no wait). ``delay`` and ``wait_for_subscribers`` are within [0, MAX_WAIT_S] s.
+    Returns 0; Ctrl-C stops cleanly.
     """
     import rclpy
     from rclpy.duration import Duration
@@ -63,6 +68,9 @@ def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0,
         raise InputError(f'rate: must be > 0 (got {rate})')
     if clock_rate < 0 or not math.isfinite(clock_rate):
         raise InputError(f'clock_rate: must be >= 0 (got {clock_rate})')
+    for name, value in (('delay', delay), ('wait_for_subscribers', wait_for_subscribers)):
+        if not 0 <= value <= MAX_WAIT_S:        # NaN too
+            raise InputError(f'{name}: must be within [0, {MAX_WAIT_S:g}] s (got {value})')
     log = log or (lambda s: print(s, file=sys.stderr, flush=True))
     with bagio.BagReader(path) as reader:
         info = reader.topics
@@ -108,11 +116,13 @@ def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0,
         if delay > 0:
             time.sleep(delay)
         period_ns = int(NS_PER_S / gen_hz)
+        again = False
         while True:
             n = _play_once(path, pubs, clock_pub, rate, period_ns, set(classes) | (
-                {bagio.CLOCK_TOPIC} & set(info)), quiet, log)
+                {bagio.CLOCK_TOPIC} & set(info)), quiet, log, again)
             if not loop or not rclpy.ok():
                 break
+            again = True
         for p in pubs.values():
             p.wait_for_all_acked(Duration(seconds=2.0))
         if not quiet:
@@ -162,8 +172,14 @@ def wait_for_subscribers_of(node, pubs, timeout, quiet=False, log=print):
     return pending
 
 
-def _play_once(path, pubs, clock_pub, rate, period_ns, topics, quiet, log):
-    """One pass over the bag; returns the number of messages published."""
+def _play_once(path, pubs, clock_pub, rate, period_ns, topics, quiet, log, again=False):
+    """One pass over the bag; returns the number of messages published.
+
+    ``again``: a pass of a loop after the first. The clock then jumps back before the first
+    instant's data, not after them (a node would take them for data of the end of the bag):
+    a generated clock always starts a pass; the bag's first /clock message is published
+    first (and again at its place).
+    """
     from rosgraph_msgs.msg import Clock
     from . import bagio
     from .ros_conversions import ns_to_time
@@ -173,6 +189,11 @@ def _play_once(path, pubs, clock_pub, rate, period_ns, topics, quiet, log):
             clock_pub.publish(Clock(clock=ns_to_time(max(0, t_ns))))
 
     count = 0
+    if again and clock_pub is None and bagio.CLOCK_TOPIC in pubs:
+        with bagio.BagReader(path) as reader:
+            for m in reader.messages(topics={bagio.CLOCK_TOPIC}):
+                pubs[bagio.CLOCK_TOPIC].publish(m.raw)
+                break
     with bagio.BagReader(path) as reader:
         t0 = reader.start_time_ns
         wall0 = time.monotonic_ns()

@@ -101,28 +101,96 @@ def _interp_truth(stamps, positions, t, max_gap_ns):
     return out
 
 
+def _typed_topic(topics, name, types, consequence, log):
+    """True when the bag has topic ``name`` of one of the message ``types``. A topic of
+    another installed type is ignored with a warning naming the ``consequence`` (one of a
+    type that is not installed was warned about with the others)."""
+    from . import bagio
+    t = topics.get(name)
+    if t is None:
+        return False
+    if t.msgtype in types:
+        return True
+    if t.msgtype in bagio.typestore().types:
+        log(f'bag process: warning: {name} has type {t.msgtype}, not {" or ".join(types)}: '
+            f'ignored ({consequence})')
+    return False
+
+
+def _station_topics(topics, prefix, configured, log):
+    """The stations and their bearing topics ({topic: station}) in namespace ``prefix``.
+
+    ``configured`` (the ``stations`` parameter): those stations, in that order; their topics
+    missing from the bag, or of another message type, are named in a warning. Else, as
+    fusion_node with ``discover`` in that namespace: every PoseWithCovarianceStamped topic
+    ``<prefix><station>/bearing`` whose station id is valid (STATION_ID_RE), nested
+    namespaces included, in sorted order, with a warning when some are nested.
+    """
+    from . import bagio
+    from .core.fusion.config import STATION_ID_RE
+    if configured:
+        wanted, missing = {}, []
+        for s in configured:
+            name = prefix + s + '/bearing'
+            if _typed_topic(topics, name, (bagio.POSE_COV_STAMPED,), 'fusion_node receives '
+                            'nothing from a publisher of another type', log):
+                wanted[name] = s
+            elif name not in topics:
+                missing.append(name)
+        if missing:
+            log('bag process: warning: no topic in the bag for these stations of the stations '
+                'parameter: ' + ', '.join(missing))
+        return list(configured), wanted
+    wanted = {}
+    for name, t in topics.items():
+        if t.msgtype == bagio.POSE_COV_STAMPED and name.startswith(prefix):
+            station = bagio.station_from_topic(name[len(prefix) - 1:])
+            if station is not None and STATION_ID_RE.match(station):
+                wanted[name] = station
+    stations = sorted(wanted.values())
+    nested = [s for s in stations if '/' in s]
+    if nested:
+        spaces = sorted({prefix + s.rpartition('/')[0] for s in nested})
+        log(f'bag process: warning: stations {", ".join(nested)} are bearing topics of nested '
+            f'namespaces ({", ".join(spaces)}), all fused as one network (as '
+            'fusion_node does with discover:=true); if a namespace holds the bearings of '
+            'another emitter, process it alone with --namespace, or list the stations with '
+            '-p stations=[...]')
+    return stations, wanted
+
+
 def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix', log=None):
     """Run the fusion node's pipeline (core.fusion.FusionCore + replay) offline over a bag.
 
     Exactly what fusion_node does, message by message in bag order: a ``/clock`` message
     sets the node clock (and runs the node's timer ticks, via core.fusion.replay); a
-    bearing on ``<ns>/<station>/bearing`` is converted by ``ros_conversions.bearing_from_msg``
-    (a ConversionError is counted as a bad message) and given to the core at the current
-    node-clock time (the bearing's stamp before the first /clock; the bag time when the bag
-    has no /clock). Stations: the ``stations`` parameter, else every bearing topic of the
-    namespace in sorted order. With ``out``, writes ``<out>/`` (a bag with the fixes on
-    ``<ns>/fix``, bag time = node-clock time the fix was computed) and ``<out>.csv``; with
-    ``out`` None, nothing is written. With parameter ``publish_low_confidence`` the CSV also
-    has the epochs whose fix failed its consistency checks (column status
-    ``low_confidence``; core.robust). Topics of message types that are not installed are
-    ignored with a warning through ``log``. Returns a summary dict (epochs, fixes, no_fix
-    reasons, dropped, bad, and ``errors`` against ``<ns>/truth`` when the bag has it).
+    bearing on ``<ns>/<station>/bearing`` is converted from its CDR bytes by
+    ``ros_conversions.bearing_from_cdr`` (as the node's raw subscriptions; a ConversionError,
+    unreadable bytes included, is counted as a bad message of the station) and given to the
+    core at the current node-clock time (the bearing's stamp before the first /clock; the
+    bag time when the bag has no /clock). Stations: the ``stations`` parameter, else every
+    bearing topic of the namespace in sorted order (:func:`_station_topics`). A ``/clock``
+    or ``<ns>/truth`` message that cannot be read is counted as a bad message of its topic
+    (reason ``malformed_cdr``) and skipped; such a topic of another message type is ignored
+    with a warning. With ``out``, writes ``<out>/`` (a bag with the fixes on
+    ``<ns>/fix``, bag time = node-clock time the fix was computed) and ``<out>.csv``,
+    creating missing parent directories; with ``out`` None, nothing is written. With
+    parameter ``publish_low_confidence`` the CSV also has the epochs whose fix failed its
+    consistency checks (column status ``low_confidence``; core.robust). Topics of message
+    types that are not installed are ignored with a warning through ``log``. Returns a
+    summary dict (epochs, fixes, no_fix reasons, dropped, bad_messages (total) and ``bad``
+    ({station or topic: {reason: n}}), and ``errors`` against ``<ns>/truth`` when the bag
+    has it).
     """
+    from collections import Counter
+
     import numpy as np
+    from rosbags.serde import SerdeError
+
     from . import bagio
     from .core.evaluation import track_errors
     from .core.fusion import make_core, replay
-    from .ros_conversions import bearing_from_msg, ConversionError
+    from .ros_conversions import bearing_from_cdr, ConversionError
     log = log or (lambda text: print(text, file=sys.stderr, flush=True))
     out = None if out is None else str(out).rstrip('/')
     csv_path = None if out is None else out + '.csv'
@@ -138,43 +206,56 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
         if unknown:
             log('bag process: warning: message type not installed, topic ignored: '
                 + ', '.join(unknown))
-        station_topics = {}
-        for name, t in topics.items():
-            if t.msgtype != bagio.POSE_COV_STAMPED or not name.startswith(prefix):
-                continue
-            station = bagio.station_from_topic(name[len(prefix) - 1:])
-            if station is not None:
-                station_topics[name] = station
-        stations = list(params.get('stations') or sorted(set(station_topics.values())))
-        wanted = {prefix + s + '/bearing': s for s in stations}
-        if not any(t in topics for t in wanted):
-            raise InputError(f'bag: no bearing topics {prefix}<station>/bearing in {path}')
+        stations, wanted = _station_topics(topics, prefix, params.get('stations'), log)
+        if not wanted:
+            which = (f'of the stations {", ".join(stations)} ' if params.get('stations')
+                     else '')
+            raise InputError(f'bag: no bearing topic {which}({prefix}<station>/bearing, '
+                             f'{bagio.POSE_COV_STAMPED}) in {path}')
         truth_topic = prefix + 'truth'
-        has_truth = truth_topic in topics
-        has_clock = bagio.CLOCK_TOPIC in topics
+        truth_types = (bagio.POSE_STAMPED, bagio.POSE_COV_STAMPED)
+        has_truth = _typed_topic(topics, truth_topic, truth_types,
+                                 'no error statistics', log)
+        has_clock = _typed_topic(topics, bagio.CLOCK_TOPIC, (bagio.CLOCK,),
+                                 'the bag time is taken as the node clock', log)
         core = make_core(config, stations=stations, mode=params.get('mode') or 'auto')
         truth_t, truth_p = [], []
         clock = [None]
+        unreadable = Counter()      # (topic, reason) of the /clock and truth messages skipped
+
+        def read(m, types):
+            """Message ``m`` deserialized, or None (another type, or unreadable: counted)."""
+            if m.msgtype not in types:
+                return None
+            try:
+                return bagio.deserialize(m.raw, m.msgtype)
+            except SerdeError:
+                unreadable[m.topic, 'malformed_cdr'] += 1
+                return None
 
         def items():
             for m in reader.messages():
                 if m.topic == bagio.CLOCK_TOPIC:
-                    clock[0] = bagio.stamp_ns(bagio.deserialize(m.raw, m.msgtype))
-                    yield clock[0], None
+                    msg = read(m, (bagio.CLOCK,)) if has_clock else None
+                    if msg is not None:
+                        clock[0] = bagio.stamp_ns(msg)
+                        yield clock[0], None
                 elif m.topic in wanted:
+                    if m.msgtype != bagio.POSE_COV_STAMPED:
+                        continue
                     now = clock[0] if has_clock else m.log_time_ns
                     station = wanted[m.topic]
                     try:
-                        b = bearing_from_msg(bagio.deserialize(m.raw, m.msgtype), station,
-                                             expected_frame=config.frame_id)
+                        b = bearing_from_cdr(m.raw, station, expected_frame=config.frame_id)
                     except ConversionError as exc:
                         core.count_bad_message(station, exc.reason, now)
                         continue
                     yield (now if now is not None else b.stamp_ns), b
                 elif m.topic == truth_topic and has_truth:
-                    msg = bagio.deserialize(m.raw, m.msgtype)
-                    truth_t.append(bagio.stamp_ns(msg))
-                    truth_p.append(bagio.position_of(msg))
+                    msg = read(m, truth_types)
+                    if msg is not None:
+                        truth_t.append(bagio.stamp_ns(msg))
+                        truth_p.append(bagio.position_of(msg))
 
         epochs = list(replay(core, items()))
     fixes = [e for e in epochs if e.ok]
@@ -199,6 +280,7 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
                 row_truth = _interp_truth(truth_t, truth_p,
                                           np.array([e.stamp_ns for e in rows], np.int64),
                                           max(gap, NS_PER_S))
+        os.makedirs(os.path.dirname(os.path.abspath(out)), exist_ok=True)
         _write_fix_csv(csv_path, rows, row_truth)
         with bagio.BagWriter(out, storage=storage, custom_data={
                 'generator': 'bearing_loc bag process', 'source': str(path),
@@ -207,10 +289,13 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
             for e in fixes:
                 bag.write(fix_name, e.produced_ns, bagio.fix_message(
                     e.position, e.covariance, e.stamp_ns, config.frame_id))
-    from collections import Counter
+    bad = {station: dict(st.bad) for station, st in core.registry.all_stats() if st.bad}
+    for (topic, reason), n in sorted(unreadable.items()):
+        bad.setdefault(topic, {})[reason] = n
     summary = {'stations': stations, 'epochs': len(epochs), 'fixes': len(fixes),
                'no_fix': dict(Counter(e.reason for e in epochs if not e.ok)),
-               'dropped': dict(core.dropped), 'bad_messages': core.bad_messages,
+               'dropped': dict(core.dropped),
+               'bad_messages': core.bad_messages + sum(unreadable.values()), 'bad': bad,
                'outliers': core.outliers, 'time_jumps': core.time_jumps,
                'estimator': config.estimator, 'fix_topic': fix_name, 'bag': out,
                'csv': csv_path, 'errors': None, 'epoch_list': epochs}

@@ -383,6 +383,33 @@ def _one_line(exc):
     return ' '.join(str(exc).split())
 
 
+#: The 8 bytes an MCAP file starts and ends with (MCAP specification, "Magic").
+MCAP_MAGIC = b'\x89MCAP0\r\n'
+
+
+def _truncated_mcap_problem(path):
+    """Why an MCAP file of bag directory ``path`` cannot be read because it was not closed
+    (a recorder killed or a disk full leaves it without its end), or None.
+
+    A closed MCAP file ends with MCAP_MAGIC; ``rosbags`` reads only closed files, and no
+    reader installed here recovers the messages of an unclosed one.
+    """
+    for f in sorted(Path(path).glob('*.mcap')):
+        size = f.stat().st_size
+        if size == 0:
+            return (f'{f.name} is empty (the recording stopped before any message was '
+                    'written); record again')
+        with open(f, 'rb') as fh:
+            fh.seek(max(0, size - len(MCAP_MAGIC)))
+            if fh.read() != MCAP_MAGIC:
+                return (f'{f.name} looks truncated: its end is missing (the recording was not '
+                        'closed, e.g. the recorder was killed); copy the messages it holds into '
+                        'a readable file with the mcap command line tool (mcap recover '
+                        f'{f.name} -o recovered.mcap, then replace {f.name} by recovered.mcap), '
+                        'or record again')
+    return None
+
+
 def read_metadata(path):
     """Parse ``<path>/metadata.yaml`` and return its ``rosbag2_bagfile_information`` dict.
 
@@ -437,15 +464,25 @@ class BagReader:
         try:
             self._reader = Reader(path)
         except Exception as exc:  # rosbags raises ReaderError and friends
-            raise ValueError(f'bag: cannot open {path}: {_one_line(exc)}') from None
+            raise self._open_error(path, exc) from None
         self.path = path
+
+    @staticmethod
+    def _open_error(path, exc):
+        """The one-line ValueError of a bag that cannot be opened: a truncated MCAP file
+        named as such (:func:`_truncated_mcap_problem`), else rosbags' reason."""
+        try:
+            problem = _truncated_mcap_problem(path)
+        except OSError:
+            problem = None
+        return ValueError(f'bag: cannot open {path}: {problem or _one_line(exc)}')
 
     def open(self):
         """Open the storage file(s)."""
         try:
             self._reader.open()
         except Exception as exc:
-            raise ValueError(f'bag: cannot open {self.path}: {_one_line(exc)}') from None
+            raise self._open_error(self.path, exc) from None
         return self
 
     def close(self):

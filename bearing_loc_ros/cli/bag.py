@@ -298,10 +298,12 @@ def run_process(args):
     dt = time.perf_counter() - t0
     no_fix = ', '.join(f'{k} {v}' for k, v in sorted(s['no_fix'].items())) or 'none'
     dropped = ', '.join(f'{k} {v}' for k, v in sorted(s['dropped'].items())) or 'none'
+    bad = '; '.join(f'{where}: ' + ', '.join(f'{k} {v}' for k, v in sorted(reasons.items()))
+                    for where, reasons in s['bad'].items())
     print(f'{args.bag}: stations {", ".join(s["stations"])}; estimator {s["estimator"]}; '
           f'{s["epochs"]} epochs, {s["fixes"]} fixes (no fix: {no_fix}); dropped bearings: '
-          f'{dropped}; bad messages {s["bad_messages"]}; outliers rejected {s["outliers"]}; '
-          f'{dt:.2f} s')
+          f'{dropped}; bad messages {s["bad_messages"]}{f" ({bad})" if bad else ""}; '
+          f'outliers rejected {s["outliers"]}; {dt:.2f} s')
     if s['bag'] is not None:
         print(f'wrote {s["bag"]}/ ({s["fix_topic"]}) and {s["csv"]}')
     e = s['errors']
