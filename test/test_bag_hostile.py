@@ -304,3 +304,13 @@ def test_loop_passes_after_the_first_jump_the_clock_first(src, monkeypatch):
     monkeypatch.setattr(bag_player, '_play_once', one_pass)
     assert bag_player.play_bag(src, loop=True, wait_for_subscribers=0, quiet=True) == 0
     assert calls == [False, True, True]
+
+
+@pytest.mark.parametrize('option, value, message', [
+    ('--rate', '1e-300', 'rate: must be in [1e-06, 1e+06] (got 1e-300)'),
+    ('--rate', 'inf', 'rate: must be in [1e-06, 1e+06] (got inf)'),
+    ('--clock-rate', '1e9', 'clock_rate: must be in [0, 1e4] Hz (got 1000000000.0)')])
+def test_play_refuses_rates_out_of_range(src, capsys, option, value, message):
+    # --rate 1e-300 overflowed in the wait (bag time / rate)
+    code, out, err = run(capsys, 'bag', 'play', str(src), option, value, '--quiet')
+    assert code == 2 and err == f'bearing_loc bag: error: {message}\n'
