@@ -80,6 +80,7 @@ RCL_SCALARS = ('1_000', '12:30', 'nan', 'NaN', '.nan', 'nan(x)', '-nan', 'inf', 
                'null', '1_0.5', '1.2.3', '0x1p3', '0x1.8p1', '1e400', '1e-310', '1e-400',
                '0e400', '2.2250738585072014e-308', '9223372036854775807',
                '9223372036854775808', '-9223372036854775809', '0xFFFFFFFFFFFFFFFF', 'a b',
+               '0x1p1024', '0x1.fffffffffffff8p1023', '-0x1p1024',
                '[1, 2]', '[y, n]', '[nan, 1.0]', '[a, "1"]', "'1'", '"yes"', '!!str 5')
 #: Values rcl refuses: no value, an empty list, lists mixing types.
 RCL_REFUSED = ('', '[]', '[1, 2.5]', "['1', 2]", '[true, 1]', '[[1], [2]]')

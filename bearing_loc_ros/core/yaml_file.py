@@ -101,8 +101,11 @@ def _c_double(text):
     if _C_DEC.fullmatch(text):
         v, mantissa, digits = float(text), re.split('[eE]', text)[0], '123456789'
     elif _C_HEX.fullmatch(text):
-        v, mantissa, digits = float.fromhex(text), re.split('[pP]', text)[0].lstrip('+-')[2:], \
-            '123456789abcdefABCDEF'
+        try:
+            v = float.fromhex(text)
+        except OverflowError:                       # beyond the double range: ERANGE
+            return None
+        mantissa, digits = re.split('[pP]', text)[0].lstrip('+-')[2:], '123456789abcdefABCDEF'
     else:
         return None
     if v in (float('inf'), -float('inf')):

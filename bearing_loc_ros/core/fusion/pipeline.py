@@ -81,10 +81,11 @@ class FusionCore:
         """Time after the last arrival beyond which ticks no longer change anything but the
         no-fix counts of empty timer epochs, ns: every buffered bearing has aged out
         (``buffer_age``, the ``window`` in window mode), its epochs were due (``max_latency``)
-        and its station is stale (``station_timeout``); plus two periods."""
+        and its station is stale (``station_timeout``), counted from its stamp, which may
+        lie up to ``future_tolerance`` after its arrival; plus two periods."""
         c = self.config
-        return seconds_to_ns(max(c.buffer_age, c.window, c.max_latency, c.station_timeout)) \
-            + 2 * c.period_ns
+        return seconds_to_ns(max(c.buffer_age, c.window, c.max_latency, c.station_timeout)
+                             + c.future_tolerance) + 2 * c.period_ns
 
     def check_config(self, **changes):
         """Validate ``changes`` to the configuration without applying them (ValueError)."""
