@@ -100,8 +100,9 @@ def _add_geometry(container, geom, name):
         else:
             out = container.newlinestring(name=name, coords=[tuple(p) for p in c])
         if all(len(p) == 3 for p in pts):
-            # heights above the ellipsoid, as in the GeoJSON (an aircraft's fix is not on the
-            # ground); 2D coordinates stay clamped to the ground
+            # at its height (an aircraft's fix is not on the ground); KML reads "absolute"
+            # above mean sea level and these are WGS84 ellipsoidal heights, as in the GeoJSON:
+            # shown offset by the local geoid height (docs/view.md); 2D stays on the ground
             out.altitudemode = simplekml.AltitudeMode.absolute
         return [out]
     if t == 'Polygon':
@@ -109,7 +110,9 @@ def _add_geometry(container, geom, name):
     multi = container.newmultigeometry(name=name)
     if t == 'MultiLineString':
         for part in c:
-            multi.newlinestring(coords=[tuple(p) for p in part])
+            line = multi.newlinestring(coords=[tuple(p) for p in part])
+            if all(len(p) == 3 for p in part):
+                line.altitudemode = simplekml.AltitudeMode.absolute
     elif t == 'MultiPolygon':
         for poly in c:
             multi.newpolygon(outerboundaryis=[tuple(p) for p in poly[0]])
