@@ -65,6 +65,12 @@ def test_rmse_over_crlb_divides_by_the_bound_of_the_same_trials():
                             fix([[1.0, 0, 0], [50.0, 0, 0]], [np.eye(3)] * 2, [1, 0]), crlb, 0.0)
     assert s.crlb == pytest.approx(math.sqrt((1.0 + 1e4) / 2))
     assert s.rmse_over_crlb == pytest.approx(1.0)
+    # a converged trial whose bound is infinite (unobservable) is left out of both sides
+    s = ev.error_statistics('x', 'joint', lvl, np.zeros((3, 3)),
+                            fix([[1.0, 0, 0], [2.0, 0, 0], [50.0, 0, 0]], [np.eye(3)] * 3),
+                            np.array([np.eye(3) / 3.0, np.eye(3) * 4 / 3.0,
+                                      np.full((3, 3), np.inf)]), 0.0)
+    assert s.rmse_over_crlb == pytest.approx(1.0)
 
 
 def test_error_statistics_never_reports_nan_as_a_value():

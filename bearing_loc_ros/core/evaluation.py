@@ -19,11 +19,11 @@ Statistics over the trials m whose estimate converged (error e_m = X̂_m − X_m
 * CRLB = sqrt(mean_m trace(J_m⁻¹)) over every trial with a finite bound, J_m the Fisher
   information of trial m at the true target with the *true* (generating) σ (Zong & Cui (2015)
   eqs. (6)-(8), :func:`~.crlb.crlb`): the root of the smallest mean squared error any
-  unbiased estimator can reach over those targets. RMSE/CRLB divides the RMSE by the same
-  root mean trace over the trials the RMSE averages (the converged ones), >= 1 up to Monte
-  Carlo error and estimator bias when every trial converges; when only some do, they are a
-  selection (often the easy targets, and the fixes whose error happened to be small), and
-  the ratio can fall below 1.
+  unbiased estimator can reach over those targets. RMSE/CRLB is the ratio of the RMSE and
+  the root mean trace over the same trials, the converged ones with a finite bound, >= 1 up
+  to Monte Carlo error and estimator bias when every trial converges; when only some do, they
+  are a selection (often the easy targets, and the fixes whose error happened to be small),
+  and the ratio can fall below 1.
 * mean NEES = mean_m e_mᵀ P_m⁻¹ e_m with P_m the estimator's reported covariance: 3 for a
   consistent estimator in 3D (chi-square with 3 degrees of freedom); > 3 means the
   estimator claims more accuracy than it delivers.
@@ -280,11 +280,13 @@ def error_statistics(estimator, sweep, level, truth, result, crlb_cov, elapsed_s
     tr_all = np.trace(crlb_cov, axis1=-2, axis2=-1)
     tr = tr_all[np.isfinite(tr_all)]
     bound = float(np.sqrt(tr.mean())) if tr.size else float('nan')
-    # The ratio compares like with like: the bound over the trials the RMSE averages (when
-    # few converge, they are the easy targets, and the bound of every trial is larger).
+    # The ratio compares like with like: RMSE and bound over the same trials, the converged
+    # ones with a finite bound (when few converge, they are the easy targets, and the bound
+    # of every trial is larger).
     tr_conv = tr_all[conv]
-    bound_conv = (float(np.sqrt(tr_conv.mean())) if tr_conv.size and np.all(np.isfinite(tr_conv))
-                  else float('nan'))
+    fb = np.isfinite(tr_conv)
+    ratio = (float(np.sqrt(sq[fb].mean() / tr_conv[fb].mean()))
+             if fb.any() and tr_conv[fb].mean() > 0 else float('nan'))
     P = np.asarray(result.position_covariance, dtype=float)[conv]
     nees = nees_values(e, P)[0] if n else np.zeros(0)
     nees = nees[np.isfinite(nees)]
@@ -298,7 +300,7 @@ def error_statistics(estimator, sweep, level, truth, result, crlb_cov, elapsed_s
         sigma_el_deg=_deg(level.sigma_el_deg, level.sigma_el),
         trials=M, converged=n, rmse=rmse, bias=float(np.linalg.norm(bias_vec)),
         crlb=bound,
-        rmse_over_crlb=rmse / bound_conv if n and bound_conv > 0 else float('nan'),
+        rmse_over_crlb=ratio,
         mean_nees=float(nees.mean()) if nees.size else float('nan'),
         convergence_rate=n / M if M else float('nan'),
         time_per_fix_s=float(elapsed_s) / M if M else float('nan'),
