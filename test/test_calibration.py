@@ -117,7 +117,14 @@ def test_calibrate_checks_the_transmitter(run, tmp_path, capsys):
     assert capsys.readouterr().err.strip().endswith(
         'transmitter: within 1 m of station B (horizontally): its bearing is undefined')
     assert cli_main(base + ['--transmitter', '1e300', '1200', '0']) == 2
-    assert 'transmitter: coordinates must be within 1e+07 m' in capsys.readouterr().err
+    assert 'transmitter: the transmitter must lie within 1e+07 m' in capsys.readouterr().err
+    geo = tmp_path / 'geo.yaml'
+    geo.write_text(yaml.safe_dump({f'/{s}/station_node': {'ros__parameters': dict(
+        p, geodetic_origin=[48.0, 11.0, 500.0])} for s, p in params().items()}))
+    argv = [a if a != str(d / 'stations.yaml') else str(geo) for a in base]
+    assert cli_main(argv + ['--transmitter-geodetic', '48', '11', '1e300']) == 2
+    assert 'transmitter-geodetic: the transmitter must lie within 1e+07 m' in \
+        capsys.readouterr().err
     # a wrong sign shows as a large bias: written, with a warning naming the station
     assert cli_main(base + ['--transmitter', '-1800', '1200', '0']) == 0
     out = capsys.readouterr().out

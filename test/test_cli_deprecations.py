@@ -133,6 +133,8 @@ def test_plan_azimuth_sigma_keeps_the_scenario_elevation_sigma(capsys, monkeypat
      '--sigma-deg', '0.1'],
     ['plan', 'map', '--scenario', 'seed000', '--altitude', '5000', '--sigma-deg=0.1',
      '--sigma-mrad', '1.5'],
+    ['plan', 'map', '--scenario', 'seed000', '--altitude', '5000', '--sigma-mrad', '1.5',
+     '--sigma-de', '0.1'],
     ['locate', '--method', 'ls', '--estimator', 'tls', 'x.json'],
     ['evaluate', '--scenario', 'seed003', '--estimator', 'mle', '--estimators', 'ls'],
     ['tma', '--method', 'tma_mle', '--estimator', 'tma_ple', 'x.json'],

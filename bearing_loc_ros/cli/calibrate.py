@@ -149,20 +149,27 @@ def transmitter_position(args, params):
         t = np.asarray(args.transmitter, dtype=float)
         if not np.all(np.isfinite(t)):
             raise InputError('transmitter: expected finite X Y Z')
-        if np.max(np.abs(t)) > MAX_TRANSMITTER_COORDINATE:
-            raise InputError(f'transmitter: coordinates must be within '
-                             f'{MAX_TRANSMITTER_COORDINATE:g} m of the ENU origin')
-        return t
+        return _bounded(t, 'transmitter')
     origins = {tuple(p.get('geodetic_origin') or ()) for p in params.values()}
     origins.discard(())
     if len(origins) != 1:
         raise InputError('transmitter-geodetic: needs one geodetic_origin shared by every '
                          'station in --params')
     try:
-        return geodesy.geodetic_to_enu(*args.transmitter_geodetic, list(origins.pop()),
-                                       field='transmitter-geodetic')
+        t = geodesy.geodetic_to_enu(*args.transmitter_geodetic, list(origins.pop()),
+                                    field='transmitter-geodetic')
     except ValueError as exc:
         raise InputError(str(exc)) from None
+    return _bounded(np.asarray(t, dtype=float), 'transmitter-geodetic')
+
+
+def _bounded(t, flag):
+    """``t`` (3,) ENU m, or InputError naming ``flag`` beyond MAX_TRANSMITTER_COORDINATE."""
+    import numpy as np
+    if not np.all(np.abs(t) <= MAX_TRANSMITTER_COORDINATE):
+        raise InputError(f'{flag}: the transmitter must lie within '
+                         f'{MAX_TRANSMITTER_COORDINATE:g} m of the ENU origin')
+    return t
 
 
 def corrected_params(params, result):

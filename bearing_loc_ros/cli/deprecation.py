@@ -44,7 +44,9 @@ def conflict(args, argv):
     """An error message when a deprecated option and its replacement were both given on
     the command line ``argv`` (the later one would silently win), else None."""
     for old, new in getattr(args, 'deprecated_uses', None) or ():
-        if any(a == new or a.startswith(new + '=') for a in argv):
+        # argparse takes an unambiguous prefix of an option (--sigma-de) for it
+        if any(a.startswith('--') and len(a.split('=')[0]) > 2
+               and new.startswith(a.split('=')[0]) for a in argv):
             return f'{old}: give only {new} (the deprecated {old} is also given)'
     return None
 
