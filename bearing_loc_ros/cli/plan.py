@@ -349,8 +349,9 @@ def run_map(args):
     if args.model != 'crlb' and horizontal_solve(st, args.dimension):
         # (auto keeps the 3D model for place, whose new station may measure elevation; a map
         # of an azimuth-only layout would be unobservable everywhere)
-        raise InputError('--model: the CTLS error model (Wang, Zhang & Wu eq. (30)) is 3D; '
-                         'an azimuth-only layout needs --model crlb')
+        raise InputError('--model: the CTLS error model (Wang, Zhang & Wu eq. (30)) is 3D; the '
+                         'horizontal solve (an azimuth-only layout, or --dimension horizontal) '
+                         'needs --model crlb')
     for flag, v in (('--vmin', args.vmin), ('--vmax', args.vmax)):
         if v is not None:
             finite(v, flag, True)

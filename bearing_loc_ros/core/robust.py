@@ -432,7 +432,8 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
     A fix that passes reports P + δδᵀ: δ estimates its offset from the likelihood's optimum,
     so the covariance bounds the mean squared error of a biased pseudo-linear fix (many
     bearings or low SNR) and not only its spread (an unbiased, nearly efficient fix has
-    δ small against P and keeps about P).
+    δ small against P and keeps about P; a less efficient one, such as ``ctls``, whose fixes
+    scatter about the optimum by about their own σ, gets a conservative covariance).
     Units: m, rad; bearing σ as given (constant σ). One problem on Python floats
     (:func:`.robust_single.consistent_one`, the same decisions), a batch as arrays.
     """
