@@ -21,6 +21,13 @@ def _run(capsys, *argv):
     return rc, out, err
 
 
+def _json(capsys, *argv):
+    """The JSON printed by a successful ``bearing_loc plan`` run."""
+    rc, out, err = _run(capsys, *argv)
+    assert rc == 0, err
+    return json.loads(out)
+
+
 def test_cut_angle_json(capsys):
     rc, out, _ = _run(capsys, 'cut-angle', '--k1', '1', '--k2', '0', '--elevation-deg', '0')
     assert rc == 0
@@ -106,23 +113,17 @@ def test_map_png_and_csv_from_stations(capsys, tmp_path):
 
 
 def test_map_png_without_an_extension_reports_the_file_written(capsys, tmp_path):
-    rc, out, _ = _run(capsys, 'map', '--stations', STATIONS, '--altitude', '5000',
-                      '--sigma-deg', '0.09', '--resolution', '6000', '--png',
-                      str(tmp_path / 'm'))
-    assert rc == 0
-    d = json.loads(out)
+    d = _json(capsys, 'map', '--stations', STATIONS, '--altitude', '5000', '--sigma-deg', '0.09',
+              '--resolution', '6000', '--png', str(tmp_path / 'm'))
     assert d['png'] == str(tmp_path / 'm.png') and d['csv'] == str(tmp_path / 'm.csv')
     assert (tmp_path / 'm.png').read_bytes()[:4] == b'\x89PNG'
 
 
 def test_place_draws_an_unobservable_before_map(capsys, tmp_path):
     # one station observes nothing: the documented null "before" with its map drawn
-    rc, out, err = _run(capsys, 'place', '--stations', '0,0,0', '--sigma-deg', '0.1',
-                        '--altitude', '3000', '--area-km', '-10,10,-10,10', '--area-cells',
-                        '10', '--candidates', '5', '--png-before', str(tmp_path / 'b.png'),
-                        '--png-after', str(tmp_path / 'a.png'))
-    assert rc == 0, err
-    d = json.loads(out)
+    d = _json(capsys, 'place', '--stations', '0,0,0', '--sigma-deg', '0.1', '--altitude', '3000',
+              '--area-km', '-10,10,-10,10', '--area-cells', '10', '--candidates', '5',
+              '--png-before', str(tmp_path / 'b.png'), '--png-after', str(tmp_path / 'a.png'))
     assert d['before_m'] is None and d['after_m'] > 0
     assert d['png_before'] == str(tmp_path / 'b.png')
     for name in ('a.png', 'b.png'):
