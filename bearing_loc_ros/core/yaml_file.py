@@ -21,7 +21,9 @@ rclpy). A quoted scalar is a string. An unquoted one is, in this order:
 - else a string (``1_000``, ``12:30``, ``null`` and ``~`` are strings).
 
 An empty value, an empty list and a list mixing types (``[1, 2.5]``) are errors.
-:func:`params_loader` reads files so.
+:func:`params_loader` reads files so. Not followed: values with an explicit YAML tag
+(``!!float 5`` is 5.0 here, 5 to rcl) and hexadecimal floats that are exactly subnormal
+(a string here, a number to rcl).
 """
 
 import re
