@@ -62,12 +62,36 @@ def test_mle_uses_a_manoeuvring_observer_exactly():
                                  0 * TIMES])
     v_o, _ = T.observer_track((TIMES - TIMES[0])[None], obs[None])
     bs, t = T.simulate_tma(TIMES, P_T, V_T, obs, SIG)
-    vc = float(np.linalg.norm(V_T - v_o[0]))
-    r = T.tma_mle(bs, t, vc)
+    r = T.tma_mle(bs, t, float(np.linalg.norm(V_T)), speed_reference='ground')
     assert r.status[0] == 'ok'
     assert np.linalg.norm(r.position[0] - _truth_at(100.0)) < 1e-6 * _range_at_end()
+    # The relative speed refers to the fitted straight track (T2), which moves with the
+    # window of a weaving observer: even its exact value for this window is low_confidence
+    # (T22), and so is the closed form, which assumes δ ≡ 0 and is off.
+    vc = float(np.linalg.norm(V_T - v_o[0]))
+    r = T.tma_mle(bs, t, vc)
+    assert np.linalg.norm(r.position[0] - _truth_at(100.0)) < 1e-6 * _range_at_end()
+    assert r.status[0] == 'low_confidence' and 'manoeuvring observer' in r.reason[0]
     c = T.tma_ctls(bs, t, vc)
     assert np.linalg.norm(c.position[0] - _truth_at(100.0)) > 1e-3 * _range_at_end()
+    assert c.status[0] == 'low_confidence'
+
+
+@pytest.mark.parametrize('window_s', [50.0, 100.0])
+def test_gps_noise_on_a_straight_observer_is_not_a_manoeuvre(window_s):
+    # (T22) must not take 5 m of white position noise for a manoeuvre over 50-100 s windows:
+    # the fixes keep the status they have with exact observer positions.
+    rng = np.random.default_rng(7)
+    keep = TIMES <= window_s
+    t_k, obs = TIMES[keep], OBS[keep]
+    bs, t = T.simulate_tma(t_k, P_T, V_T, obs, SIG, rng=rng, M=50)
+    noisy = BearingSet(bs.positions + rng.normal(0.0, 5.0, bs.positions.shape), bs.azimuth,
+                       bs.elevation, bs.sigma_az, bs.sigma_el)
+    data = T.model.prepare(noisy, t, VC, 'relative')
+    assert T.confidence.manoeuvre_speed(data).max() < 0.5 * T.confidence.MANOEUVRE_FRACTION * VC
+    exact, moved = T.tma_mle(bs, t, VC), T.tma_mle(noisy, t, VC)
+    assert not any('manoeuvring' in r for r in moved.reason)
+    assert (moved.status == 'ok').sum() >= (exact.status == 'ok').sum() - 2
 
 
 def test_pseudo_linear_rows_and_compass_convention():

@@ -1,4 +1,4 @@
-"""Confidence of a TMA fix (T19)-(T21): is its covariance, the constrained CRLB, honest?
+"""Confidence of a TMA fix (T19)-(T22): is its covariance, the constrained CRLB, honest?
 
 Every TMA estimator reports the constrained CRLB (T15)-(T16) at its estimate as the
 covariance. That is the error covariance of the fix only when (a) the bearings fit the
@@ -54,6 +54,18 @@ s, rad, ENU; x = (p0, v) the relative state (T1)-(T3).
       maximum; there κ → ∞ (20 s of the paper's scenario: ν = 0.06 with a Mahalanobis²
       error of 150 at 410 km instead of 135 km).
 
+(T22) Relative speed prior and a manoeuvring observer. With ``speed_reference``
+      'relative' the prior v_c = |v| is the target's speed relative to the observer's
+      fitted straight-line track (T2), v_o the least-squares slope of the window's observer
+      positions, not to the observer itself; a manoeuvre changes v_o with the window, and no
+      one can state the speed relative to it (a 90° turn: fixes 3.5 km off with Mahalanobis²
+      errors of 700, bench/tma_manoeuvre.py). The observer's velocity departs from v_o by
+      about u = 4 max_k |δ̄_k| / T (T the window's span, δ̄_k the δ_k of (T2) averaged over
+      runs of K/10 bearings against position noise; u = aT/2 for a constant acceleration a
+      across the track); the fix fails when u exceeds
+      :data:`MANOEUVRE_FRACTION` (1 %) of v_c. 'ground' has no such test: its prior is the
+      target's own speed.
+
 Calibration of the bounds (docs/tma.md, "Confidence of a fix"; ``bench/tma_seed001.py
 --confidence``): ``max_ml_distance`` = 1 keeps 98-100 % of the ``tma_ctls6`` fixes that pass (T21)
 and bounds their mean Mahalanobis² error near dof + 1. ``max_nonlinearity`` = 0.2: over
@@ -79,6 +91,9 @@ REGION_Z = float(np.sqrt(chisq.ppf(0.9999, 3)))
 MAX_NONLINEARITY = 0.2
 #: Default largest distance D to the ML estimate, in standard deviations (``max_ml_distance``).
 MAX_ML_DISTANCE = 1.0
+#: Largest departure u of the observer's velocity from its fitted track, as a fraction of
+#: the prior speed, of an ``ok`` fix with a 'relative' speed prior (T22).
+MANOEUVRE_FRACTION = 0.01
 
 
 def residuals(data, p0, v):
@@ -179,8 +194,24 @@ def range_nonlinearity(p0, v, C, v_o, speed_reference='relative', z=REGION_Z):
     return np.where(fin & (first > 0), kappa, np.inf)
 
 
+def manoeuvre_speed(data):
+    """u (M,) of (T22), m/s: 4 max_k |δ̄_k| / T, the departure of the observer's velocity
+    from its fitted straight-line track (0 for a window of no duration). δ̄ is δ averaged
+    over runs of max(1, K // 10) consecutive bearings, so that noise on the observer
+    positions (GPS) averages out instead of reading as a manoeuvre."""
+    K = data.delta.shape[1]
+    w = max(1, K // 10)
+    c = np.cumsum(np.concatenate([np.zeros_like(data.delta[:, :1]), data.delta], axis=1),
+                  axis=1)
+    smooth = (c[:, w:] - c[:, :-w]) / w
+    span = data.tau.max(axis=1) - data.tau.min(axis=1)
+    dev = np.linalg.norm(smooth, axis=-1).max(axis=1)
+    with np.errstate(divide='ignore', invalid='ignore'):
+        return np.where(span > 0, 4.0 * dev / span, 0.0)
+
+
 def assess(data, p0, v, C, opts):
-    """Tests (T19)-(T21) of fixes (M,): (ok (M,) bool, reason (M,) str, '' where ok).
+    """Tests (T19)-(T22) of fixes (M,): (ok (M,) bool, reason (M,) str, '' where ok).
 
     ``opts``: the estimator options (``speed_reference``, ``max_nonlinearity``,
     ``max_ml_distance``); C (M, 6, 6) the constrained CRLB of (p0, v).
@@ -190,6 +221,7 @@ def assess(data, p0, v, C, opts):
     kappa = range_nonlinearity(p0, v, C, data.v_o, ref)
     dof = 2 * data.az.shape[1] - 5
     limit = chisq.isf(1.0 - CONSISTENCY_PROBABILITY, max(dof, 1))
+    u = manoeuvre_speed(data) if ref == 'relative' else np.zeros(len(D))
     reasons = []
     for m in range(len(D)):
         why = []
@@ -203,5 +235,10 @@ def assess(data, p0, v, C, opts):
             why.append(f'range nonlinear over the confidence region: kappa={kappa[m]:.3g} '
                        f'(limit {opts["max_nonlinearity"]:.3g}), the covariance understates '
                        'the range error')
+        if not u[m] <= MANOEUVRE_FRACTION * data.speed[m]:
+            why.append(f'relative speed prior with a manoeuvring observer: its velocity '
+                       f'departs from its fitted straight track by about {u[m]:.3g} m/s, so '
+                       'the relative speed is not defined; state the ground speed '
+                       '(speed_reference ground)')
         reasons.append('; '.join(why))
     return np.array([r == '' for r in reasons], dtype=bool), np.array(reasons, dtype=object)
