@@ -32,7 +32,7 @@ the given observer positions exactly (any δ).
 Modules: :mod:`.model` (options, input checks, observer track, simulation), :mod:`.sums`
 (pseudo-linear moments (T6)-(T13)), :mod:`.closed_form` (ple, ctls, ctls6),
 :mod:`.observability` (Fisher information, constrained CRLB, gates), :mod:`.confidence`
-(the tests (T19)-(T21) that mark a fix whose covariance would be too small
+(the tests (T19)-(T22) that mark a fix whose covariance would be too small
 ``low_confidence``), :mod:`.mle` (tma_mle),
 :mod:`.accumulator` (the recursive window of the fusion node) and :mod:`.methods` (by name).
 Every public name is importable from ``bearing_loc_ros.core.tma``.

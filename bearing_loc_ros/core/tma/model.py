@@ -30,7 +30,7 @@ TMA_OPTIONS = (
            'unobservable when the CRLB range std exceeds this fraction of the range (inf: '
            'never)', allow_inf=True),
     Option('covariance', True, 'flag', 'compute the constrained CRLB (T15)-(T16) and the '
-           'confidence tests (T19)-(T21)'),
+           'confidence tests (T19)-(T22)'),
     Option('max_nonlinearity', MAX_NONLINEARITY, 'positive',
            'low_confidence when the range nonlinearity kappa over the confidence region '
            'exceeds this (T21; inf: never)', allow_inf=True),

@@ -3,7 +3,7 @@
 The Cramér-Rao bound of the relative state x = (p0, v) under the speed constraint (Stoica &
 Ng 1998; Lin et al. sec. 3.3) and :func:`finish`, shared by every TMA estimator: the target
 state at the last bearing (T1), its covariance, the range gate that reports a range the
-bound cannot resolve as unobservable, and the confidence tests (T19)-(T21) of
+bound cannot resolve as unobservable, and the confidence tests (T19)-(T22) of
 :mod:`.confidence` that mark a fix whose covariance would be too small ``low_confidence``.
 Conventions as :mod:`bearing_loc_ros.core.tma`.
 """
@@ -88,7 +88,7 @@ def tma_crlb(bearings, times, p0, v, speed_reference='relative'):
 
 
 def finish(method, data, p0, v, status, reason, iterations, converged, opts):
-    """Target state (T1), covariance (T15)-(T16), range gate (T18), confidence (T19)-(T21).
+    """Target state (T1), covariance (T15)-(T16), range gate (T18), confidence (T19)-(T22).
 
     With ``covariance`` on, an ``ok`` fix that passes the range gate is tested by
     :func:`.confidence.assess`; one that fails keeps its state and covariance with the
