@@ -201,6 +201,12 @@ class BearingInputs:
             self.discovered.add(station)
             self.subscribe(station, wait=False)
             log.info(f'discovered station {station} ({found[station]})')
+            if '/' in station:
+                # as bag process warns: another namespace may hold another emitter's bearings
+                log.warning(f'station {station} is a bearing topic of the nested namespace '
+                            f'{station.rpartition("/")[0]}, fused with the others as one '
+                            'network; if it holds another emitter\'s bearings, run one fusion '
+                            'node per namespace or list the stations')
         for station in list(self.discovered):
             topic = f'{node.get_namespace().rstrip("/")}/{station}/bearing'
             gone = station not in found or node.count_publishers(topic) == 0

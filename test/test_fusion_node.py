@@ -1,6 +1,7 @@
 """fusion_node in-process: a FusionNode and a test node on one SingleThreadedExecutor, stepped
 with spin_once; simulated time comes from a /clock publisher of the test node (use_sim_time),
 so station time-outs take no wall time. Each test uses its own namespace."""
+from dataclasses import replace
 import itertools
 import math
 import os
@@ -331,6 +332,34 @@ def test_station_joins_through_discovery(harness, probe):
     assert 's9' not in h.fusion._subs and 'elsewhere/s9' not in h.fusion._subs
     assert 's9' not in h.fusion.inputs.candidates
     h.node.destroy_publisher(other)
+
+
+def test_a_nested_namespace_station_is_discovered_with_a_warning(harness):
+    # /<ns>/tx/s3/bearing becomes station tx/s3, fused with the others (as bag process
+    # does); another namespace may hold another emitter's bearings, so the node says so.
+    h = harness(stations=('s1', 's2'), discover=True, discovery_period=0.1,
+                discovery_probe=False)
+    warnings, logger = [], h.fusion.get_logger()
+
+    class Log:
+        def __getattr__(self, name):
+            return getattr(logger, name)
+
+        def warning(self, text, **kw):
+            warnings.append(text)
+            return logger.warning(text, **kw)
+
+    h.fusion.get_logger = Log
+    pub = h.node.create_publisher(PoseWithCovarianceStamped, 'tx/s3/bearing', QOS)
+    msg = bearing_to_msg(replace(truth_bearing('s3', 99 * S), station='tx/s3'))
+    for _ in range(50):
+        pub.publish(msg)
+        if h.spin(lambda: 'tx/s3' in h.fusion._subs, timeout=0.2):
+            break
+    assert 'tx/s3' in h.fusion._subs
+    assert [w for w in warnings if w.startswith('station tx/s3 is a bearing topic of the '
+                                                'nested namespace tx,')]
+    h.node.destroy_publisher(pub)
 
 
 @EXECUTORS
