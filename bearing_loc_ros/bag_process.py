@@ -306,11 +306,12 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
 
 def _write_fix_csv(path, fixes, truth):
     """One CSV row per fix: the fix time ``stamp_ns`` first, ``produced_ns`` (node-clock time
-    the fix was computed) after the solver figures."""
+    the fix was computed) after the solver figures; ``n_stations``/``stations`` the distinct
+    stations, ``n_bearings`` the bearings (more than the stations in window mode)."""
     import csv
     cols = ['stamp_ns', 'stamp_s', 'x', 'y', 'z', 'cov_xx', 'cov_xy', 'cov_xz', 'cov_yy',
             'cov_yz', 'cov_zz', 'n_stations', 'stations', 'rejected', 'estimator', 'status',
-            'iterations', 'chi2', 'dof', 'produced_ns']
+            'iterations', 'chi2', 'dof', 'produced_ns', 'n_bearings']
     if truth is not None:
         cols += ['truth_x', 'truth_y', 'truth_z', 'error_m']
     with open(path, 'w', newline='', encoding='utf-8') as f:
@@ -318,11 +319,13 @@ def _write_fix_csv(path, fixes, truth):
         w.writerow(cols)
         for k, e in enumerate(fixes):
             c = e.covariance
+            # distinct, in order (a window-mode fix holds many bearings of one station)
+            stations = list(dict.fromkeys(e.stations))
             row = [e.stamp_ns, f'{e.stamp_ns / NS_PER_S:.9f}', *map(repr, map(float, e.position)),
                    *(repr(float(c[i, j])) for i, j in UPPER_TRIANGLE),
-                   len(e.bearings), ' '.join(e.stations),
+                   len(stations), ' '.join(stations),
                    ' '.join(b.station for b in e.rejected), e.estimator, e.status,
-                   e.iterations, repr(float(e.chi2)), e.dof, e.produced_ns]
+                   e.iterations, repr(float(e.chi2)), e.dof, e.produced_ns, len(e.bearings)]
             if truth is not None:
                 t = truth[k]
                 err = math.dist(t, e.position) if all(map(math.isfinite, t)) else float('nan')

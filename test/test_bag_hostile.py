@@ -314,3 +314,24 @@ def test_play_refuses_rates_out_of_range(src, capsys, option, value, message):
     # --rate 1e-300 overflowed in the wait (bag time / rate)
     code, out, err = run(capsys, 'bag', 'play', str(src), option, value, '--quiet')
     assert code == 2 and err == f'bearing_loc bag: error: {message}\n'
+
+
+def test_csv_counts_distinct_stations_and_the_bearings(tmp_path):
+    # A window-mode fix holds a window of one station's bearings: n_stations was the bearing
+    # count and stations repeated "car" once per bearing.
+    import csv
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from bearing_loc_ros.bag_process import _write_fix_csv
+    fix = SimpleNamespace(stamp_ns=10 ** 9, position=np.zeros(3), covariance=np.eye(3),
+                          bearings=[object()] * 5, stations=['car', 'car', 'van', 'car', 'van'],
+                          rejected=[], estimator='mle', status='ok', iterations=3, chi2=1.0,
+                          dof=3, produced_ns=10 ** 9)
+    _write_fix_csv(tmp_path / 'f.csv', [fix], None)
+    with open(tmp_path / 'f.csv', encoding='utf-8') as f:
+        (row,) = csv.DictReader(f)
+    assert (row['n_stations'], row['stations'], row['n_bearings']) == ('2', 'car van', '5')
+    from bearing_loc_ros.core.gis import GeoFix      # the GeoJSON, KML and geo CSV record
+    assert GeoFix.from_epoch(SimpleNamespace(**vars(fix), reason='')).stations == ['car', 'van']

@@ -321,10 +321,11 @@ class GeoFix:
 
     @classmethod
     def from_epoch(cls, ep):
-        """From a fusion Epoch with a fix (core.fusion.Epoch)."""
+        """From a fusion Epoch with a fix (core.fusion.Epoch); ``stations`` distinct, in
+        order (a window-mode fix holds many bearings of one station)."""
         return cls(int(ep.stamp_ns), np.asarray(ep.position, float),
                    np.asarray(ep.covariance, float), ep.status or ep.reason,
-                   ep.estimator, list(ep.stations))
+                   ep.estimator, list(dict.fromkeys(ep.stations)))
 
 
 def _stamp(stamp_ns):
