@@ -3,6 +3,7 @@
 No numerics here (those live in ``bearing_loc_ros.core``).
 """
 
+import gc
 import sys
 import traceback
 
@@ -78,9 +79,10 @@ def run_node(node_factory, args=None, executor=None):
             node = node_factory()
         except ValueError as exc:
             print(f'error: {exc}', file=sys.stderr, flush=True)
-            return 1
-        spinner = executor() if executor is not None else None
-        rclpy.spin(node, spinner)
+            code = 1
+        if node is not None:
+            spinner = executor() if executor is not None else None
+            rclpy.spin(node, spinner)
     except (KeyboardInterrupt, ExternalShutdownException, Finished):
         pass
     except Exception:  # noqa: B902 - a bug in a callback: report it as one, not as config
@@ -92,6 +94,12 @@ def run_node(node_factory, args=None, executor=None):
             node.destroy_node()
         if spinner is not None:
             spinner.shutdown()
+        if code == 1:
+            # The factory failed inside the node's constructor: that half-built node (held
+            # in reference cycles) is collected now, while the context is alive, rather than
+            # during interpreter exit after rclpy's shutdown (one start-up error run in CI
+            # printed its error and then did not exit within 30 s).
+            gc.collect()
         rclpy.try_shutdown()
     return code
 
