@@ -27,8 +27,6 @@ FUSION_NODE_DEFAULTS = {k: v for k, v in parameters.defaults('fusion_node').item
 FUSION_DISPLAY_PARAMS = tuple(k for k in parameters.defaults('fusion_node')
                               if k not in FUSION_NODE_DEFAULTS) + (
     'use_sim_time', 'start_type_description_service', 'accuracy_map')
-#: Parameters every rclpy node has (accepted in a params file, no effect here).
-ROS_BUILTIN_PARAMS = ('use_sim_time', 'start_type_description_service')
 
 
 def read_params_file(path):
@@ -64,14 +62,15 @@ def fusion_params(params_file=None, overrides=(), estimator=None):
             raise InputError(f'param: {name.strip()}: invalid YAML value {value!r}') from None
     if estimator is not None:
         given['estimator'] = estimator
-    given = {k: v for k, v in flatten(given).items() if k not in ROS_BUILTIN_PARAMS}
+    given = {k: v for k, v in flatten(given).items() if not parameters.ros_builtin(k)}
     try:
         return parameters.resolve('fusion_node', given,
                                   warn=lambda text: print(f'warning: {text}', file=sys.stderr))
     except ValueError as exc:
         name, _, problem = str(exc).partition(': ')
         if problem.startswith('not a parameter'):
-            raise InputError(f'{name}: not a fusion node parameter') from None
+            raise InputError(f'{name}: not a fusion node parameter'
+                             f'{parameters.did_you_mean("fusion_node", name)}') from None
         raise InputError(str(exc)) from None
 
 

@@ -175,7 +175,9 @@ def declare_schema(node, node_name):
     (``rate:=10``, ``position:=[1,2,3]``) are accepted as doubles. A deprecated name
     (Param.deprecated) is declared too; when set, its value is used for the current name
     and a deprecation warning is logged once (ParameterError when both names are set).
-    Run-time sets of double parameters convert integers the same way.
+    Run-time sets of double parameters convert integers the same way. Names given for the
+    node (command line, parameter file) that it does not have are logged in one warning,
+    with the closest parameter name (ROS 2 itself ignores them without a word).
     """
     from .core import parameters as schema
     params = schema.schema(node_name)
@@ -204,6 +206,10 @@ def declare_schema(node, node_name):
                 for old in p.deprecated}
     node.add_pre_set_parameters_callback(
         lambda ps: [_as_double(x) if x.name in doubles else x for x in ps])
+    unknown = [n for n in overrides if not node.has_parameter(n) and not schema.ros_builtin(n)]
+    text = schema.unknown_message(node_name, unknown)
+    if text is not None:
+        node.get_logger().warning(text)
     return values
 
 

@@ -196,12 +196,17 @@ def test_calibrate_cli_errors(tmp_path, capsys):
     assert code == 2 and 'NAME=CSV' in capsys.readouterr().err
     p = tmp_path / 'p.yaml'
     p.write_text(yaml.safe_dump({'/A/station_node': {'ros__parameters': {
-        'position': [0.0, 0.0, 0.0]}}}))
+        'position': [0.0, 0.0, 0.0], 'use_sim_time': False,
+        'sigma_azimth_deg': 3.0}}}))
     code = cli_main(['calibrate', '--station', f'A={bad}', '--params', str(p),
                      '--transmitter', '0', '0', '0', '--out', str(tmp_path / 'o.yaml')])
     err = capsys.readouterr().err
     # ... and why: the rejection reasons of the station's log.
     assert code == 2 and 'usable readings' in err and '(A rejected malformed_csv 1)' in err
+    # A misspelt name (which the station node would ignore too) is named, once.
+    assert err.count('ignored') == 1 and (
+        "warning: A: ignored 1 parameter that station_node does not have: "
+        "'sigma_azimth_deg' (did you mean 'sigma_azimuth_deg'?)") in err
 
 
 def test_compass_residuals_convert_enu_azimuths_and_wrap():

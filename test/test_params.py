@@ -199,11 +199,17 @@ def test_integer_values_are_accepted_for_double_parameters(ros):
         f.destroy_node()
 
 
-def test_integer_array_on_the_command_line():
-    """``position:=[1,2,3]`` (an INTEGER_ARRAY for rclpy) starts the node."""
+def test_integer_array_on_the_command_line(tmp_path):
+    """``position:=[1,2,3]`` (an INTEGER_ARRAY for rclpy) starts the node; misspelt names
+    from the command line and a ``/**:`` parameter file are named in one warning, with the
+    closest parameter, while rclpy's own parameters are not."""
+    f = tmp_path / 'station.yaml'
+    f.write_text('/**:\n  ros__parameters:\n    sigma_azimth_deg: 3.0\n'
+                 '    use_sim_time: false\n')
     proc = subprocess.Popen(
         [sys.executable, '-m', 'bearing_loc_ros.station_node', '--ros-args', '-r',
-         '__ns:=/int_array', '-p', 'position:=[1,2,3]'], cwd=REPO, env=node_env(),
+         '__ns:=/int_array', '-p', 'position:=[1,2,3]', '-p', 'udp_prot:=5000',
+         '--params-file', str(f)], cwd=REPO, env=node_env(),
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         out = ''
@@ -212,8 +218,24 @@ def test_integer_array_on_the_command_line():
             if "station 'int_array'" in line or 'error' in line:
                 break
         assert 'position [1.0, 2.0, 3.0] m' in out, out
+        warned = [x for x in out.splitlines() if 'ignored' in x]
+        assert len(warned) == 1, out
+        assert ("ignored 2 parameters that station_node does not have: 'sigma_azimth_deg' "
+                "(did you mean 'sigma_azimuth_deg'?), 'udp_prot' (did you mean 'udp_port'?)"
+                ) in warned[0]
     finally:
         interrupt(proc, 10)
+
+
+def test_unknown_names_get_the_closest_parameter():
+    assert schema.unknown_message('fusion_node', []) is None
+    assert schema.unknown_message('fusion_node', ['zzzz']) == \
+        "ignored 1 parameter that fusion_node does not have: 'zzzz'"
+    assert schema.did_you_mean('station_node', 'diagnostics_period_sec') == \
+        " (did you mean 'diagnostics_period_s'?)"
+    with pytest.raises(ValueError, match="^estimater: not a parameter of fusion_node "
+                                         "\\(did you mean 'estimator'\\?\\)$"):
+        schema.resolve('fusion_node', {'estimater': 'mle'})
 
 
 class _Failing(Node):

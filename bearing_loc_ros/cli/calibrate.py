@@ -17,6 +17,7 @@ fitted bias and ``kraken.sigma_conf1_deg`` / ``kraken.sigma_conf0_deg`` set to t
 from collections import Counter
 import math
 import os
+import sys
 
 from . import InputError, load_yaml
 
@@ -60,6 +61,19 @@ def station_params(data, station):
         if isinstance(body, dict) and isinstance(body.get('ros__parameters'), dict):
             out.update(flatten(body['ros__parameters']))
     return out
+
+
+def warn_unknown_params(params):
+    """Warn on stderr, per station, about names in its parameters that a station node does
+    not have (they would be ignored by the node, and are ignored here)."""
+    from ..core import parameters
+    known = {p.name for p in parameters.schema(STATION_NODE)} | set(
+        parameters.renamed(STATION_NODE))
+    for s, given in params.items():
+        text = parameters.unknown_message(STATION_NODE, [
+            n for n in given if n not in known and not parameters.ros_builtin(n)])
+        if text is not None:
+            print(f'warning: {s}: {text}', file=sys.stderr)
 
 
 def read_log(path):
@@ -206,6 +220,7 @@ def run(args):
     stations = parse_station_args(args.station)
     data = load_station_params(args.params) if args.params else {}
     params = {s: station_params(data, s) for s in stations}
+    warn_unknown_params(params)
     if not (math.isfinite(args.max_residual_deg) and 0.0 < args.max_residual_deg <= 180.0):
         raise InputError('max-residual-deg: must be in (0, 180]')
     parent = os.path.dirname(os.path.abspath(args.out))

@@ -429,9 +429,44 @@ def resolve(node, values, warn=None):
                      'removed in the next release)')
             name = new
         if name not in known:
-            raise ValueError(f'{name}: not a parameter of {node}')
+            raise ValueError(f'{name}: not a parameter of {node}{did_you_mean(node, name)}')
         out[name] = known[name].check(value)
     return out
+
+
+#: Parameters every rclpy node declares itself (accepted in a parameter file, no effect on
+#: this package's tools).
+ROS_BUILTIN = ('use_sim_time', 'start_type_description_service')
+
+
+def ros_builtin(name):
+    """True for a parameter rclpy itself handles: :data:`ROS_BUILTIN` and the
+    ``qos_overrides.`` names of QoS overriding."""
+    return name in ROS_BUILTIN or name.startswith('qos_overrides.')
+
+
+def did_you_mean(node, name):
+    """`` (did you mean 'x'?)`` naming the parameter of ``node`` (current or deprecated name)
+    closest to the unknown ``name`` (difflib ratio at least 0.6), or ''."""
+    import difflib
+    names = [p.name for p in schema(node)] + list(renamed(node))
+    close = difflib.get_close_matches(name, names, n=1)
+    return f" (did you mean '{close[0]}'?)" if close else ''
+
+
+def unknown_message(node, names):
+    """The warning for parameters given to ``node`` that it does not have, or None.
+
+    ``names``: the names given (command line, parameter file) that are neither ``node``'s
+    parameters nor rclpy's own; ROS 2 ignores them, so a misspelt name would otherwise
+    leave its parameter at the default without a word.
+    """
+    names = sorted(names)
+    if not names:
+        return None
+    listed = ', '.join(f"'{n}'{did_you_mean(node, n)}" for n in names)
+    return (f'ignored {len(names)} parameter{"s" if len(names) > 1 else ""} that {node} '
+            f'does not have: {listed}')
 
 
 #: FusionConfig fields filled from fusion node parameters of the same name.
