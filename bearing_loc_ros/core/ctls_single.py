@@ -291,8 +291,10 @@ def _iterate(name, stations, X, opts):
     it = 0
     conv = div = flat = False
     done = False
+    D = None
     for n in range(opts['max_iterations']):
-        f, T, Hn, Hgn, scale = derivatives(stations, X)
+        f, T, Hn, Hgn, scale = D if D is not None else derivatives(stations, X)
+        D = None
         pd = False
         h0, h1, h2 = Hn                                  # symmetric: 6 distinct entries
         if isfinite(h0[0]) and isfinite(h0[1]) and isfinite(h0[2]) and isfinite(h1[1]) \
@@ -314,11 +316,17 @@ def _iterate(name, stations, X, opts):
         accepted = False
         if usable:
             t = mu ** n
-            for _ in range(41):
+            for k in range(41):
                 Xt = (X[0] + t * step[0], X[1] + t * step[1], X[2] + t * step[2])
-                ft = cost(stations, Xt)
+                if k == 0 and not small:
+                    # The full step is usually accepted: its derivatives (whose f is the
+                    # cost, bit for bit) serve the next iteration instead of a second pass.
+                    Dt = derivatives(stations, Xt)
+                    ft = Dt[0]
+                else:
+                    Dt, ft = None, cost(stations, Xt)
                 if isfinite(ft) and ft <= f:
-                    X, accepted = Xt, True
+                    X, accepted, D = Xt, True, Dt
                     break
                 t *= 0.5
         stalled = not (small and usable) and not accepted
