@@ -27,6 +27,7 @@ Two parts, both on core.evaluation (the numbers of ``bearing_loc evaluate``):
     python bench/low_snr.py --near-stations     # robust wmle fixes that end near a station
     python bench/low_snr.py --sigma-points --seeds 0,1,2,3,4    # a covariance not kept
     python bench/low_snr.py --line-posterior --seeds 0,1,2,3,4  # an estimate not kept
+    python bench/low_snr.py --line-mse --seeds 0,1,2,3,4        # a covariance not kept
 
 ``--sigma-points``: the constant-sigma scenario's ok fixes of the default mle, their mean NEES
 and confidently wrong count per sweep point, pooled over ``--seeds``, with the reported
@@ -37,7 +38,9 @@ s^2 the major eigenvalue; the sigma-point spread of Julier & Uhlmann (1997) with
 x + t s v (a flat prior on t, v oriented away from the stations' centroid, t from -8 to 16 in
 steps of 0.1), with that likelihood's variance along v in place of s^2 (the Bayesian
 posterior moments of the range coordinate alone); the last column is the RMSE of the moved
-fixes over that of the fixes as reported.
+fixes over that of the fixes as reported. ``--line-mse``: the fixes as reported, with the
+second moment of that likelihood about them (its variance plus its mean offset squared) in
+place of s^2.
 """
 
 import argparse
@@ -316,7 +319,8 @@ def line_posterior(b, X, P):
 
 
 def covariance_variants(n, seeds, variant):
-    """Print the ``--sigma-points`` or ``--line-posterior`` table (module docstring)."""
+    """Print the ``--sigma-points``, ``--line-posterior`` or ``--line-mse`` table (module
+    docstring)."""
     from bearing_loc_ros.core.crlb import crlb
     q = float(chisq.ppf(0.9999, 3))
     acc = {}
@@ -330,6 +334,11 @@ def covariance_variants(n, seeds, variant):
             X2, P2 = X, 2.0 / 3.0 * P + (at[0] + at[1]) / 6
         else:
             X2, P2 = line_posterior(b, X, P)
+            if variant == 'line MSE':
+                # The same likelihood's second moment about the fix itself: var + mean².
+                v, s = major_axes(X, P, b.positions)
+                mu = ((X2 - X) * v).sum(axis=1) / s
+                X2, P2 = X, P2 + ((mu * s) ** 2)[:, None, None] * v[:, :, None] * v[:, None, :]
         for name, Xv, C in (('P', X, P), (variant, X2, P2)):
             e = Xv - tgt
             nees = np.einsum('mi,mij,mj->m', e, np.linalg.inv(C), e)
@@ -377,12 +386,16 @@ def main():
     ap.add_argument('--line-posterior', action='store_true',
                     help='constant sigma: the ok fixes\' NEES and RMSE with the moments of '
                          'the likelihood along the major axis')
+    ap.add_argument('--line-mse', action='store_true',
+                    help='constant sigma: the ok fixes kept, their major variance replaced by '
+                         'the second moment of that likelihood about them')
     a = ap.parse_args()
     global SEED
     SEED = a.seed
-    if a.sigma_points or a.line_posterior:
+    if a.sigma_points or a.line_posterior or a.line_mse:
         covariance_variants(a.trials, [int(v) for v in (a.seeds or '0,1,2,3,4').split(',')],
-                            'sigma points' if a.sigma_points else 'line posterior')
+                            'sigma points' if a.sigma_points else
+                            'line posterior' if a.line_posterior else 'line MSE')
     elif a.near_stations:
         near_stations(a.trials)
     elif a.seeds:
