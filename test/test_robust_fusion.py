@@ -178,3 +178,96 @@ def test_deferred_trust_update_gives_the_same_fixes():
                for u in fixes[-1][4])          # the liar is used with its scaled σ
     for settle in (None, 'always', 'odd'):
         assert _run(items, settle) == reference, settle
+
+
+SQUARE = {'s1': (0.0, 0.0, 0.0), 's2': (10000.0, 0.0, 0.0), 's3': (0.0, 10000.0, 0.0),
+          's4': (10000.0, 10000.0, 0.0), 's5': (5000.0, -3000.0, 0.0),
+          's6': (-3000.0, 5000.0, 0.0)}
+TARGET = np.array([5000.0, 4000.0, 1000.0])
+
+
+def _square_run(n, estimator, bad, epochs=40, seed=0, start=0):
+    """(epochs, core) of the first ``n`` SQUARE stations observing TARGET with σ 3 mrad, s3
+    replaced by ``bad(position, az, el) -> (position, az, el, σ)`` from epoch ``start`` on."""
+    rng = np.random.default_rng(seed)
+    stations = dict(list(SQUARE.items())[:n])
+    core = make_core(FusionConfig(estimator=estimator), stations=list(stations))
+    out = []
+    for k in range(epochs):
+        t = 10 ** 12 + k * 200_000_000
+        for name, p in stations.items():
+            p = np.array(p)
+            az, el = azimuth_elevation(TARGET - p)
+            sigma = 3e-3
+            if name == 's3' and k >= start:
+                p, az, el, sigma = bad(p, az, el)
+            b = Bearing(station=name, stamp_ns=t, position=np.asarray(p, dtype=float),
+                        azimuth=float(az + 3e-3 * rng.standard_normal()),
+                        elevation=float(el + 3e-3 * rng.standard_normal()),
+                        sigma_azimuth=sigma, sigma_elevation=sigma)
+            out += core.add_bearing(b, t + 1000)
+    return out, core
+
+
+def _s3_neutralised(e):
+    """s3 left out of the fix, or kept with the trust's σ at least 4 × the honest 3 mrad."""
+    return all(b.sigma_azimuth >= 4 * 3e-3 for b in e.bearings if b.station == 's3')
+
+
+def _confidently_wrong(eps):
+    return [e for e in eps if e.ok and (e.position - TARGET) @ np.linalg.solve(
+        e.covariance, e.position - TARGET) > Q9999]
+
+
+@pytest.mark.parametrize('case', ['tiny sigma', 'far position'])
+def test_a_station_that_makes_the_set_singular_is_dropped_not_every_epoch(case):
+    # s3 claims 1e-9 rad with a 2 deg error after 15 honest epochs (its trust verified), or
+    # a position 1000 km off from the start: the full set is
+    # degenerate (the information's condition number beyond 1e12, or the closed form's
+    # start). Before, every epoch was degenerate_geometry and nobody was blamed; now the
+    # station the others' fix refutes is rejected, counted, and becomes a suspect.
+    if case == 'tiny sigma':
+        def bad(p, az, el):
+            return p, az + math.radians(2.0), el, 1e-9
+    else:
+        def bad(p, az, el):
+            return np.array([1.0e6, 0.0, 0.0]), az, el, 3e-3
+    tiny = case == 'tiny sigma'
+    eps, core = _square_run(6 if tiny else 4, 'mle', bad, epochs=55 if tiny else 40,
+                            start=15 if tiny else 0)
+    assert len(eps) >= 39 and all(e.ok for e in eps), {e.reason for e in eps}
+    assert not _confidently_wrong(eps)
+    attacked = [e for e in eps if e.stamp_ns >= 10 ** 12 + (15 if tiny else 0) * 200_000_000]
+    assert len(attacked) >= 39 and all(_s3_neutralised(e) for e in attacked)
+    assert core.strategy.trust.suspects() == ['s3']
+
+
+@pytest.mark.parametrize('estimator', ['mle', 'ctls_am'])
+def test_three_stations_with_one_wrong_and_two_consistent_pairs_give_no_fix(estimator):
+    # s3 reports another emitter from elsewhere; its ray happens to cross s1's 5.8 km from
+    # the target, so the pairs (s1, s2) and (s1, s3) are both consistent: which station is
+    # wrong cannot be told. Before, the gate dropped the honest s2 (ctls_am: every epoch,
+    # Mahalanobis error² 3e5) and the trust blamed it; now every epoch is low_confidence,
+    # says why, and no station is blamed.
+    other = np.array([3000.0, -2000.0, 0.0])
+
+    def bad(p, az, el):
+        return (other, *azimuth_elevation(np.array([-8000.0, 9000.0, 500.0]) - other),
+                3e-3)
+    eps, core = _square_run(3, estimator, bad)
+    assert len(eps) == 40 and not any(e.ok for e in eps)
+    assert all(e.reason == 'low_confidence' and e.detail.startswith('ambiguous') for e in eps)
+    assert core.strategy.trust.suspects() == []
+
+
+def test_three_stations_with_one_refuted_station_still_fix():
+    # s3 5 deg off: the pair (s1, s3) is not consistent (its elevations disagree), so
+    # the gate's drop is not ambiguous and most epochs give ok fixes, without s3 or with
+    # the σ its trust gives it.
+    def bad(p, az, el):
+        return p, az + math.radians(5.0), el, 3e-3
+    eps, core = _square_run(3, 'mle', bad)
+    ok = [e for e in eps if e.ok]
+    assert len(ok) >= 30 and not _confidently_wrong(eps)
+    assert all(_s3_neutralised(e) for e in ok)
+    assert core.strategy.trust.suspects() == ['s3']

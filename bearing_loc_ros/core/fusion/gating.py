@@ -287,6 +287,13 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     (a :class:`~bearing_loc_ros.core.station_trust.StationTrust`) every bearing is used with
     its σ_eff and the deletion residuals of the final solve update the trust (deferred:
     applied by ``trust.settle()`` once the fix is out, or before the trust is next read).
+
+    With the gate on (``outlier_gate`` < 1): a ``degenerate_geometry`` set gets, once, the
+    drop of the station its peers' fix refutes most (:func:`_refuted_station`: one station
+    can make the set singular, e.g. a claimed σ of 1e-9 rad); and a fix that needed a drop
+    and keeps at most :data:`AMBIGUITY_MAX_STATIONS` stations becomes ``low_confidence``
+    (detail ``ambiguous: ...``, no trust update) when swapping a dropped station for a kept
+    one gives another consistent fix far from it (:func:`_other_consistent_fix`).
     """
     options = dict(options or {})
     used = list(bearings)
@@ -306,7 +313,9 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     # fix recomputed (and checked again). Only once: a closed-form fix dragged by an
     # outlier can make the gate pick honest stations, and repeated drops would go on until
     # too few stations are left to show the outlier.
-    retry = bool(kwargs.get('consistency', False)) and float(outlier_gate) < 1.0
+    gating = float(outlier_gate) < 1.0
+    retry = bool(kwargs.get('consistency', False)) and gating
+    degenerate_tried = False
     horizontal = horizontal_capable(kwargs)
     used = ignoring_elevations(used, kwargs)
     if validated and not horizontal:
@@ -340,6 +349,16 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         common = dict(estimator=estimator, bearings=used, rejected=rejected, status=status,
                       iterations=int(res.iterations[0]), result=res)
         if status == _estimators.STATUS_DEGENERATE:
+            if gating and not degenerate_tried:
+                # One station can make the set singular (a claimed σ of 1e-9 rad, a
+                # position 1000 km off): drop the one the others' fix refutes most.
+                degenerate_tried = True
+                drop = _refuted_station(run, make_set, used, estimator, kwargs, outlier_gate,
+                                        min_stations, horizontal)
+                if drop is not None:
+                    rejected = rejected + [used[drop]]
+                    used = used[:drop] + used[drop + 1:]
+                    continue
             return Epoch(DEGENERATE_GEOMETRY, **common)
         finite = all(map(math.isfinite, pos.ravel().tolist()))
         excluded = getattr(res, 'excluded', None)
@@ -385,6 +404,15 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
             return Epoch(INCONSISTENT_BEARINGS,
                          detail=f'{used[worst].station} d2={d2[worst]:.3g} but too few '
                                 f'stations left to drop it', **common)
+        if rejected and gating and len(used) <= AMBIGUITY_MAX_STATIONS:
+            other = _other_consistent_fix(run, make_set, used, rejected, pos, cov, estimator,
+                                          kwargs, outlier_gate, min_stations, horizontal)
+            if other is not None:
+                # Which station is wrong is undecidable: no fix, and no station blamed.
+                kept, dropped, dist = other
+                return Epoch(LOW_CONFIDENCE, position=pos, covariance=0.5 * (cov + cov.T),
+                             detail=f'ambiguous: keeping {dropped} instead of {kept} gives '
+                                    f'another consistent fix {dist:.0f} m away', **common)
         if trust is not None:
             trust.defer_update(used, claims, pos, cov, rejected)
         residuals = {b.station: float(v) for b, v in zip(used, d2)}
@@ -392,6 +420,82 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
         n_free = 2 if solved is not None and str(solved[0]) == 'horizontal' else 3
         return Epoch(OK, position=pos, covariance=0.5 * (cov + cov.T), residuals=residuals,
                      chi2=_nansum(d2), dof=int(sum(dof)) - n_free, **common)
+
+
+def _solved(run, bs):
+    """(position (3,), covariance (3, 3)) of a converged ``ok`` solve of ``bs`` with finite
+    values, or None (any other status, or the estimator raised)."""
+    try:
+        res = run(bs)
+    except Exception:  # noqa: B902 - a failed alternative solve is no alternative
+        return None
+    if str(res.status[0]) != _estimators.STATUS_OK or not bool(res.converged[0]):
+        return None
+    pos = np.asarray(res.position[0], dtype=float)
+    cov = np.asarray(res.covariance[0], dtype=float)
+    if not (np.isfinite(pos).all() and covariance_ok(cov)):
+        return None
+    return pos, cov
+
+
+def _refuted_station(run, make_set, used, estimator, kwargs, outlier_gate, min_stations,
+                     horizontal):
+    """Index of the station whose d² (:func:`normalized_residuals`) at the fix of the
+    others is largest and beyond its gate, among the stations whose removal leaves a
+    solvable set with an ``ok`` fix; None when there is none (a geometry that is degenerate
+    whichever station is left out). One solve per station: run only for a degenerate set."""
+    best, best_ratio = None, 1.0
+    whole = make_set(used)
+    for i in range(len(used)):
+        rest = used[:i] + used[i + 1:]
+        if len(rest) < int(min_stations) or count_reason(rest, horizontal) is not None:
+            continue
+        fix = _solved(run, make_set(rest))
+        if fix is None:
+            continue
+        d2, dof, _, _ = _gate_at(estimator, whole, used, fix[0], kwargs, outlier_gate)
+        ratio = float(d2[i]) / gate_threshold(outlier_gate, int(dof[i]))
+        if ratio > best_ratio:          # (NaN: not refuted)
+            best, best_ratio = i, ratio
+    return best
+
+
+#: Largest number of kept stations at which a fix that dropped a station is checked for
+#: ambiguity (:func:`_other_consistent_fix`): with more, a set that swaps an honest station
+#: for the dropped one can be consistent only near the same fix.
+AMBIGUITY_MAX_STATIONS = 3
+#: Mahalanobis distance² between two fixes (under the sum of their covariances) beyond which
+#: they are different answers: the χ²₃ 0.9999 quantile.
+AMBIGUITY_D2 = float(chisq.ppf(0.9999, 3))
+
+
+def _other_consistent_fix(run, make_set, used, rejected, pos, cov, estimator, kwargs,
+                          outlier_gate, min_stations, horizontal):
+    """(kept station, dropped station, distance m) when a dropped station, put back in place
+    of a kept one, gives another fix that passes the gate (every d² within its χ² gate) and
+    lies beyond :data:`AMBIGUITY_D2` from ``pos`` (Mahalanobis, P + P'): then the bearings
+    support two answers, as three stations with one wrong do when each pair is consistent
+    (three azimuth-only stations always). None when no swap does."""
+    for r in rejected:
+        for j in range(len(used)):
+            alt = used[:j] + used[j + 1:] + [r]
+            if len(alt) < int(min_stations) or count_reason(alt, horizontal) is not None:
+                continue
+            bs = make_set(alt)
+            fix = _solved(run, bs)
+            if fix is None:
+                continue
+            _, _, _, excess = _gate_at(estimator, bs, alt, fix[0], kwargs, outlier_gate)
+            if not excess <= 1.0:
+                continue
+            diff = fix[0] - pos
+            try:
+                m2 = float(diff @ np.linalg.solve(cov + fix[1], diff))
+            except np.linalg.LinAlgError:
+                continue
+            if m2 > AMBIGUITY_D2:
+                return used[j].station, r.station, float(np.linalg.norm(diff))
+    return None
 
 
 def _gate_at(estimator, bs, used, pos, kwargs, outlier_gate):
