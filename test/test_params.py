@@ -144,6 +144,14 @@ def test_schema_check_rules():
         schema.param('fusion_node', 'rate').check(10 ** 400)
     with pytest.raises(ValueError, match='^buffer_size: .* beyond the int64 range'):
         schema.param('fusion_node', 'buffer_size').check(10 ** 30)
+    # Arrays of doubles: every value finite (a NaN map centre ran without a map), and within
+    # the parameter's range where it has one (1e300 drew a map of infinite cells).
+    for node, name in (('station_node', 'position'), ('fusion_node', 'accuracy_map.center')):
+        with pytest.raises(ValueError, match=f'^{name}: every value must be finite, got nan'):
+            schema.param(node, name).check([float('nan'), 0.0])
+    with pytest.raises(ValueError, match=r'^accuracy_map.center: 1e\+300 is outside '
+                                         r'\[-1e\+12, 1e\+12\]'):
+        schema.param('fusion_node', 'accuracy_map.center').check([1e300, 0.0])
 
 
 def test_fusion_config_is_built_from_the_schema_for_node_and_bag_process(ros):

@@ -90,6 +90,13 @@ class Param:
         except OverflowError:
             raise ValueError(f'{self.name}: {str(value)[:40]} is beyond the float range') \
                 from None
+        if self.type == DOUBLE_ARRAY:
+            for v in value:
+                if not math.isfinite(v):
+                    raise ValueError(f'{self.name}: every value must be finite, got {v}')
+                if self.min is not None and v < self.min or self.max is not None \
+                        and v > self.max:
+                    raise ValueError(f'{self.name}: {v} is outside {self.range_text()}')
         if self.type == INTEGER and not -2 ** 63 <= value < 2 ** 63:
             raise ValueError(f'{self.name}: {str(value)[:40]} is beyond the int64 range')
         if self.type in (INTEGER, DOUBLE):
@@ -255,7 +262,7 @@ def _fusion_schema():
         P('accuracy_map.altitude', DOUBLE, 0.0, 'Target altitude (world z) of the map', 'm',
           -1e6, 1e6),
         P('accuracy_map.center', DOUBLE_ARRAY, [], '[x, y] centre of the map; [] = centroid '
-          'of the live stations', 'm', example=[0.0, 0.0], commented=True),
+          'of the live stations', 'm', -1e12, 1e12, example=[0.0, 0.0], commented=True),
         P('accuracy_map.model', STRING, 'crlb', 'Error model: CRLB or the CTLS first-order '
           'error (Wang, Zhang & Wu eqs. (30)-(32))', choices=tuple(MODELS)),
         P('accuracy_map.scale', STRING, 'linear', 'Mapping of the error (m) to cell values',
