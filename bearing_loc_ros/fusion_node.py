@@ -74,6 +74,7 @@ class FusionNode(Node):
                         use_global_arguments=False))
             except ValueError as exc:
                 raise core_parameter_error(exc, 'estimator') from None
+            self.add_on_set_parameters_callback(self._refuse_on_channel_host)
             return
         self.frame_id = p['frame_id']
         self.stations_param = list(p['stations'])
@@ -139,6 +140,18 @@ class FusionNode(Node):
             f'{" + discovery" if self.discover else ""}, frame {self.frame_id}')
 
     # ------------------------------------------------------------------ run-time parameters
+    def _refuse_on_channel_host(self, params):
+        """A channel host runs no pipeline: a run-time change here would be accepted and do
+        nothing, so it is refused with the nodes that take it (``use_sim_time`` aside)."""
+        names = [x.name for x in params if x.name != 'use_sim_time']
+        if not names:
+            return SetParametersResult(successful=True)
+        where = ', '.join(n.get_fully_qualified_name()
+                          for n in self.channel_host.nodes.values())
+        return SetParametersResult(successful=False, reason=(
+            f'{", ".join(names)}: this node only hosts the fusion nodes of channels; set '
+            f'parameters on {where}'))
+
     def _validate_parameters(self, params):
         """On-set callback: validate only (no side effects)."""
         try:

@@ -485,6 +485,25 @@ def test_duplicate_station_ids_are_refused(ros):
             Parameter('stations', value=['s1', 's2', 's1'])])
 
 
+def test_channel_host_refuses_run_time_changes_and_names_the_channel_nodes(ros):
+    # The host runs no pipeline: before, it accepted estimator=magic and did nothing.
+    host = FusionNode(context=ros, namespace='chost', parameter_overrides=[
+        Parameter('stations', value=['s1', 's2']), Parameter('channels', value=['a', 'b'])])
+    try:
+        res = host.set_parameters([Parameter('estimator', value='ls')])[0]
+        assert not res.successful
+        assert res.reason == ('estimator: this node only hosts the fusion nodes of channels; '
+                              'set parameters on /chost/a/fusion, /chost/b/fusion')
+        assert host.get_parameter('estimator').value == 'mle'
+        assert host.set_parameters([Parameter('use_sim_time', value=False)])[0].successful
+        channel = host.channel_host.nodes['a']
+        assert channel.set_parameters([Parameter('estimator', value='ls')])[0].successful
+        assert channel.config.estimator == 'ls'
+    finally:
+        host.channel_host.destroy()
+        host.destroy_node()
+
+
 def _node_topics(h):
     """The topics the fusion node itself subscribes to."""
     return {sub.topic_name for sub in h.fusion.subscriptions}
