@@ -16,6 +16,7 @@ serialisers:
 """
 
 import csv
+import errno
 import json
 import math
 import os
@@ -52,14 +53,17 @@ def geojson_text(fc):
 
 
 def _open_out(path):
+    """``path`` opened for writing text; OSError naming the path when it cannot be (a
+    missing directory, a directory, no permission): the caller names its option."""
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
-        raise ValueError(f'{path}: directory {directory} does not exist')
+        raise FileNotFoundError(errno.ENOENT, f'directory {directory} does not exist', path)
     return open(path, 'w', encoding='utf-8', newline='')
 
 
 def write_geojson(path, fc):
-    """Write a FeatureCollection dict as a checked GeoJSON file."""
+    """Write a FeatureCollection dict as a checked GeoJSON file (OSError when ``path`` cannot
+    be written, ValueError for an invalid collection)."""
     text = geojson_text(fc)
     with _open_out(path) as f:
         f.write(text)
@@ -171,7 +175,8 @@ def kml_document(fc, name='bearing_loc_ros', overlays=()):
 
 
 def write_kml(path, fc, name='bearing_loc_ros', overlays=()):
-    """Write a FeatureCollection dict (+ GroundOverlays) as a KML file."""
+    """Write a FeatureCollection dict (+ GroundOverlays) as a KML file (OSError when ``path``
+    cannot be written)."""
     text = kml_document(fc, name, overlays).kml(format=True)
     with _open_out(path) as f:
         f.write(text)
@@ -215,7 +220,8 @@ def error_png(error, path, vmin=None, vmax=None, cmap='viridis'):
 
     Log colour scale from vmin to vmax (default: finite min and 99th percentile); cells
     whose error is not finite are transparent. The image's first row is the northern edge
-    (image convention), so the PNG drapes directly on a north-up quad. Returns (vmin, vmax).
+    (image convention), so the PNG drapes directly on a north-up quad. Returns (vmin, vmax);
+    OSError when ``path`` cannot be written, ValueError when nothing is finite.
     """
     import matplotlib
     matplotlib.use('Agg')

@@ -82,6 +82,10 @@ MUTATIONS = [
     (lambda b: b[2].update(station='s0'), "bearings[2].station: duplicate station id 's0'"),
     (lambda b: b.__setitem__(0, 5), 'bearings[0]: must be an object'),
     (lambda b: b.__delitem__(slice(1, None)), 'bearings: 1 bearing(s)'),
+    # the core's bounds on finite numbers (core.bearings MAX_ABS_POSITION, MAX_ABS_ANGLE)
+    (lambda b: b[2]['position'].__setitem__(0, 2e12),
+     'bearings[2].position: |coordinate| must be <= 1e+12 m'),
+    (lambda b: b[1].update(azimuth=-2e4), 'bearings[1].azimuth: |azimuth| must be <= 10000 rad'),
 ]
 
 
@@ -254,6 +258,8 @@ def table_error(tmp_path, capsys, rows, head=None, name='t.csv'):
     (7, float('nan'), 'sigma_elevation: missing (required when elevation is given)'),
     (1, 'east', 'x: must be a number'),
     (0, '1.5', 'problem: must be an integer id'),
+    (2, -2e12, 'y: |coordinate| must be <= 1e+12 m'),
+    (4, 2e4, 'azimuth: |azimuth| must be <= 10000 rad'),
 ])
 def test_table_error_names_line_problem_and_column(tmp_path, capsys, column, value, message):
     rows = table_rows(valid_problems(1500))

@@ -130,6 +130,25 @@ def test_place_draws_an_unobservable_before_map(capsys, tmp_path):
         assert (tmp_path / name).read_bytes()[:4] == b'\x89PNG'
 
 
+def test_place_assesses_an_azimuth_only_layout_with_its_own_solve(capsys, tmp_path):
+    # Two 1D stations: horizontal (altitude known) on their own, as plan map says; with the
+    # default 2D new station the layout is 3D. "before" was the 3D map: null, unobservable.
+    layout = ['--stations', '20,0,0,1d;-20,0,0,1d', '--sigma-deg', '0.1', '--altitude', '3000']
+    area = ['--area-km', '-10,10,-10,10', '--area-cells', '10', '--candidates', '5']
+    m = _json(capsys, 'map', *layout, '--extent-km=-10,10,-10,10', '--resolution', '2000')
+    d = _json(capsys, 'place', *layout, *area, '--png-before', str(tmp_path / 'b.png'))
+    assert (m['solve'], d['solve_before'], d['solve']) == ('horizontal', 'horizontal', '3d')
+    # the area grid of place is the map's grid: 10 x 10 cells of 2 km
+    assert d['before'] == m['stats'] and d['before_m'] == pytest.approx(m['stats']['mean_m'])
+    assert d['improvement_m'] == pytest.approx(d['before_m'] - d['after_m'])
+    assert d['ratio'] == pytest.approx(d['after_m'] / d['before_m'])
+    # a 1D new station: horizontal before and after, the same "before"
+    d1 = _json(capsys, 'place', *layout, *area, '--new-1d')
+    assert (d1['solve_before'], d1['solve']) == ('horizontal', 'horizontal')
+    assert d1['before_m'] == pytest.approx(d['before_m'], rel=1e-9)
+    assert d1['before'] == pytest.approx(d['before'], rel=1e-9)
+
+
 def test_map_from_scenario_uses_the_scenario_loader(capsys, tmp_path):
     # seed000.yaml: 3 mrad stations at the Wang, Zhang & Wu (2006) positions; --sigma-deg
     # overrides σ.

@@ -4,10 +4,13 @@ Each verb lives in its own module ``bearing_loc_ros.cli.<verb>`` exposing
 ``add_arguments(parser)`` and ``run(args) -> int``. Modules are imported lazily so that one
 verb's optional dependencies (matplotlib, rosbags) never slow down or break another.
 
-Exit codes: 0 success, 2 bad input (one line on stderr naming the field), 1 other failure.
+Exit codes: 0 success, 2 bad input (one line on stderr naming the field) or an output that
+cannot be written (a file, or stdout: ``stdout: cannot write (...)``), 1 other failure. A
+closed pipe on stdout (``bearing_loc locate big.json | head``) ends the command quietly.
 """
 
 import argparse
+import contextlib
 import importlib
 import os
 import sys
@@ -25,6 +28,93 @@ VERBS = {
 
 class InputError(ValueError):
     """Bad user input: reported as one line on stderr with exit code 2."""
+
+
+class OutputError(Exception):
+    """stdout cannot be written (closed, disk full): one line on stderr, exit code 2.
+
+    Not a ValueError or OSError, so that no handler of the verbs takes it for bad input or
+    for a file of their own.
+    """
+
+
+@contextlib.contextmanager
+def writing(flag, path):
+    """Turn an OSError while writing ``path`` into an InputError naming ``flag``:
+    ``<flag>: cannot write '<path>' (<reason>)``."""
+    try:
+        yield
+    except OSError as exc:
+        raise InputError(f'{flag}: cannot write {path!r} ({exc.strerror or exc})') from None
+
+
+def read_input(path):
+    """The bytes of the input file ``path`` ('-': stdin); InputError naming ``input`` when it
+    cannot be read (also a closed stdin, ``bearing_loc locate <&-``)."""
+    try:
+        if path == '-':
+            stream = getattr(sys.stdin, 'buffer', sys.stdin)
+            if stream is None:
+                raise InputError('input: cannot read stdin: it is closed')
+            data = stream.read()
+        else:
+            with open(path, 'rb') as f:
+                data = f.read()
+    except OSError as exc:
+        where = 'stdin' if path == '-' else repr(path)
+        raise InputError(f'input: cannot read {where}: {exc.strerror or exc}') from None
+    return data.encode('utf-8') if isinstance(data, str) else data
+
+
+class _GuardedStdout:
+    """``sys.stdout`` while a verb runs: an OSError writing it (disk full, a closed stdout)
+    becomes :class:`OutputError`; BrokenPipeError (a reader that stopped, ``| head``) passes
+    as it is. Everything else goes to the wrapped stream."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def _call(self, name, *args):
+        if self._stream is None:
+            raise OutputError('stdout: cannot write (it is closed)')
+        try:
+            return getattr(self._stream, name)(*args)
+        except BrokenPipeError:
+            raise
+        except OSError as exc:
+            raise OutputError(f'stdout: cannot write ({exc.strerror or exc})') from None
+
+    def write(self, text):
+        return self._call('write', text)
+
+    def writelines(self, lines):
+        return self._call('writelines', lines)
+
+    def flush(self):
+        return None if self._stream is None else self._call('flush')
+
+    def __getattr__(self, name):
+        return getattr(self._stream, name)
+
+
+def _silence_stdout():
+    """Point file descriptor 1 at /dev/null after stdout failed, so that the interpreter's
+    flush at exit of what is still buffered neither fails again nor prints "Exception
+    ignored" (the Python documentation's advice for SIGPIPE). Only for the process's own
+    stdout (not a test's captured stream)."""
+    if sys.__stdout__ is None:
+        return
+    try:
+        fd = sys.__stdout__.fileno()
+        devnull = os.open(os.devnull, os.O_WRONLY)
+    except (OSError, ValueError):
+        return
+    try:
+        os.dup2(devnull, fd)
+    except OSError:
+        pass
+    finally:
+        os.close(devnull)
 
 
 def load_yaml(path, name, params=False):
@@ -76,6 +166,35 @@ def _prog_of(args, extra, before_verb):
 
 def main(argv=None):
     """Entry point of the ``bearing_loc`` console script."""
+    real = sys.stdout
+    guarded = sys.stdout = _GuardedStdout(real)
+    verb_seen = []
+    try:
+        try:
+            code = _main(argv, verb_seen.append)
+        except SystemExit as exc:       # --help: its text may still be buffered too
+            code = exc
+        guarded.flush()         # a write that was buffered fails here
+        if isinstance(code, SystemExit):
+            raise code
+        return code
+    except OutputError as exc:
+        if real is sys.__stdout__:
+            _silence_stdout()
+        prog = ' '.join(['bearing_loc'] + verb_seen[-1:])
+        print(f'{prog}: error: {exc}', file=sys.stderr)
+        return 2
+    except BrokenPipeError:
+        if real is sys.__stdout__:
+            _silence_stdout()
+        return 0
+    finally:
+        if sys.stdout is guarded:
+            sys.stdout = real
+
+
+def _main(argv, seen):
+    """:func:`main` with stdout guarded; ``seen(verb)`` is told the verb once known."""
     if argv is None:
         argv = sys.argv[1:]
         if argv[:1] == ['locate']:
@@ -112,6 +231,7 @@ def main(argv=None):
     if args.verb is None:
         parser.print_help(sys.stderr)
         return 2
+    seen(args.verb)
     from .deprecation import conflict
     clash = conflict(args, argv)
     if clash:
@@ -127,8 +247,6 @@ def main(argv=None):
         # orjson parses up to 1024) fails in the checks that walk or echo it.
         print(f'bearing_loc {args.verb}: error: input: nested too deeply', file=sys.stderr)
         return 2
-    except BrokenPipeError:
-        return 0
 
 
 if __name__ == '__main__':

@@ -5,9 +5,10 @@ validated (M_N, N) :class:`BearingSet` and the indices of its problems, so that 
 solved in one vectorised call and nothing is built per problem.
 
 JSON batches (``{"problems": [...]}``) are checked column by column with numpy under the
-same rules as the per-problem parser of ``cli.locate`` (finite JSON numbers, σ in
-[SIGMA_MIN, SIGMA_MAX] rad, |ψ| < π/2, at least two bearings per problem; azimuth-only
-problems need the target altitude, which the solve checks).
+same rules as the per-problem parser of ``cli.locate`` (finite JSON numbers, |coordinate| <=
+MAX_ABS_POSITION = 1e12 m, |θ| <= MAX_ABS_ANGLE = 1e4 rad, σ in [SIGMA_MIN, SIGMA_MAX] rad,
+|ψ| < π/2, at least two bearings per problem; azimuth-only problems need the target altitude,
+which the solve checks).
 A problem that fails any rule is handed to that parser, which raises the one error message
 naming the problem index and the field; problems are visited in order, so the message is the
 same as checking one problem after the other.
@@ -31,12 +32,12 @@ import io
 import itertools
 import math
 from operator import itemgetter
-import sys
 
 import numpy as np
 
-from ..core.bearings import BearingSet, HALF_PI, SIGMA_MAX, SIGMA_MIN
-from . import InputError
+from ..core.bearings import (BearingSet, HALF_PI, MAX_ABS_ANGLE, MAX_ABS_POSITION, SIGMA_MAX,
+                             SIGMA_MIN)
+from . import InputError, read_input
 
 BEARING_FIELDS = frozenset(('station', 'position', 'azimuth', 'elevation', 'sigma_azimuth',
                             'sigma_elevation'))
@@ -174,9 +175,9 @@ def json_problems(problems, parse_problem):
     if not (set(map(type, pos)) == {list} and set(map(len, pos)) == {3}):
         pos = [p if type(p) is list and len(p) == 3 else _NAN3 for p in pos]
     coords, c_ok = number_columns(list(itertools.chain.from_iterable(pos)))
-    good &= c_ok.reshape(-1, 3).all(axis=1)
+    good &= (c_ok & (np.abs(coords) <= MAX_ABS_POSITION)).reshape(-1, 3).all(axis=1)
     az, ok = number_columns(az)
-    good &= ok
+    good &= ok & (np.abs(az) <= MAX_ABS_ANGLE)
     saz, ok = number_columns(saz)
     good &= sigma_ok(saz)
     el_raw = [b.get('elevation') for b in flat]
@@ -272,7 +273,7 @@ def grouped(columns, counts, stations=None, ids=None):
         arrays = [c[rows].reshape((len(idx), n) + c.shape[1:]) for c in columns]
         try:
             bs = BearingSet(*arrays).validate(require_elevation=False)
-        except ValueError as exc:       # not reached: every rule was checked above
+        except ValueError as exc:   # not reached: the callers check every rule, naming the row
             raise InputError(f'problems: {exc}') from None
         groups.append((idx, bs))
     return Problems(groups, counts, stations, ids)
@@ -299,14 +300,14 @@ def read_columnar(path, fmt):
 
 
 def _read_source(path, binary):
+    """The bytes of file ``path`` ('-': stdin), or (not ``binary``) its UTF-8 text without a
+    leading byte order mark (Excel writes one) and without newline translation, the same
+    from a file and from stdin. InputError naming ``input``."""
+    data = read_input(path)
+    if binary:
+        return data
     try:
-        if path == '-':
-            return sys.stdin.buffer.read() if binary else sys.stdin.read()
-        with open(path, 'rb' if binary else 'r', **({} if binary else {
-                'encoding': 'utf-8', 'newline': ''})) as f:
-            return f.read()
-    except OSError as exc:
-        raise InputError(f'input: cannot read {path!r}: {exc.strerror}') from None
+        return data.decode('utf-8-sig')
     except UnicodeDecodeError:
         raise InputError('input: the CSV is not UTF-8 text') from None
 
@@ -457,7 +458,8 @@ def _read_npz(path):
                 bad = ~(np.isfinite(a) & (a == np.round(a)) & (np.abs(a) < 2.0 ** 62))
                 if bad.any():
                     r = int(np.argmax(bad))
-                    raise InputError(f'row {r}: problem: must be an integer id, got {a[r]!r}')
+                    raise InputError(f'row {r}: problem: must be an integer id, got '
+                                     f'{a[r].item()!r}')
             elif a.dtype.kind == 'u' and a.max() > np.iinfo(np.int64).max:
                 # (a CSV id must fit int64 too; unsigned 64-bit ids beyond it would wrap)
                 r = int(np.argmax(a > np.iinfo(np.int64).max))
@@ -492,8 +494,14 @@ def _table_problems(columns, row_name):
     given = has_el & ~np.isnan(sel)
     checks = [(~np.isfinite(pos[:, k]), f'{c}: must be a finite number')
               for k, c in enumerate('xyz')]
+    checks += [(np.abs(pos[:, k]) > MAX_ABS_POSITION,
+                f'{c}: |coordinate| must be <= {MAX_ABS_POSITION:g} m')
+               for k, c in enumerate('xyz')]
+    az_bound = f'{MAX_ABS_ANGLE:g} rad' + (f' ({math.degrees(MAX_ABS_ANGLE):.0f} deg)'
+                                           if az_name.endswith('_deg') else '')
     checks += [
         (~np.isfinite(az), f'{az_name}: must be a finite number'),
+        (np.abs(az) > MAX_ABS_ANGLE, f'{az_name}: |azimuth| must be <= {az_bound}'),
         (~np.isfinite(saz), f'{saz_name}: must be a finite number'),
         (saz <= 0, f'{saz_name}: must be > 0'),
         (has_el & ~np.isfinite(el), f'{el_name}: must be a finite number or empty '

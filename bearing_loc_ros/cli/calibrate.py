@@ -215,7 +215,7 @@ def write_params(path, corrected, header):
 
 
 def run(args):
-    """``calibrate``: fit, print the estimates with standard errors, write --out."""
+    """``calibrate``: fit, write --out, then print the estimates with standard errors."""
     from ..core.calibration import fit_calibration
     stations = parse_station_args(args.station)
     data = load_station_params(args.params) if args.params else {}
@@ -226,6 +226,10 @@ def run(args):
     parent = os.path.dirname(os.path.abspath(args.out))
     if not os.path.isdir(parent):
         raise InputError(f'out: directory {parent} does not exist')
+    if args.out.endswith(('/', os.sep)) or os.path.isdir(args.out):
+        raise InputError(f'out: cannot write {args.out} (is a directory; give a file name)')
+    if not os.access(parent, os.W_OK):
+        raise InputError(f'out: cannot write {args.out} (directory {parent} is not writable)')
     tx = transmitter_position(args, params)
     res, conf, notes = {}, {}, {}
     for s, path in stations.items():
@@ -261,8 +265,9 @@ def run(args):
             lines.append(f'warning: {s}: heading bias {math.degrees(fit.bias[k]):+.1f} deg is '
                          'large: check the transmitter position and the station\'s position '
                          'and heading parameters')
+    # The report goes to stdout only once the file is written: a failed write prints nothing.
+    write_params(args.out, corrected_params(params, fit), lines)
     for line in lines:
         print(line)
-    write_params(args.out, corrected_params(params, fit), lines)
     print(f'wrote {args.out}')
     return 0

@@ -13,7 +13,7 @@ import os
 
 import numpy as np
 
-from . import InputError
+from . import InputError, writing
 
 #: Side of the bag-process accuracy overlay: this factor x the largest horizontal distance of
 #: a station from the stations' centroid (as the fusion node's automatic accuracy_map).
@@ -65,11 +65,36 @@ def origin_of(args, params=None):
         raise InputError(str(exc)) from None
 
 
+def _same_file(a, b):
+    """Whether paths ``a`` and ``b`` name one file (an existing one, or the same path)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:
+        return os.path.realpath(a) == os.path.realpath(b)
+
+
 def _check_paths(args):
+    """Every output path names a file in an existing directory, not the input, not another
+    output's file; --ellipse-probability in (0, 1). InputError naming the flag."""
+    given = []
+    source = getattr(args, 'input', None)
     for flag in ('geojson', 'kml', 'geo_csv'):
         path = getattr(args, flag, None)
-        if path and not os.path.isdir(os.path.dirname(os.path.abspath(path))):
-            raise InputError(f'--{flag.replace("_", "-")}: directory of {path} does not exist')
+        if not path:
+            continue
+        name = '--' + flag.replace('_', '-')
+        if path.endswith(('/', os.sep)) or os.path.isdir(path):
+            raise InputError(f'{name}: cannot write {path!r} (is a directory; give a file '
+                             'name)')
+        if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+            raise InputError(f'{name}: directory of {path} does not exist')
+        if isinstance(source, str) and source != '-' and _same_file(path, source):
+            raise InputError(f'{name}: {path!r} is the input file; writing it would '
+                             'overwrite the input')
+        for other, other_path in given:
+            if _same_file(path, other_path):
+                raise InputError(f'{name}: {path!r} is also the file of {other}')
+        given.append((name, path))
     p = getattr(args, 'ellipse_probability', 0.5)
     if not (math.isfinite(p) and 0.0 < p < 1.0):
         raise InputError(f'--ellipse-probability: must be in (0, 1), got {p:g}')
@@ -126,7 +151,8 @@ def export_epochs(args, params, epochs, printer=print):
     fc = gis.features_from_epochs(fixes, origin, args.ellipse_probability)
     written = []
     if args.geojson:
-        gx.write_geojson(args.geojson, fc)
+        with writing('--geojson', args.geojson):
+            gx.write_geojson(args.geojson, fc)
         written.append(args.geojson)
     if args.kml:
         overlays = []
@@ -136,13 +162,16 @@ def export_epochs(args, params, epochs, printer=print):
             alt = float(np.median([e.position[2] for e in fixes]))
             amap = accuracy_map(st, _auto_grid(st, alt), 'crlb')
             png = overlay_png_path(args.kml)
-            overlays.append(gx.accuracy_overlay(amap.grid, amap.error, origin, png,
-                                                'CRLB expected position error'))
+            with writing('--kml', png):
+                overlays.append(gx.accuracy_overlay(amap.grid, amap.error, origin, png,
+                                                    'CRLB expected position error'))
             written.append(png)
-        gx.write_kml(args.kml, fc, 'bearing_loc bag process', overlays)
+        with writing('--kml', args.kml):
+            gx.write_kml(args.kml, fc, 'bearing_loc bag process', overlays)
         written.append(args.kml)
     if args.geo_csv:
-        gx.write_geo_csv(args.geo_csv, [gis.GeoFix.from_epoch(e) for e in fixes], origin)
+        with writing('--geo-csv', args.geo_csv):
+            gx.write_geo_csv(args.geo_csv, [gis.GeoFix.from_epoch(e) for e in fixes], origin)
         written.append(args.geo_csv)
     printer('wrote ' + ', '.join(written) + f' ({len(fixes)} fixes, '
             f'{100 * args.ellipse_probability:g}% ellipses)')
@@ -181,13 +210,16 @@ def export_locate(args, results, sets):
     fc = gis.feature_collection(origin, fixes, rays, stations, args.ellipse_probability)
     written = []
     if args.geojson:
-        gx.write_geojson(args.geojson, fc)
+        with writing('--geojson', args.geojson):
+            gx.write_geojson(args.geojson, fc)
         written.append(args.geojson)
     if args.kml:
-        gx.write_kml(args.kml, fc, 'bearing_loc locate')
+        with writing('--kml', args.kml):
+            gx.write_kml(args.kml, fc, 'bearing_loc locate')
         written.append(args.kml)
     if args.geo_csv:
-        gx.write_geo_csv(args.geo_csv, fixes, origin)
+        with writing('--geo-csv', args.geo_csv):
+            gx.write_geo_csv(args.geo_csv, fixes, origin)
         written.append(args.geo_csv)
     if skipped:
         print(f'bearing_loc locate: {skipped} problem(s) without a finite fix left out of '
@@ -209,10 +241,12 @@ def export_plan_map(args, amap):
     fc = gis.feature_collection(origin, stations=stations)
     png = overlay_png_path(args.kml)
     try:
-        ov = gx.accuracy_overlay(amap.grid, amap.error, origin, png,
-                                 f'{amap.model.upper()} expected position error',
-                                 args.vmin, args.vmax)
+        with writing('--kml', png):
+            ov = gx.accuracy_overlay(amap.grid, amap.error, origin, png,
+                                     f'{amap.model.upper()} expected position error',
+                                     args.vmin, args.vmax)
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    gx.write_kml(args.kml, fc, 'bearing_loc plan map', [ov])
+    with writing('--kml', args.kml):
+        gx.write_kml(args.kml, fc, 'bearing_loc plan map', [ov])
     return {'kml': args.kml, 'kml_overlay_png': png}

@@ -14,7 +14,7 @@ import sys
 import numpy as np
 import orjson
 
-from . import InputError
+from . import InputError, read_input
 from .deprecation import json_key
 
 
@@ -115,20 +115,14 @@ def finite_rows(array):
 
 
 def read_json(path):
-    """Parse the JSON document in file ``path`` ('-' = stdin); InputError when unreadable.
+    """Parse the JSON document in file ``path`` ('-' = stdin); InputError when unreadable
+    (:func:`~bearing_loc_ros.cli.read_input`).
 
     orjson parses (an integer beyond 64 bits becomes a float); a document it rejects goes
     to the standard library's parser, which gives the error message and also reads what
-    strict JSON lacks (NaN literals) for the field checks to name.
+    strict JSON lacks (NaN literals, a UTF-8 byte order mark) for the field checks to name.
     """
-    try:
-        if path == '-':
-            data = getattr(sys.stdin, 'buffer', sys.stdin).read()
-        else:
-            with open(path, 'rb') as f:
-                data = f.read()
-    except OSError as exc:
-        raise InputError(f'input: cannot read {path!r}: {exc.strerror}') from None
+    data = read_input(path)
     try:
         return orjson.loads(data)
     except orjson.JSONDecodeError:
@@ -144,7 +138,8 @@ def read_json(path):
 def write_results(results, batch, indent=None):
     """Print ``{"results": [...]}`` for a batch request, else the single result.
 
-    Compact JSON by orjson (NaN/inf written as ``null``), or ``json`` with ``indent``.
+    Compact JSON by orjson (NaN/inf written as ``null``), or ``json`` with ``indent``. A
+    stdout that cannot be written is the dispatcher's (cli.main) one-line error.
     """
     payload = {'results': results} if batch else results[0]
     if indent is None:

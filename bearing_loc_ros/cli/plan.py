@@ -7,7 +7,9 @@ Sub-commands:
 * ``map``: expected 3D position error over a grid at one target altitude (CRLB or the CTLS
   error model of Wang, Zhang & Wu), written as a PNG heat map with labelled contours and as CSV.
 * ``place``: the position of one more station that minimises the mean (or worst) expected
-  error over an area, with the before/after figures (JSON) and optional maps.
+  error over an area, with the before/after figures (JSON) and optional maps; "before" is
+  assessed with the solve the existing stations need, "after" with the one the layout with
+  the new station needs (``solve_before``, ``solve``: docs/planning.md).
 
 Stations come from a simulator scenario (``--scenario``, core.simulation.load_scenario) or
 from ``--stations 'x,y,z[,1d];x,y,z;...'`` in ``--stations-unit`` (km by default). A value
@@ -22,11 +24,12 @@ import sys
 
 import numpy as np
 
-from . import InputError
+from . import InputError, writing
 from .deprecation import DeprecatedOption
 from .helptext import sub_command
-from .plan_args import (contour_levels, ctls_unit, finite, grid_spec, image_path, KM,
-                        load_stations, num_or_none, parse_box_km, parse_values, writing)
+from .plan_args import (color_limits, contour_levels, ctls_unit, finite, grid_spec,
+                        image_path, KM, load_stations, num_or_none, parse_box_km,
+                        parse_values)
 
 
 def add_arguments(parser):
@@ -107,11 +110,14 @@ def add_arguments(parser):
         p.add_argument('--levels', default=None,
                        help='contour levels, m, comma-separated (default: automatic)')
         p.add_argument('--vmin', type=float, default=None,
-                       help='lower end of the colour scale, m (default: the map minimum)')
+                       help='lower end of the colour scale, m, below --vmax (default: the map '
+                            'minimum)')
         p.add_argument('--vmax', type=float, default=None,
                        help='upper end of the colour scale, m (default: 99th percentile)')
         if name == 'map':
-            p.add_argument('--png', default=None, help='write the heat map here')
+            p.add_argument('--png', default=None,
+                           help='write the heat map to this image file (.png added to a name '
+                                'without an extension)')
             p.add_argument('--csv', default=None,
                            help='write the grid here as x_m,y_m,z_m,error_m (default: next '
                                 'to --png with .csv)')
@@ -120,8 +126,8 @@ def add_arguments(parser):
             add_gis_arguments(p, fixes=False)
         else:
             p.add_argument('--area-km', required=True,
-                           help='area of interest XMIN,XMAX,YMIN,YMAX, km (write '
-                                'a negative XMIN may follow directly: --area-km -10,10,-10,10)')
+                           help='area of interest XMIN,XMAX,YMIN,YMAX, km (required; a '
+                                'negative XMIN may follow directly: --area-km -10,10,-10,10)')
             p.add_argument('--region-km', default=None,
                            help='where the new station may go, XMIN,XMAX,YMIN,YMAX, km '
                                 '(--region-km=-30,...; default: the area)')
@@ -343,8 +349,11 @@ def run_map(args):
     st = load_stations(args)
     grid = grid_spec(args, parse_box_km('60', '--extent-km'))
     levels = contour_levels(args)
+    color_limits(args)
     if args.png:
         args.png = image_path('--png', args.png)
+    from .gisargs import check
+    check(args)             # --kml and --origin, before the work
     from ..core.planning import horizontal_solve
     if args.model != 'crlb' and horizontal_solve(st, args.dimension):
         # (auto keeps the 3D model for place, whose new station may measure elevation; a map
@@ -352,9 +361,6 @@ def run_map(args):
         raise InputError('--model: the CTLS error model (Wang, Zhang & Wu eq. (30)) is 3D; the '
                          'horizontal solve (an azimuth-only layout, or --dimension horizontal) '
                          'needs --model crlb')
-    for flag, v in (('--vmin', args.vmin), ('--vmax', args.vmax)):
-        if v is not None:
-            finite(v, flag, True)
     try:
         amap = accuracy_map(st, grid, args.model, ctls_unit(args), args.dimension)
     except ValueError as exc:
@@ -378,6 +384,33 @@ def run_map(args):
     return 0
 
 
+def _solve_of(stations, args, new_has_elevation=False):
+    """``horizontal`` or ``3d``: the solve ``plan place`` assesses ``stations`` (plus a new
+    station measuring elevation or not) with, as ``plan map`` would that layout."""
+    from ..core.planning import horizontal_crlb_applies, horizontal_solve
+    try:
+        horizontal = horizontal_crlb_applies(
+            args.model, horizontal_solve(stations, args.dimension, new_has_elevation),
+            args.dimension)
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    return 'horizontal' if horizontal else '3d'
+
+
+def _before_figures(amap, result):
+    """The "before" figures of a placement from the existing layout's own map over the area
+    (``amap``): before_m, improvement_m, ratio (as core.planning.PlacementResult) and the
+    before statistics."""
+    from ..core.planning import objective_value
+    before = float(objective_value(amap.error.ravel(), result.objective))
+    after = float(result.after)
+    finite_before = math.isfinite(before)
+    return {'before_m': num_or_none(before),
+            'improvement_m': num_or_none(before - after if finite_before else math.inf),
+            'ratio': num_or_none(after / before if finite_before and before > 0 else math.nan),
+            'before': amap.stats()}
+
+
 def run_place(args):
     """Suggest one more station; print before/after (JSON); optional maps."""
     from ..core.planning import GridSpec, accuracy_map, place_station
@@ -387,6 +420,7 @@ def run_place(args):
         if getattr(args, key):
             setattr(args, key, image_path('--' + key.replace('_', '-'), getattr(args, key)))
     region = parse_box_km(args.region_km, '--region-km') if args.region_km else area
+    color_limits(args)
     if args.area_cells < 2 or args.area_cells > 200:
         raise InputError(f'--area-cells: must be 2..200, got {args.area_cells}')
     if args.candidates < 2 or args.candidates > 101:
@@ -397,39 +431,47 @@ def run_place(args):
     res = max(area[1] - area[0], area[3] - area[2]) / args.area_cells
     area_grid = GridSpec(area[0], area[2], res, max(1, round((area[1] - area[0]) / res)),
                          max(1, round((area[3] - area[2]) / res)), alt)
-    from ..core.planning import horizontal_solve
+    grid = levels = None
+    if args.png_before or args.png_after:
+        box = (min(area[0], region[0]), max(area[1], region[1]),
+               min(area[2], region[2]), max(area[3], region[3]))
+        pad = 0.15 * max(box[1] - box[0], box[3] - box[2])
+        grid = grid_spec(args, (box[0] - pad, box[1] + pad, box[2] - pad, box[3] + pad))
+        levels = contour_levels(args)
+    # Each layout is assessed with the solve it needs (docs/planning.md): the existing
+    # stations with their own (an azimuth-only layout: horizontal, altitude known), the
+    # layout with the new station with its (3D when the new station measures elevation).
+    solve_before = _solve_of(st, args)
+    solve_after = _solve_of(st, args, not args.new_1d)
     try:
         res_new = place_station(st, area_grid, region, height, has_elevation=not args.new_1d,
                                 objective=args.objective, model=args.model,
                                 candidates=args.candidates, length_unit=ctls_unit(args),
                                 dimension=args.dimension)
+        out = res_new.as_dict()
+        if solve_before != solve_after:     # the placement's "before" used the after solve
+            out.update(_before_figures(accuracy_map(st, area_grid, args.model,
+                                                    ctls_unit(args), solve_before), res_new))
     except ValueError as exc:
         raise InputError(str(exc)) from None
-    dim = 'horizontal' if horizontal_solve(st, args.dimension, not args.new_1d) else '3d'
-    out = res_new.as_dict()
     out.update(model=args.model, stations=_stations_json(st), area_m=list(area),
-               region_m=list(region), new_station_dims=1 if args.new_1d else 2, solve=dim)
-    if args.png_before or args.png_after:
-        box = (min(area[0], region[0]), max(area[1], region[1]),
-               min(area[2], region[2]), max(area[3], region[3]))
-        pad = 0.15 * max(box[1] - box[0], box[3] - box[2])
-        box = (box[0] - pad, box[1] + pad, box[2] - pad, box[3] + pad)
-        grid = grid_spec(args, box)
-        levels = contour_levels(args)
+               region_m=list(region), new_station_dims=1 if args.new_1d else 2,
+               solve=solve_after, solve_before=solve_before)
+    if grid is not None:
         after_st = st.with_station(res_new.position, st.sigma_az[0],
                                    st.sigma_el[0] if st.has_elevation[0] else st.sigma_az[0],
                                    not args.new_1d)
         extra = {'area': area, 'region': region}
         maps = {'before': (args.png_before, st), 'after': (args.png_after, after_st)}
         # One colour scale for both maps so they can be compared.
-        before = accuracy_map(st, grid, args.model, ctls_unit(args), dim)
+        before = accuracy_map(st, grid, args.model, ctls_unit(args), solve_before)
         fin = before.error[np.isfinite(before.error)]
         vmax = args.vmax or (float(np.percentile(fin, 99)) if fin.size else None)
         for key, (path, layout) in maps.items():
             if not path:
                 continue
             amap = before if key == 'before' else accuracy_map(layout, grid, args.model,
-                                                               ctls_unit(args), dim)
+                                                               ctls_unit(args), solve_after)
             ex = dict(extra, new=res_new.position) if key == 'after' else extra
             with writing(f'--png-{key}', path):
                 plot_map(amap, path, f'{args.model.upper()} error {key} adding a station, '

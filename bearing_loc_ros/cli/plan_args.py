@@ -3,7 +3,6 @@
 Every function raises InputError naming the flag.
 """
 
-import contextlib
 import math
 import os
 
@@ -191,19 +190,23 @@ def contour_levels(args):
     return lv
 
 
-@contextlib.contextmanager
-def writing(flag, path):
-    """Turn an OSError while writing ``path`` into an InputError naming ``flag``."""
-    try:
-        yield
-    except OSError as exc:
-        raise InputError(f'{flag}: cannot write {path!r} ({exc.strerror or exc})') from None
+def color_limits(args):
+    """Check --vmin and --vmax (m): each finite and > 0, and --vmin below --vmax."""
+    for flag, v in (('--vmin', args.vmin), ('--vmax', args.vmax)):
+        if v is not None:
+            finite(v, flag, True)
+    if args.vmin is not None and args.vmax is not None and args.vmin >= args.vmax:
+        raise InputError(f'--vmin: must be below --vmax (got --vmin {args.vmin:g}, --vmax '
+                         f'{args.vmax:g})')
 
 
 def image_path(flag, path):
     """The file an image for ``path`` is written to: ``path`` + ``.png`` without an
-    extension (as matplotlib writes it); InputError naming ``flag`` for an extension
-    matplotlib cannot write."""
+    extension (as matplotlib writes it); InputError naming ``flag`` for a directory (an
+    existing one, or a path ending in '/') or an extension matplotlib cannot write."""
+    if path.endswith(('/', os.sep)) or os.path.isdir(path):
+        raise InputError(f'{flag}: {path!r} is a directory; give an image file name '
+                         f'(e.g. {os.path.join(path, "map.png")!r})')
     ext = os.path.splitext(path)[1].lower().lstrip('.')
     if not ext:
         return path + '.png'

@@ -66,9 +66,10 @@ class PlacementResult:
                 'grid_best_m': [float(v) for v in self.grid_best]}
 
 
-def _objective(err, objective):
-    """Mean or max of ε over the area points (last axis), m; +inf if any point is
-    unobservable; NaN points (on a station's vertical axis, azimuth undefined) are skipped."""
+def objective_value(err, objective):
+    """The placement objective ``objective`` ('mean' or 'max') of the errors ε over the area
+    points (last axis), m; +inf if any point is unobservable; NaN points (on a station's
+    vertical axis, azimuth undefined) are skipped."""
     with warnings.catch_warnings():
         warnings.simplefilter('ignore', RuntimeWarning)  # all-NaN rows give NaN
         if objective == 'max':
@@ -147,7 +148,7 @@ def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=No
     GX, GY = np.meshgrid(gx, gy)
     cands = np.stack([GX.ravel(), GY.ravel(), np.full(GX.size, float(height))], -1)
     per = max(1, CHUNK // max(G, 1))
-    J = np.concatenate([_objective(errors(cands[s:s + per]), objective)
+    J = np.concatenate([objective_value(errors(cands[s:s + per]), objective)
                         for s in range(0, cands.shape[0], per)])
     evaluations = cands.shape[0]
     order = np.argsort(np.where(np.isnan(J), np.inf, J))
@@ -162,7 +163,7 @@ def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=No
         bounds = [(xmin, xmax), (ymin, ymax)]
 
         def fun(p):
-            return float(_objective(errors(np.array([[p[0], p[1], height]])), objective)[0])
+            return float(objective_value(errors(np.array([[p[0], p[1], height]])), objective)[0])
 
         for k in order[:3]:
             x0 = cands[k, :2]
@@ -178,8 +179,8 @@ def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=No
                 best_J = res.fun
                 best = np.array([res.x[0], res.x[1], height])
     after_err = errors(best[None])[0]
-    before = float(_objective(err_before, objective))
-    after = float(_objective(after_err, objective))
+    before = float(objective_value(err_before, objective))
+    after = float(objective_value(after_err, objective))
     improvement = before - after if np.isfinite(before) else float('inf')
     ratio = after / before if np.isfinite(before) and before > 0 else float('nan')
     shape = (area.height, area.width)
