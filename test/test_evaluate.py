@@ -274,6 +274,8 @@ def test_evaluate_cli_bad_input_names_the_field(capsys, tmp_path):
                          (['--sigma-deg', '1,-2'], '--sigma-deg'),
                          (['--sigma-deg', 'a,b'], '--sigma-deg'),
                          (['--sigma-deg', '1,2,1'], '--sigma-deg'),
+                         (['--sigma-deg', '1,,2'], '--sigma-deg'),
+                         (['--estimator', 'ls,'], '--estimator'),
                          (['--trials', '0'], '--trials'),
                          (['--seed', '-1'], '--seed'),
                          (['--range-ref', '-5'], '--range-ref'),

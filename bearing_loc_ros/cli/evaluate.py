@@ -89,13 +89,17 @@ def add_arguments(parser):
 
 
 def _csv_list(text, name, conv):
+    """The values of a comma-separated option (``conv`` each); InputError naming ``name``
+    for an empty list, an empty item (``1,,2``: a typo, not a list of two) or a bad value."""
+    items = [x.strip() for x in str(text).split(',')]
+    if not any(items):
+        raise InputError(f'{name}: empty list')
+    if not all(items):
+        raise InputError(f'{name}: empty item in {text!r}')
     try:
-        vals = [conv(x.strip()) for x in str(text).split(',') if x.strip()]
+        return [conv(x) for x in items]
     except ValueError:
         raise InputError(f'{name}: expected a comma-separated list, got {text!r}') from None
-    if not vals:
-        raise InputError(f'{name}: empty list')
-    return vals
 
 
 class Progress:
