@@ -7,16 +7,20 @@ and a state for ``/diagnostics`` and recovers by itself:
 * :class:`HttpPoller`: GET the receiver's ``doa.xml`` (``fmt='xml'``) or ``DOA_value.html``
   (``fmt='csv'``) every ``period_s`` from the one URL the user configured, with a timeout;
   redirects are refused (no other host is ever contacted) and environment proxies ignored.
-  After a failure the next attempt waits period·2^k (k consecutive failures, at most
-  ``max_backoff_s``); the first success resets it (state ``ok``, ``recoveries`` counted).
+  After a failure (connection, timeout, HTTP status, a reply that is not HTTP) the next
+  attempt waits period·2^k (k consecutive failures, at most ``max_backoff_s``); the first
+  success resets it (state ``ok``, ``recoveries`` counted). Nothing stops the polling
+  thread: an unexpected error is counted (``internal_error``), logged and retried.
 * :class:`JsonPostServer`: an HTTP server (stdlib ``http.server``, one thread per request)
   bound to ``127.0.0.1`` by default, accepting the receiver's JSON POST on any path; 200 for
-  a parsed reading, 400 with the rejection reason, 413 over the size limit, 405 for other
-  methods.
+  a parsed reading, 400 with the rejection reason (``truncated_body`` when the client sent
+  less than its Content-Length), 411 without a Content-Length, 413 over the size limit, 405
+  for other methods. Clients that disconnect are counted, not reported with a traceback.
 * :class:`CsvFileTail`: a recorded "Kraken App" CSV file read from the start (or its end)
   and followed while it grows (tail); a truncated or replaced file is read again from the
-  start, a missing one is waited for. ``rate`` > 0 replays the lines at ``rate`` × their
-  recorded pace.
+  start, a missing one is waited for. Lines end with LF, CR LF or a lone CR; a line over
+  :data:`MAX_LINE_BYTES` is skipped to its end (one ``too_large``). ``rate`` > 0 replays
+  the lines at ``rate`` × their recorded pace (:data:`MAX_REPLAY_GAP_S`).
 
 :class:`KrakenInput` ties one source to the receiver geometry (:mod:`..core.receiver`) and
 the channel map (:mod:`..core.kraken`): records -> per-channel core bearings, with every
@@ -24,8 +28,14 @@ rejection counted by reason.
 """
 
 from collections import Counter, deque
+import codecs
+import errno
+import http.client
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+import logging
 import os
+import socket
+import sys
 import threading
 import time
 import urllib.error
@@ -40,12 +50,44 @@ MODES = ('kraken_xml_http', 'kraken_csv_http', 'kraken_json_post', 'kraken_csv_f
 STAMPS = ('receiver', 'receive')
 QUEUE_SIZE = 1000
 MAX_POST_BYTES = 64 * 1024
+#: Default TCP port of the JSON POST listener (the station parameter kraken.post_port).
+POST_PORT = 8082
 #: Lines read from a file per poll (the node polls every few tens of ms).
 FILE_LINES_PER_POLL = 500
+#: Longest line of a recorded CSV file, bytes (the document limit of the parsers; a real
+#: line with its 360-value spectrum is < 4 KiB). A longer one is skipped to its end and
+#: counted once as ``too_large``, so memory stays bounded whatever the file holds.
+MAX_LINE_BYTES = kraken.MAX_DOCUMENT_BYTES
+#: Replay (``rate`` > 0): a reading stamped before the previous one, or more than this many
+#: seconds of recorded time after it, is released at once and the pace restarts from it
+#: (counted ``replay_jumps``): a gap in the recording, a clock jump or a bad stamp never
+#: holds the replay.
+MAX_REPLAY_GAP_S = 60.0
+#: A source logs one kind of problem at most once per this many seconds (steady clock).
+LOG_THROTTLE_S = 10.0
+_READ_BYTES = 256 * 1024
+#: Marks, in a file's queue of held lines, where a reopened or truncated file restarts.
+_RESTART = object()
+
+
+def _line_end(buf, start):
+    """(first index, index after) of the first line end (LF, CR LF or CR) in ``buf`` at or
+    after ``start``, or None. A CR LF cut between two reads ends the line at the CR and
+    leaves a blank line (skipped)."""
+    lf = buf.find(b'\n', start)
+    cr = buf.find(b'\r', start, len(buf) if lf < 0 else lf)
+    if cr >= 0:
+        return cr, cr + 2 if buf[cr + 1:cr + 2] == b'\n' else cr + 1
+    return None if lf < 0 else (lf, lf + 1)
 
 
 class _Source:
-    """Shared state of an input source: a bounded result queue and counters (thread-safe)."""
+    """Shared state of an input source: a bounded result queue and counters (thread-safe).
+
+    ``log`` (a callable taking one line of text; Python logging by default, the node sets
+    its own logger) receives the source's warnings, at most one per kind every
+    :data:`LOG_THROTTLE_S` s.
+    """
 
     def __init__(self, queue_size=QUEUE_SIZE):
         self._lock = threading.Lock()
@@ -54,6 +96,21 @@ class _Source:
         self.counts = Counter()
         self.state = 'starting'
         self.last_error = ''
+        self.log = logging.getLogger(__name__).warning
+        self._logged = {}
+
+    def _warn(self, kind, text):
+        """Log ``text`` unless a ``kind`` warning was logged less than LOG_THROTTLE_S ago."""
+        now = time.monotonic()
+        with self._lock:
+            last = self._logged.get(kind)
+            if last is not None and now - last < LOG_THROTTLE_S:
+                return
+            self._logged[kind] = now
+        try:
+            self.log(text)
+        except Exception:   # noqa: BLE001 - a broken logger must not stop an input
+            pass
 
     def _put(self, items):
         with self._lock:
@@ -92,10 +149,17 @@ class _NoRedirect(urllib.request.HTTPRedirectHandler):
 
 
 def check_url(url):
-    """The URL if it is http(s)://host[:port]/path, else ValueError naming the problem."""
-    parts = urllib.parse.urlsplit(url)
+    """The URL if it is http(s)://host[:port]/path (port 1-65535 when given), else
+    ValueError naming the problem."""
+    try:
+        parts = urllib.parse.urlsplit(url)
+        port = parts.port
+    except ValueError as exc:   # a port that is not a number in 0-65535, a bad IPv6 host
+        raise ValueError(f'{url!r} is not a valid URL ({exc})') from None
     if parts.scheme not in ('http', 'https') or not parts.hostname:
         raise ValueError(f'{url!r} is not an http:// or https:// URL with a host')
+    if port == 0:
+        raise ValueError(f'{url!r}: port 0 cannot be polled (a port is 1 to 65535)')
     return url
 
 
@@ -136,7 +200,7 @@ class HttpPoller(_Source):
             self.counts[key] += 1
             self.failures += 1
             self.state = 'unreachable' if key in ('unreachable', 'timeout') else 'error'
-            self.last_error = f'{key}: {detail}'[:200]
+            self.last_error = f'{key}: {" ".join(str(detail).split())}'[:200]   # one line
 
     def poll_once(self):
         """One GET + parse; returns the delay before the next one (s)."""
@@ -145,6 +209,10 @@ class HttpPoller(_Source):
         try:
             with self._opener.open(self.url, timeout=self.timeout_s) as resp:
                 body = resp.read(kraken.MAX_DOCUMENT_BYTES + 1)
+                announced = (resp.headers.get('Content-Length') or '').strip()
+            if announced.isascii() and announced.isdigit() and len(body) < min(
+                    int(announced), kraken.MAX_DOCUMENT_BYTES + 1):
+                raise http.client.IncompleteRead(body[:40], int(announced) - len(body))
         except urllib.error.HTTPError as exc:
             self._fail('http_status', f'HTTP {exc.code} {exc.reason}')
         except urllib.error.URLError as exc:
@@ -153,7 +221,9 @@ class HttpPoller(_Source):
             self._fail(key, str(reason))
         except TimeoutError as exc:
             self._fail('timeout', str(exc) or 'timed out')
-        except (OSError, ValueError) as exc:   # reset connections, bad status lines
+        except (OSError, ValueError, http.client.HTTPException) as exc:
+            # reset connections; replies that are not HTTP (BadStatusLine), cut short
+            # (IncompleteRead) or with too many headers
             self._fail('http_error', f'{type(exc).__name__}: {exc}')
         else:
             elapsed = time.monotonic() - t0
@@ -177,7 +247,14 @@ class HttpPoller(_Source):
 
     def _run(self):
         while not self._stop.is_set():
-            delay = self.poll_once()
+            try:
+                delay = self.poll_once()
+            except Exception as exc:   # noqa: BLE001 - last resort: the thread keeps polling
+                detail = f'{type(exc).__name__}: {exc}'
+                self._fail('internal_error', detail)
+                self._warn('internal_error', f'receiver poll of {self.url} failed: '
+                                             f'{detail[:200]} (retrying)')
+                delay = min(self.period_s * 2 ** min(self.failures, 20), self.max_backoff_s)
             self._stop.wait(delay)
 
 
@@ -199,10 +276,8 @@ class _PostHandler(BaseHTTPRequestHandler):
     def do_POST(self):   # noqa: N802 (http.server naming)
         src = self.server.source
         src._count('requests')
-        try:
-            length = int(self.headers.get('Content-Length', ''))
-        except ValueError:
-            length = -1
+        text = (self.headers.get('Content-Length') or '').strip()
+        length = int(text) if text.isascii() and text.isdigit() else -1
         if length < 0:
             src._put([KrakenError('malformed_json', 'no Content-Length')])
             self._reply(411, 'length required')
@@ -211,7 +286,18 @@ class _PostHandler(BaseHTTPRequestHandler):
             src._put([KrakenError('too_large', f'{length} bytes')])
             self._reply(413, 'too large')
             return
-        data = self.rfile.read(length)
+        try:
+            data = self.rfile.read(length)
+        except OSError as exc:      # the client went silent (timeout) or reset
+            data, why = b'', type(exc).__name__
+        else:
+            why = f'{len(data)} of {length} bytes'
+        if len(data) < length:
+            src._put([KrakenError('truncated_body', f'body shorter than its Content-Length '
+                                                    f'({why})')])
+            self.close_connection = True
+            self._reply(400, 'truncated_body')
+            return
         result = kraken.parse(data, 'json')[0]
         src._put([result])
         if isinstance(result, KrakenError):
@@ -229,16 +315,39 @@ class _Server(ThreadingHTTPServer):
     daemon_threads = True
     allow_reuse_address = True
 
+    def handle_error(self, request, client_address):
+        """A request failed: count it and log one throttled line (no traceback). A client
+        that disconnected or went silent is ``client_disconnects``, anything else
+        ``request_errors``."""
+        exc = sys.exc_info()[1]
+        src = self.source
+        kind = ('client_disconnects' if isinstance(exc, (ConnectionError, TimeoutError))
+                else 'request_errors')
+        src._count(kind)
+        src._warn(kind, f'JSON POST listener: request from {client_address[0]} failed: '
+                        f'{type(exc).__name__}: {str(exc)[:120]} (counted as {kind})')
+
+
+class _Server6(_Server):
+    address_family = socket.AF_INET6
+
 
 class JsonPostServer(_Source):
-    """Accept the receiver's JSON POSTs on ``address:port`` (module docstring)."""
+    """Accept the receiver's JSON POSTs on ``address:port`` (module docstring).
 
-    def __init__(self, address='127.0.0.1', port=8081, max_body=MAX_POST_BYTES,
+    ``address`` is a host name or an IPv4/IPv6 address. Raises OSError when it does not
+    resolve or cannot be bound (``errno`` EADDRNOTAVAIL: not an address of this machine),
+    or the port is taken.
+    """
+
+    def __init__(self, address='127.0.0.1', port=POST_PORT, max_body=MAX_POST_BYTES,
                  queue_size=QUEUE_SIZE):
         super().__init__(queue_size)
         self.address = address
         self.max_body = int(max_body)
-        self._httpd = _Server((address, int(port)), _PostHandler)   # OSError if not bindable
+        family = socket.getaddrinfo(address, int(port), type=socket.SOCK_STREAM)[0][0]
+        server = _Server6 if family == socket.AF_INET6 else _Server
+        self._httpd = server((address, int(port)), _PostHandler)   # OSError if not bindable
         self._httpd.source = self
         self._thread = None
         self.state = 'listening'
@@ -266,9 +375,16 @@ class JsonPostServer(_Source):
 class CsvFileTail(_Source):
     """Read a "Kraken App" CSV recording and follow it while it grows (module docstring).
 
-    Non-blocking: :meth:`poll` reads what is there (at most ``FILE_LINES_PER_POLL`` lines);
-    an incomplete last line is kept until its newline arrives. ``rate`` > 0 releases each
-    reading when ``rate`` × (steady time since the first) reaches its recorded offset.
+    Non-blocking: :meth:`poll` reads what is there (at most ``FILE_LINES_PER_POLL`` lines,
+    and nothing while ``queue_size`` parsed lines wait for their replay time). The file is
+    read as bytes: a line ends at LF, CR LF or a lone CR, and each line is decoded as UTF-8
+    (a line that is not is ``malformed_csv``); an incomplete last line is kept until its end
+    arrives, up to :data:`MAX_LINE_BYTES` (then it is skipped to its end, one
+    ``too_large``). ``rate`` > 0 releases each reading ``(stamp − previous stamp) / rate``
+    seconds (steady clock) after the previous one; a reading stamped before the previous
+    one or more than :data:`MAX_REPLAY_GAP_S` after it is released at once and the pace
+    restarts from it (``replay_jumps``), and so does the first reading of a reopened or
+    truncated file.
     """
 
     def __init__(self, path, from_start=True, rate=0.0, queue_size=QUEUE_SIZE):
@@ -278,8 +394,9 @@ class CsvFileTail(_Source):
         self.rate = float(rate)
         self._f = None
         self._ino = None
-        self._partial = ''
-        self._first = None        # (steady s, stamp ns) of the first released record
+        self._buf = b''           # bytes read after the last line end
+        self._skip = False        # skipping to the end of a line (too long, or cut at open)
+        self._pace = None         # (steady s, stamp ns) of the last released record
         self._held = deque()
 
     def close(self):
@@ -294,18 +411,27 @@ class CsvFileTail(_Source):
         """Nothing to start (polled by the caller)."""
         return self
 
+    def _restart(self):
+        """Read from the file's current position as a new file: no partial line, and the
+        replay pace restarts at the next reading."""
+        self._buf, self._skip = b'', False
+        self._held.append(_RESTART)
+
     def _open(self, at_start):
         try:
-            f = open(self.path, 'r', encoding='utf-8', errors='replace', newline='')
+            f = open(self.path, 'rb')
         except OSError as exc:
             if self.state != 'missing':
                 self._count('missing')
             self.state, self.last_error = 'missing', f'{exc.strerror}: {self.path}'
             return False
         self._f, self._ino = f, os.fstat(f.fileno()).st_ino
+        self._restart()
         if not at_start:
-            f.seek(0, os.SEEK_END)
-        self._partial = ''
+            end = f.seek(0, os.SEEK_END)
+            if end:   # the recorder may be inside a line: skip to its end
+                f.seek(end - 1)
+                self._skip = f.read(1) not in (b'\n', b'\r')
         self.state = 'reading'
         return True
 
@@ -317,57 +443,98 @@ class CsvFileTail(_Source):
         if st.st_ino != self._ino:
             self._count('reopened')
             self.close()
-        elif st.st_size < self._f.tell():
+        elif st.st_size < self._f.tell():     # byte offsets: the file is read as bytes
             self._count('truncated')
             self._f.seek(0)
-            self._partial = ''
+            self._restart()
+
+    @staticmethod
+    def _decode(line):
+        if line.startswith(codecs.BOM_UTF8):
+            line = line[len(codecs.BOM_UTF8):]
+        try:
+            return line.decode('utf-8')
+        except UnicodeDecodeError:
+            return KrakenError('malformed_csv', 'not UTF-8 text')
 
     def _read_lines(self):
+        """New complete lines: str, '' for a blank one, or a KrakenError (not UTF-8, too
+        long); at most FILE_LINES_PER_POLL."""
         if self._f is None and not self._open(self.from_start or self._ino is not None):
             return []
         self._check_replaced()
         if self._f is None and not self._open(True):
             return []
-        lines = []
+        lines, buf, start = [], self._buf, 0
         while len(lines) < FILE_LINES_PER_POLL:
-            chunk = self._f.readline()
-            if not chunk:
+            end = _line_end(buf, start)
+            if end is not None:
+                if self._skip:
+                    self._skip = False
+                else:
+                    lines.append(self._decode(buf[start:end[0]]))
+                start = end[1]
+                continue
+            buf, start = (b'' if self._skip else buf[start:]), 0
+            if len(buf) > MAX_LINE_BYTES:
+                lines.append(KrakenError('too_large', f'CSV line longer than {MAX_LINE_BYTES} '
+                                                      'bytes (skipped to its end)'))
+                buf, self._skip = b'', True
+            data = self._f.read(_READ_BYTES)
+            if not data:
                 break
-            if not chunk.endswith('\n'):
-                self._partial += chunk
-                break
-            lines.append(self._partial + chunk)
-            self._partial = ''
+            buf += data
+        self._buf = buf[start:]
         return lines
 
     def poll(self, now_s=None):
-        """Read new lines, parse them, queue the results that are due; return how many."""
-        for line in self._read_lines():
-            if line.strip():
-                self._count('lines')
-                try:
-                    self._held.append(kraken.parse_csv_line(line))
-                except KrakenError as exc:
-                    self._held.append(exc)
+        """Read new lines, parse them, queue the results that are due; return how many.
+
+        ``now_s``: steady clock, s (default ``time.monotonic()``), for ``rate`` > 0.
+        """
+        if len(self._held) < self._queue_size:
+            for line in self._read_lines():
+                if isinstance(line, KrakenError):
+                    self._count('lines')
+                    self._held.append(line)
+                elif line.strip():
+                    self._count('lines')
+                    try:
+                        self._held.append(kraken.parse_csv_line(line))
+                    except KrakenError as exc:
+                        self._held.append(exc)
         now_s = time.monotonic() if now_s is None else now_s
         due = []
         while self._held:
             item = self._held[0]
+            if item is _RESTART:
+                self._held.popleft()
+                self._pace = None
+                continue
             if self.rate > 0.0 and isinstance(item, kraken.KrakenRecord):
-                if self._first is None:
-                    self._first = (now_s, item.stamp_ns)
-                offset = (item.stamp_ns - self._first[1]) / 1e9 / self.rate
-                if now_s - self._first[0] < offset:
-                    break
+                if self._pace is None:
+                    self._pace = (now_s, item.stamp_ns)
+                else:
+                    gap_s = (item.stamp_ns - self._pace[1]) / 1e9
+                    if 0.0 <= gap_s <= MAX_REPLAY_GAP_S:
+                        release = self._pace[0] + gap_s / self.rate
+                        if now_s < release:
+                            break
+                        self._pace = (release, item.stamp_ns)
+                    else:
+                        self._count('replay_jumps')
+                        self._pace = (now_s, item.stamp_ns)
             due.append(self._held.popleft())
         self._put(due)
         return len(due)
 
 
 def make_source(mode, url='', poll_period_s=0.5, timeout_s=2.0, post_address='127.0.0.1',
-                post_port=8081, file_path='', file_from_start=True, file_rate=0.0):
+                post_port=POST_PORT, file_path='', file_from_start=True, file_rate=0.0):
     """The source object of an input ``mode`` (one of :data:`MODES`); ValueError naming the
-    parameter (``url``, ``post_port``, ``file``) when it cannot be built."""
+    parameter (``url``, ``post_address``, ``post_port``, ``file``) when it cannot be built:
+    ``post_address`` when the address does not resolve or is not one of this machine's,
+    ``post_port`` when the port is taken or not allowed."""
     if mode in ('kraken_xml_http', 'kraken_csv_http'):
         try:
             check_url(url)
@@ -376,11 +543,19 @@ def make_source(mode, url='', poll_period_s=0.5, timeout_s=2.0, post_address='12
         return HttpPoller(url, 'xml' if mode == 'kraken_xml_http' else 'csv', poll_period_s,
                           timeout_s)
     if mode == 'kraken_json_post':
+        where = f'{post_address}:{post_port}'
         try:
             return JsonPostServer(post_address, post_port)
-        except (OSError, OverflowError) as exc:
-            raise ValueError(f'post_port: cannot listen on {post_address}:{post_port} '
+        except (socket.gaierror, UnicodeError) as exc:
+            raise ValueError(f'post_address: {post_address!r} does not resolve '
                              f'({getattr(exc, "strerror", None) or exc})') from None
+        except OverflowError as exc:
+            raise ValueError(f'post_port: cannot listen on {where} ({exc})') from None
+        except OSError as exc:
+            name = 'post_address' if exc.errno == errno.EADDRNOTAVAIL else 'post_port'
+            why = ('not an address of this machine' if name == 'post_address' else
+                   exc.strerror or str(exc))
+            raise ValueError(f'{name}: cannot listen on {where} ({why})') from None
     if mode == 'kraken_csv_file':
         if not file_path:
             raise ValueError('file: required with input kraken_csv_file')
@@ -398,22 +573,30 @@ class KrakenInput:
     (``other_station``); the frequency picks the channel (``no_channel`` when in no band);
     the stamp is the receiver's ``TIME`` (``stamp='receiver'``) or the node clock on
     receipt (``'receive'``); :class:`~bearing_loc_ros.core.kraken.TimeFilter` refuses
-    duplicate, out-of-order and (``max_age_s`` > 0) stale stamps per (station, channel) —
-    a polled document seen again is counted as ``unchanged``, not rejected; the platform
-    pose (``pose_at(stamp_ns)``, only when the geometry needs odometry) and
-    :meth:`ReceiverGeometry.to_bearing` finish the bearing.
+    duplicate and out-of-order stamps per (station, channel) — a polled document seen
+    again is counted as ``unchanged``, not rejected — and, with ``stamp='receiver'`` and
+    ``now_ns`` given, ``TIME`` more than
+    :data:`~bearing_loc_ros.core.kraken.MAX_FUTURE_NS` after ``now_ns`` (``future_time``)
+    or (``max_age_s`` > 0) more than ``max_age_s`` before it (``stale_time``); the
+    platform pose (``pose_at(stamp_ns)``, only when the geometry needs odometry) and
+    :meth:`ReceiverGeometry.to_bearing` finish the bearing. ``max_age_s`` > 0 with
+    ``stamp='receive'`` is a ValueError: the receiver's clock is then not comparable with
+    the node's, and a reading stamped on receipt has no age.
     """
 
     def __init__(self, source, config, channels=None, stamp='receiver', max_age_s=0.0,
                  receiver_id='', reset_s=60.0):
         if stamp not in STAMPS:
             raise ValueError(f'stamp: {stamp!r} is not one of {STAMPS}')
+        if stamp == 'receive' and max_age_s > 0.0:
+            raise ValueError(f'max_age: {max_age_s:g} s applies only with stamp receiver')
         self.source = source
         self.geometry = ReceiverGeometry(config)
         self.channels = channels or kraken.ChannelMap()
         self.stamp = stamp
         self.receiver_id = receiver_id
-        self.times = kraken.TimeFilter(int(max_age_s * 1e9), int(reset_s * 1e9))
+        self.times = kraken.TimeFilter(int(max_age_s * 1e9), int(reset_s * 1e9),
+                                       kraken.MAX_FUTURE_NS)
         self.counts = Counter()
         self.published = Counter()
         self._reported_state = None

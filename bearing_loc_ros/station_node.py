@@ -35,6 +35,7 @@ parameters exit with code 1 and a message naming the parameter; bad readings are
 reason, logged (throttled) and never stop the node.
 """
 
+import errno
 import socket
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -177,6 +178,7 @@ class StationNode(Node):
         except ValueError as exc:
             name, _, problem = str(exc).partition(': ')
             raise rcm.ParameterError('kraken.' + name, problem) from None
+        source.log = self.get_logger().warning     # the source's throttled warnings
         self.kraken = KrakenInput(source, self.receiver_config, self.channels,
                                   p['kraken.stamp'], p['kraken.max_age'],
                                   p['kraken.receiver_id']).start()
@@ -196,6 +198,8 @@ class StationNode(Node):
         change = self.kraken.state_change()
         if change is not None:
             state, error = change
+            if error.startswith(f'{state}: '):     # 'unreachable: <why>' says it once
+                error = error[len(state) + 2:]
             # Throttled: a receiver flapping between ok and unreachable.
             if state in FAILED_STATES:
                 self.get_logger().warning(f'receiver {state}: {error} (retrying; counts in '
@@ -226,6 +230,9 @@ class StationNode(Node):
             sock.bind(sockaddr)
         except OSError as exc:
             sock.close()
+            if exc.errno == errno.EADDRNOTAVAIL:
+                raise rcm.ParameterError('udp_address', f'cannot bind {address}:{port}: not '
+                                                        'an address of this machine') from None
             raise rcm.ParameterError('udp_port', f'cannot bind {address}:{port}: '
                                                  f'{exc.strerror or exc}') from None
         self._sock = sock

@@ -4,8 +4,9 @@ Every datagram sent is accounted for: read by the node (then published or reject
 reason) or dropped by the kernel because the node was not reading (``udp_dropped_by_kernel``
 in the diagnostics, which turn WARN and say so). The node's receive buffer is shrunk to 4 KiB
 so the burst overflows it on any host, whatever its default buffer size. The burst holds the
-single-datagram repros (a 400-digit azimuth, ``t`` = 1e200000) that once killed or froze the
-node, valid readings, random bytes and mutated readings from a fixed seed.
+single-datagram repros (a 400-digit azimuth, ``t`` = 1e200000, an exponent beyond decimal's
+range) that once killed or froze the node, valid readings, random bytes and mutated
+readings from a fixed seed.
 """
 
 import math
@@ -26,7 +27,10 @@ pytestmark = pytest.mark.ros
 VALID = b'{"t": 1700000000.5, "azimuth_deg": 12.5, "sigma_deg": 1.5}'
 REPROS = (b'{"t": 1700000000, "azimuth_deg": 1' + b'0' * 400 + b'}',
           b'{"t": 1e200000, "azimuth_deg": 1}', b'{"t": 1e999990, "azimuth_deg": 1}',
-          b'{"t": 1700000000, "azimuth_deg": 1e300}')
+          b'{"t": 1700000000, "azimuth_deg": 1e300}',
+          # beyond what decimal holds: Decimal() raised InvalidOperation, exit code 70
+          b'{"t": 1700000000, "azimuth_deg": 1e1000000000000000000}',
+          b'{"t": 1700000000, "azimuth_deg": 2, "x": 1e1000000000000000000}')
 
 
 def burst(n, seed=13):
@@ -102,8 +106,8 @@ def test_repros_are_rejected_by_reason_and_the_node_keeps_publishing(station):
         for data in REPROS + (VALID,):
             tx.sendto(data, ('127.0.0.1', port))
     assert spin_until(executor, lambda: node.received['udp'] == len(REPROS) + 1, 10.0)
-    assert dict(node.rejected) == {'bad_azimuth': 2, 'bad_t': 2}
-    assert node.published == 1 and node.last_stamp_ns == 1_700_000_000_500_000_000
+    assert dict(node.rejected) == {'bad_azimuth': 3, 'bad_t': 2}
+    assert node.published == 2 and node.last_stamp_ns == 1_700_000_000_500_000_000
     values = {kv.key: kv.value for kv in node.diagnostic_status().values}
     assert values['udp_dropped_by_kernel'] == '0'
     assert math.isfinite(float(values['last_stamp_s']))

@@ -145,6 +145,25 @@ def test_json_hostile_values():
                                         b'"freq": 1e8}') == ('bad_number', 'tStamp')
 
 
+@pytest.mark.parametrize('literal', [b'1e1000000000000000000', b'-1E+99999999999999999999',
+                                     b'1e-1000000000000000000'])
+def test_json_exponent_beyond_decimal_range_is_refused_never_raised(literal):
+    """Decimal('1e1000000000000000000') raises InvalidOperation; it once escaped parse()
+    and left the POST client without a reply. Refused from the text before conversion: a
+    field's ``bad_number``, harmless in an ignored key; parse() returns, never raises."""
+    body = read('doa_post.json')
+    bad_conf = body.replace(b'"conf": 0.91', b'"conf": ' + literal)
+    assert bad_conf != body
+    assert reason_of(kraken.parse_json, bad_conf) == ('bad_number', 'conf')
+    [err] = kraken.parse(bad_conf, 'json')
+    assert isinstance(err, KrakenError) and 'exponent beyond' in str(err)
+    bad_stamp = body.replace(b'"tStamp": 1700000002500', b'"tStamp": ' + literal)
+    assert bad_stamp != body
+    assert reason_of(kraken.parse_json, bad_stamp) == ('bad_number', 'tStamp')
+    [rec] = kraken.parse(b'{"x": ' + literal + b', ' + body[1:], 'json')
+    assert rec.stamp_ns == 1700000002500 * 1_000_000 and rec.doa_deg == 75.0
+
+
 def test_parse_dispatch():
     assert isinstance(kraken.parse(read('doa_basic.xml'), 'xml')[0], kraken.KrakenRecord)
     assert isinstance(kraken.parse(b'{}', 'json')[0], KrakenError)
@@ -174,6 +193,30 @@ def test_time_filter():
     tf2.check('a', 200_000_000_000)
     tf2.check('a', 100_000_000_000)
     assert tf2.resets == 1
+
+
+def test_time_filter_refuses_future_stamps_without_changing_its_state():
+    """One reading 30 s ahead of the node clock (a receiver clock glitch) with max_age 5 s
+    once made the next 30 s of good 1 Hz readings ``old_time``; a 2037 stamp was accepted.
+    Now each is ``future_time`` and every good reading passes."""
+    s = 1_000_000_000
+    now0 = 1_700_000_000 * s
+    tf = kraken.TimeFilter(max_age_ns=5 * s, reset_ns=60 * s)
+    assert tf.future_ns == kraken.MAX_FUTURE_NS == 10 * s
+    out = []
+    for k in range(40):
+        now = now0 + k * s
+        stamp = now + 30 * s if k == 5 else (2_130_000_000 * s if k == 9 else now)
+        try:
+            tf.check('rx', stamp, now)
+            out.append('ok')
+        except KrakenError as exc:
+            out.append(exc.reason)
+    assert out == ['ok'] * 5 + ['future_time'] + ['ok'] * 3 + ['future_time'] + ['ok'] * 30
+    assert tf.resets == 0
+    tf.check('rx', now0 + 50 * s + kraken.MAX_FUTURE_NS, now0 + 50 * s)   # at the limit
+    tf.check('rx', now0 + 90 * s, now_ns=None)      # no node clock: no future check
+    tf.check('rx', now0 + 91 * s, now_ns=0)         # node clock not started (sim time)
 
 
 def test_channel_map():

@@ -220,3 +220,31 @@ def test_config_errors_name_the_parameter(kw, field):
     with pytest.raises(ConfigError) as e:
         receiver_config('rx', **args)
     assert e.value.field == field
+
+
+@pytest.mark.parametrize('kw, field, says', [
+    (dict(position=[1.0, 2.0, 3.0], position_source='gps', geodetic_origin=[48.0, 11.0, 0.0]),
+     'position', 'kraken.position_source: gps'),
+    (dict(geodetic_position=[48.0, 11.0, 0.0], geodetic_origin=[48.0, 11.0, 0.0],
+          position_source='odometry'), 'geodetic_position', 'kraken.position_source: odometry'),
+    (dict(position_source='parameters'), 'position', 'kraken.position_source: gps or '
+                                                     'odometry'),
+])
+def test_position_conflicts_name_the_receiver_parameter(kw, field, says):
+    """A position given with kraken.position_source gps once said "must not be set with
+    platform_odometry", a parameter the user never set."""
+    with pytest.raises(ConfigError) as e:
+        receiver_config('rx', **kw)
+    assert e.value.field == field
+    assert says in e.value.problem and 'platform_odometry' not in e.value.problem
+
+
+def test_max_age_with_receive_stamps_is_a_start_up_error():
+    """kraken.max_age was silently ignored with kraken.stamp: receive."""
+    from bearing_loc_ros.core.receiver_params import receiver_from_params
+    p = {'position': [0.0, 0.0, 0.0], 'kraken.stamp': 'receive', 'kraken.max_age': 5.0}
+    with pytest.raises(ConfigError) as e:
+        receiver_from_params('rx', p)
+    assert e.value.field == 'kraken.max_age' and 'kraken.stamp: receive' in e.value.problem
+    receiver_from_params('rx', dict(p, **{'kraken.max_age': 0.0}))
+    receiver_from_params('rx', dict(p, **{'kraken.stamp': 'receiver'}))

@@ -120,6 +120,46 @@ def test_datagram_limits_are_inclusive_and_ignored_keys_harmless():
     assert r.azimuth == pytest.approx(math.radians(1.0))
 
 
+@pytest.mark.parametrize('literal', [b'1e1000000000000000000', b'-1E+1000000000000000000',
+                                     b'1e-1000000000000000000', b'1e' + b'9' * 38])
+def test_datagram_exponent_beyond_decimal_range_is_refused_never_raised(literal):
+    """Exponents beyond what decimal can even hold (Decimal('1e1000000000000000000') raises
+    InvalidOperation, which once escaped the parser and stopped the node): refused from the
+    text, as a field's rejection; harmless in an ignored key; a zero is a zero."""
+    with pytest.raises(ReadingError) as info:
+        parse_datagram(b'{"t": 1700000000, "azimuth_deg": ' + literal + b'}')
+    assert info.value.reason == 'bad_azimuth' and 'exponent beyond' in str(info.value)
+    with pytest.raises(ReadingError) as info:
+        parse_datagram(b'{"t": ' + literal + b', "azimuth_deg": 1}')
+    assert info.value.reason == 'bad_t'
+    r = parse_datagram(b'{"t": 1700000000, "azimuth_deg": 2, "x": ' + literal + b'}')
+    assert r.stamp_ns == 1_700_000_000 * 10 ** 9
+    assert r.azimuth == pytest.approx(math.radians(2.0))
+    zero = b'0' + literal[literal.lower().index(b'e'):]
+    r = parse_datagram(b'{"t": 1700000000, "azimuth_deg": ' + zero + b'}')
+    assert r.azimuth == 0.0
+
+
+def test_literal_exponent_is_the_decimal_exponent_without_converting():
+    import decimal
+    import random
+    from bearing_loc_ros.core.datagram import json_decimal, literal_exponent
+    rng = random.Random(5)
+    for _ in range(3000):
+        whole = rng.choice(['0', str(rng.randrange(1, 10 ** rng.randrange(1, 12)))])
+        frac = ''.join(rng.choice('0123456789') for _ in range(rng.randrange(0, 12)))
+        text = rng.choice(['', '-']) + whole + ('.' + frac if frac else '')
+        if rng.random() < 0.7:
+            text += rng.choice('eE') + rng.choice(['', '+', '-']) + str(rng.randrange(0, 500))
+        d = decimal.Decimal(text)
+        assert literal_exponent(text) == (d.adjusted() if d else None), text
+        got = json_decimal(text)
+        if d and abs(d.adjusted()) > 400:
+            assert 'exponent beyond' in got.problem, text
+        else:
+            assert got == d, text
+
+
 def test_datagram_without_t_when_restamping():
     assert parse_datagram(b'{"azimuth_deg": 3}', require_t=False).azimuth == \
         pytest.approx(math.radians(3))

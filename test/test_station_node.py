@@ -286,7 +286,20 @@ BAD_PARAMS = [
      'geodetic_position'),
     ('position: [1.0, 2.0, 3.0]\n    azimuth_reference: north', 'azimuth_reference'),
     ('position: [1.0, 2.0, 3.0]\n    position_covariance: [1.0, 2.0]', 'position_covariance'),
+    # Receiver inputs: each error names the parameter that is wrong.
+    ('position: [1.0, 2.0, 3.0]\n    input: kraken_xml_http\n    kraken:\n'
+     '      url: http://127.0.0.1:abc/doa.xml', 'kraken.url'),
+    ('position: [1.0, 2.0, 3.0]\n    input: kraken_xml_http\n    kraken:\n'
+     '      url: http://127.0.0.1:9/doa.xml\n      position_source: gps', 'position'),
+    ('position: [1.0, 2.0, 3.0]\n    input: kraken_json_post\n    kraken:\n'
+     '      post_address: 192.0.2.1', 'kraken.post_address'),
+    ('position: [1.0, 2.0, 3.0]\n    input: kraken_json_post\n    kraken:\n'
+     '      stamp: receive\n      max_age: 5.0', 'kraken.max_age'),
+    ('position: [1.0, 2.0, 3.0]\n    udp_port: 5005\n    udp_address: 192.0.2.1',
+     'udp_address'),
 ]
+#: Parameters a start-up error must not blame (they were not set).
+NOT_SET = ('platform_odometry', 'kraken.post_port', 'udp_port')
 
 
 def test_bad_parameter_files_exit_1_naming_the_parameter(tmp_path):
@@ -298,14 +311,22 @@ def test_bad_parameter_files_exit_1_naming_the_parameter(tmp_path):
             [sys.executable, '-m', 'bearing_loc_ros.station_node', '--ros-args',
              '-r', '__ns:=/bad', '--params-file', str(path)], cwd=REPO, env=node_env(),
             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)))
-    for name, proc in procs:
-        try:
-            out, err = proc.communicate(timeout=30)
-        finally:
+    results = []
+    try:
+        for name, proc in procs:
+            try:
+                out, err = proc.communicate(timeout=30)
+            except subprocess.TimeoutExpired:       # still running: not a start-up error
+                out, err = '', 'still running after 30 s'
+            results.append((name, proc.returncode, out, err))
+    finally:                                        # every node is reaped, whatever failed
+        for _, proc in procs:
             proc.kill()
             proc.wait()
-        assert proc.returncode == 1, (name, out, err)
+    for name, code, out, err in results:
+        assert code == 1, (name, out, err)
         assert f"error: parameter '{name}'" in err, err
+        assert not any(other in err for other in NOT_SET), err
 
 
 def test_separate_process_over_dds():

@@ -23,8 +23,12 @@ DATAGRAM_REJECTIONS = ('too_large', 'bad_json', 'not_object', 'missing_t', 'bad_
                        'missing_azimuth', 'bad_azimuth', 'bad_elevation', 'bad_sigma')
 
 
-class _BadNumber:
-    """A JSON number literal refused before conversion (too long or exponent out of range)."""
+class BadNumber:
+    """A JSON number literal refused before conversion (too long or exponent out of range).
+
+    ``problem`` says why (text). It stands in for the number in the parsed object, so the
+    field that holds it is invalid while an ignored key that holds it is harmless.
+    """
 
     __slots__ = ('problem',)
 
@@ -32,26 +36,58 @@ class _BadNumber:
         self.problem = problem
 
 
-def _literal_problem(text):
-    """Why a JSON number literal must not be converted, or '' when it is safe (cheap)."""
-    if len(text) > MAX_NUMBER_CHARS:
-        return f'number literal of {len(text)} characters (at most {MAX_NUMBER_CHARS})'
-    return ''
+#: Exponent digits (leading zeros stripped) beyond which the exponent is not even converted
+#: to an int: it is then far beyond any limit.
+_MAX_EXPONENT_DIGITS = 12
+
+
+def literal_exponent(text):
+    """Decimal exponent of a JSON number literal, read from its text without converting it.
+
+    ``text`` matches JSON's number grammar (``-?digits[.digits][e[+-]digits]``). Returns the
+    power of ten of its leading non-zero digit (what ``Decimal(text).adjusted()`` gives:
+    ``'123.4e2'`` -> 4, ``'0.001'`` -> -3), or None when the literal is zero. An exponent
+    written with more than 12 digits gives ±10¹² (beyond any limit) without conversion.
+    Cost linear in ``len(text)``; never raises for JSON literals.
+    """
+    mantissa, _, exp = text.lower().partition('e')
+    digits = exp.lstrip('+-').lstrip('0')
+    e = 10 ** _MAX_EXPONENT_DIGITS if len(digits) > _MAX_EXPONENT_DIGITS else int(digits or 0)
+    if exp.startswith('-'):
+        e = -e
+    whole, _, frac = mantissa.lstrip('+-').partition('.')
+    whole = whole.lstrip('0')
+    if whole:
+        return e + len(whole) - 1
+    significant = frac.lstrip('0')
+    if not significant:
+        return None
+    return e - (len(frac) - len(significant)) - 1
+
+
+def json_decimal(text, max_chars=MAX_NUMBER_CHARS, max_exponent=MAX_EXPONENT):
+    """A JSON number literal (with a fraction or exponent) -> exact Decimal, or BadNumber.
+
+    Refused before any conversion (a :class:`BadNumber` saying why): more than
+    ``max_chars`` characters (None: no length limit), or a decimal exponent
+    (:func:`literal_exponent`) beyond ±``max_exponent``. A zero is Decimal zero with its
+    sign, whatever its exponent. Use as ``json.loads(..., parse_float=json_decimal)``.
+    """
+    if max_chars is not None and len(text) > max_chars:
+        return BadNumber(f'number literal of {len(text)} characters (at most {max_chars})')
+    exponent = literal_exponent(text)
+    if exponent is None:
+        return decimal.Decimal(text.lower().partition('e')[0])
+    if abs(exponent) > max_exponent:
+        return BadNumber(f'number {text[:40]} has a decimal exponent beyond ±{max_exponent}')
+    return decimal.Decimal(text)  # exact and cheap: the exponent is small
 
 
 def _json_int(text):
-    problem = _literal_problem(text)
-    return _BadNumber(problem) if problem else int(text)
-
-
-def _json_float(text):
-    problem = _literal_problem(text)
-    if problem:
-        return _BadNumber(problem)
-    value = decimal.Decimal(text)  # exact and cheap: ≤ MAX_NUMBER_CHARS characters
-    if value and abs(value.adjusted()) > MAX_EXPONENT:
-        return _BadNumber(f'number {text} has a decimal exponent beyond ±{MAX_EXPONENT}')
-    return value
+    if len(text) > MAX_NUMBER_CHARS:
+        return BadNumber(f'number literal of {len(text)} characters (at most '
+                         f'{MAX_NUMBER_CHARS})')
+    return int(text)
 
 
 def _reject_constant(name):
@@ -60,7 +96,7 @@ def _reject_constant(name):
 
 def _number(value, reason, name):
     """A parsed JSON number (int or Decimal) or :class:`ReadingError` ``reason``."""
-    if isinstance(value, _BadNumber):
+    if isinstance(value, BadNumber):
         raise ReadingError(reason, f'{name}: {value.problem}')
     if isinstance(value, bool) or not isinstance(value, (int, decimal.Decimal)):
         raise ReadingError(reason, f'{name} must be a number, got {str(value)[:40]!r}')
@@ -94,7 +130,8 @@ def parse_datagram(data, require_t=True):
     :data:`MAX_DATAGRAM_BYTES` is not parsed, and a number literal longer than
     :data:`MAX_NUMBER_CHARS` characters or with a decimal exponent beyond
     ±:data:`MAX_EXPONENT` is never converted (it makes its field invalid; in an ignored key
-    it is harmless). ``t`` is range-checked before it is scaled to ns.
+    it is harmless); the exponent is read from the literal's text (:func:`literal_exponent`)
+    before any conversion. ``t`` is range-checked before it is scaled to ns.
 
     Rejections (:class:`ReadingError` reasons): longer than :data:`MAX_DATAGRAM_BYTES`
     (``too_large``); not UTF-8 JSON, NaN/Infinity literals, nesting too deep (``bad_json``);
@@ -112,10 +149,13 @@ def parse_datagram(data, require_t=True):
     if isinstance(data, memoryview):
         data = data.tobytes()
     try:
-        obj = json.loads(data, parse_float=_json_float, parse_int=_json_int,
+        obj = json.loads(data, parse_float=json_decimal, parse_int=_json_int,
                          parse_constant=_reject_constant)
     except (ValueError, TypeError, RecursionError) as exc:
         raise ReadingError('bad_json', str(exc).splitlines()[0][:120]) from None
+    except ArithmeticError as exc:   # decimal's errors: a last resort, literals are checked
+        raise ReadingError('bad_json', f'a number cannot be converted '
+                                       f'({type(exc).__name__})') from None
     if not isinstance(obj, dict):
         raise ReadingError('not_object', f'expected a JSON object, got {type(obj).__name__}')
     if 't' in obj:

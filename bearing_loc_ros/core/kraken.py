@@ -32,8 +32,9 @@ The confidence is on the CSV/JSON scale (XML CONF / 100). Times are integer nano
 Rejection reasons: ``malformed_xml``, ``malformed_csv``, ``malformed_json``,
 ``missing_field``, ``bad_number`` (not a number), ``not_finite`` (NaN/inf),
 ``out_of_range``, ``too_large`` (document over the size limit); :class:`TimeFilter` adds
-``duplicate_time``, ``old_time`` (earlier than the last accepted) and ``stale_time``
-(older than the allowed age); the error's ``field`` names the offending field.
+``duplicate_time``, ``old_time`` (earlier than the last accepted), ``stale_time``
+(older than the allowed age) and ``future_time`` (ahead of the node clock); the error's
+``field`` names the offending field.
 
 One module (about 500 lines) on purpose: the three format parsers share the field checks
 and the record type, and the time filter and channel map apply to their records.
@@ -48,6 +49,8 @@ from xml.etree.ElementTree import ParseError
 from defusedxml import DefusedXmlException
 from defusedxml.ElementTree import fromstring as _xml_fromstring
 
+from .datagram import BadNumber, json_decimal, MAX_EXPONENT
+
 NS_PER_MS = 1_000_000
 #: Largest stamp a builtin_interfaces/Time can carry (sec is an int32), ns.
 MAX_STAMP_NS = (2 ** 31 - 1) * 1_000_000_000
@@ -59,6 +62,10 @@ FREQ_MIN_HZ = 1.0e3
 FREQ_MAX_HZ = 1.0e11
 #: JSON ``freq`` below this is read as MHz, at or above as Hz (module docstring).
 JSON_MHZ_BELOW = 1.0e5
+#: A reading stamped more than this after the node clock is refused (``future_time``) by
+#: the station's :class:`TimeFilter`, ns: the receiver's clock is wrong (a reading cannot
+#: come from the future), and accepting it would make every later reading look old.
+MAX_FUTURE_NS = 10 * 1_000_000_000
 CSV_FIXED_FIELDS = 17
 SPECTRUM_LEN = 360
 FORMATS = ('xml', 'csv', 'json')
@@ -132,6 +139,8 @@ def _float(value, name, lo=-math.inf, hi=math.inf):
     """A finite float within [lo, hi] from text or a JSON number, else KrakenError."""
     if isinstance(value, bool) or value is None:
         raise KrakenError('bad_number', f'{name}: {value!r} is not a number', name)
+    if isinstance(value, BadNumber):
+        raise KrakenError('bad_number', f'{name}: {value.problem}', name)
     if isinstance(value, str):
         text = value.strip()
         try:
@@ -157,6 +166,8 @@ def _stamp_ms(value, name, allow_zero=False):
     """Unix milliseconds (text or number) -> integer ns, exactly (decimal arithmetic)."""
     if isinstance(value, bool) or value is None:
         raise KrakenError('bad_number', f'{name}: {value!r} is not a number', name)
+    if isinstance(value, BadNumber):
+        raise KrakenError('bad_number', f'{name}: {value.problem}', name)
     try:
         d = decimal.Decimal(value.strip() if isinstance(value, str) else value)
     except (decimal.InvalidOperation, ValueError, TypeError):
@@ -336,20 +347,31 @@ def _reject_constant(name):
     raise ValueError(f'{name} is not allowed')
 
 
+def _json_number(text):
+    """A JSON float literal -> exact Decimal, or a BadNumber (exponent beyond ±400, read
+    from the text before any conversion: ``1e1000000000000000000`` is never converted)."""
+    return json_decimal(text, max_chars=None, max_exponent=MAX_EXPONENT)
+
+
 def parse_json(data):
     """Parse one KrakenSDR JSON body (bytes or str, a JSON object) -> :class:`KrakenRecord`.
 
     stamp = tStamp ms; doa_deg = 360 − radioBearing; confidence = conf; power_db = power;
     frequency = freq (MHz below 10⁵, else Hz); GPS fields from latitude, longitude,
     gpsBearing, speed. Required: tStamp, radioBearing, conf, freq. NaN/Infinity literals are
-    refused (``malformed_json``). A ``doaArray`` of 360 numbers becomes the spectrum; any
-    other doaArray is ignored. Raises :class:`KrakenError`.
+    refused (``malformed_json``). A number with a decimal exponent beyond ±400 is refused
+    before it is converted: in a field it is a ``bad_number``, in an ignored key harmless.
+    A ``doaArray`` of 360 numbers becomes the spectrum; any other doaArray is ignored.
+    Raises :class:`KrakenError`.
     """
     _check_size(data, 'JSON')
     try:
-        obj = json.loads(data, parse_float=decimal.Decimal, parse_constant=_reject_constant)
+        obj = json.loads(data, parse_float=_json_number, parse_constant=_reject_constant)
     except (ValueError, TypeError, RecursionError) as exc:
         raise KrakenError('malformed_json', str(exc).splitlines()[0][:120]) from None
+    except ArithmeticError as exc:   # decimal's errors: a last resort, literals are checked
+        raise KrakenError('malformed_json', f'a number cannot be converted '
+                                            f'({type(exc).__name__})') from None
     if not isinstance(obj, dict):
         raise KrakenError('malformed_json', f'expected an object, got {type(obj).__name__}')
     for name in JSON_REQUIRED:
@@ -382,40 +404,53 @@ def parse(data, fmt):
     """Parse one document of format ``fmt`` ('xml', 'csv' or 'json') -> list of results.
 
     Each item is a :class:`KrakenRecord` or a :class:`KrakenError` (CSV bodies may hold one
-    line per channel; XML and JSON give exactly one item).
+    line per channel; XML and JSON give exactly one item). Never raises for bad data: an
+    arithmetic error escaping a parser (none is known) becomes ``malformed_<fmt>``.
     """
-    if fmt == 'csv':
-        return parse_csv_text(data)
     if fmt not in FORMATS:
         raise ValueError(f'fmt: {fmt!r} is not one of {FORMATS}')
     try:
+        if fmt == 'csv':
+            return parse_csv_text(data)
         return [parse_xml(data) if fmt == 'xml' else parse_json(data)]
     except KrakenError as exc:
         return [exc]
+    except (ArithmeticError, RecursionError) as exc:
+        return [KrakenError(f'malformed_{fmt}', f'{type(exc).__name__} while parsing')]
 
 
 # ------------------------------------------------------------------------------ time, channels
 
 class TimeFilter:
-    """Per-stream check of reading times: refuse duplicate, out-of-order and stale stamps.
+    """Per-stream check of reading times: refuse future, stale, duplicate and out-of-order
+    stamps.
 
-    A stream is one (station, channel) pair. ``check(key, stamp_ns, now_ns)`` raises
-    :class:`KrakenError` with reason ``duplicate_time`` (same stamp as the last accepted
-    reading of the stream: a poll that saw the same frame again), ``old_time`` (earlier than
-    the last accepted) or ``stale_time`` (when ``max_age_ns`` > 0 and ``now_ns`` is given:
-    now − stamp > max_age), else records the stamp. A stamp more than ``reset_ns`` earlier
-    than the last accepted one means the receiver's clock (or a replayed file) restarted: the
-    stream is reset and the reading accepted (counted in ``resets``).
+    A stream is one (station, channel) pair; all times are integer ns on one clock (unix
+    time for receiver stamps). ``check(key, stamp_ns, now_ns)`` raises :class:`KrakenError`
+    with reason ``future_time`` (when ``future_ns`` > 0, default :data:`MAX_FUTURE_NS`,
+    and ``now_ns`` > 0 is given: stamp − now > future_ns), ``stale_time`` (when
+    ``max_age_ns`` > 0 and ``now_ns`` is given: now − stamp > max_age), ``duplicate_time``
+    (same stamp as the last accepted reading of the stream: a poll that saw the same frame
+    again) or ``old_time`` (earlier than the last accepted), else records the stamp. A
+    rejected reading changes nothing, so a reading stamped in the future cannot make the
+    later good ones look old. A stamp more than ``reset_ns`` earlier than the last accepted
+    one means the receiver's clock (or a replayed file) restarted: the stream is reset and
+    the reading accepted (counted in ``resets``).
     """
 
-    def __init__(self, max_age_ns=0, reset_ns=0):
+    def __init__(self, max_age_ns=0, reset_ns=0, future_ns=MAX_FUTURE_NS):
         self.max_age_ns = int(max_age_ns)
         self.reset_ns = int(reset_ns)
+        self.future_ns = int(future_ns)
         self.resets = 0
         self._last = {}
 
     def check(self, key, stamp_ns, now_ns=None):
         """Accept (record) or reject ``stamp_ns`` for stream ``key`` (class docstring)."""
+        if (self.future_ns > 0 and now_ns is not None and now_ns > 0
+                and stamp_ns - now_ns > self.future_ns):
+            raise KrakenError('future_time', f'{(stamp_ns - now_ns) / 1e9:.3f} s after the '
+                                             'node clock', 'TIME')
         if self.max_age_ns > 0 and now_ns is not None and now_ns - stamp_ns > self.max_age_ns:
             raise KrakenError('stale_time', f'{(now_ns - stamp_ns) / 1e9:.3f} s old', 'TIME')
         last = self._last.get(key)

@@ -203,6 +203,18 @@ def receiver_config(station, frame_id='map', position=(), geodetic_position=(),
         _choice(position_source, POSITION_SOURCES, 'position_source')
     except ValueError as exc:
         raise ConfigError(prefix + 'position_source', str(exc).partition(': ')[2]) from None
+    given = [n for n, v in (('position', position), ('geodetic_position', geodetic_position))
+             if len(v)]
+    if position_source != 'parameters' and given:
+        where = ("the receiver's GPS" if position_source == 'gps' else
+                 'the platform odometry')
+        raise ConfigError(given[0], f'must not be set with {prefix}position_source: '
+                                    f'{position_source} (the position comes from {where})')
+    if position_source == 'parameters' and not given:
+        raise ConfigError('position', f'required with {prefix}position_source: parameters: '
+                                      'set position ([x, y, z] ENU m) or geodetic_position + '
+                                      f'geodetic_origin, or {prefix}position_source: gps or '
+                                      'odometry')
     base = station_config(station, frame_id=frame_id, position=position,
                           geodetic_position=geodetic_position, geodetic_origin=geodetic_origin,
                           position_covariance=position_covariance,

@@ -37,7 +37,7 @@ PARAMETERS = (
     ('kraken.stamp', 'receiver', "Bearing stamp: 'receiver' (the reading's TIME, unix) or "
      "'receive' (node clock on receipt)", STAMPS),
     ('kraken.max_age', 0.0, 'Readings older than this (node clock - TIME) are stale; '
-     '0 = no check', (0.0, 1.0e6)),
+     '0 = no check; needs kraken.stamp receiver', (0.0, 1.0e6)),
     ('kraken.receiver_id', '', "Accept only readings with this STATION_ID ('' = any)", None),
     ('kraken.sense', 'inverted', 'DOA sense: inverted (H + 360 - DOA), flipped '
      '(H + 180 + DOA) or plain (H + DOA)', SENSES),
@@ -175,13 +175,19 @@ def receiver_from_params(station, params):
 
     Uses the receiver parameters above plus the node's ``frame_id``, ``position``,
     ``geodetic_position``, ``geodetic_origin`` and ``position_covariance``. Raises
-    :class:`~bearing_loc_ros.core.station.ConfigError` naming the parameter.
+    :class:`~bearing_loc_ros.core.station.ConfigError` naming the parameter, also for
+    ``kraken.max_age`` > 0 with ``kraken.stamp: receive`` (the age is measured from the
+    receiver's TIME, which that stamp mode does not trust).
     """
     try:
         p = with_defaults(params)
     except ValueError as exc:
         name, _, problem = str(exc).partition(': ')
         raise ConfigError(name, problem) from None
+    if p['kraken.stamp'] == 'receive' and p['kraken.max_age'] > 0:
+        raise ConfigError('kraken.max_age', f"{p['kraken.max_age']:g} s has no effect with "
+                          "kraken.stamp: receive (a reading stamped on receipt has no age); "
+                          'set it to 0 or use kraken.stamp: receiver')
     sigma = SigmaModel(p['kraken.sigma_conf1_deg'], p['kraken.sigma_conf0_deg'],
                        p['kraken.sigma_snr_slope'], p['kraken.sigma_snr_ref_db'],
                        p['kraken.sigma_min_deg'], p['kraken.sigma_max_deg'])
