@@ -289,11 +289,12 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     applied by ``trust.settle()`` once the fix is out, or before the trust is next read).
 
     With the gate on (``outlier_gate`` < 1): a ``degenerate_geometry`` set gets, once, the
-    drop of the station its peers' fix refutes most (:func:`_refuted_station`: one station
-    can make the set singular, e.g. a claimed σ of 1e-9 rad); and a fix that needed a drop
-    and keeps at most :data:`AMBIGUITY_MAX_STATIONS` stations becomes ``low_confidence``
-    (detail ``ambiguous: ...``, no trust update) when swapping a dropped station for a kept
-    one gives another consistent fix far from it (:func:`_other_consistent_fix`).
+    drop of the station its peers' fix refutes most among the likeliest culprits
+    (:func:`_refuted_station`: one station can make the set singular, e.g. a claimed σ of
+    1e-9 rad); and a fix that needed a drop but has no redundancy left (residual degrees of
+    freedom ≤ 0, such as two azimuths in the plane) is ``low_confidence`` with no trust
+    update: nothing in the data confirms the stations kept, and with three azimuth-only
+    stations any pair fits exactly, so the drop may have removed an honest one.
     """
     options = dict(options or {})
     used = list(bearings)
@@ -404,22 +405,19 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
             return Epoch(INCONSISTENT_BEARINGS,
                          detail=f'{used[worst].station} d2={d2[worst]:.3g} but too few '
                                 f'stations left to drop it', **common)
-        if rejected and gating and len(used) <= AMBIGUITY_MAX_STATIONS:
-            other = _other_consistent_fix(run, make_set, used, rejected, pos, cov, estimator,
-                                          kwargs, outlier_gate, min_stations, horizontal)
-            if other is not None:
-                # Which station is wrong is undecidable: no fix, and no station blamed.
-                kept, dropped, dist = other
-                return Epoch(LOW_CONFIDENCE, position=pos, covariance=0.5 * (cov + cov.T),
-                             detail=f'ambiguous: keeping {dropped} instead of {kept} gives '
-                                    f'another consistent fix {dist:.0f} m away', **common)
+        solved = getattr(res, 'solve', None)
+        n_free = 2 if solved is not None and str(solved[0]) == 'horizontal' else 3
+        spare = int(sum(dof)) - n_free
+        if rejected and spare <= 0:
+            # Nothing checks the stations kept: which one was wrong is not known.
+            return Epoch(LOW_CONFIDENCE, position=pos, covariance=0.5 * (cov + cov.T),
+                         detail=f'no redundancy left after dropping '
+                                f'{", ".join(b.station for b in rejected)}', **common)
         if trust is not None:
             trust.defer_update(used, claims, pos, cov, rejected)
         residuals = {b.station: float(v) for b, v in zip(used, d2)}
-        solved = getattr(res, 'solve', None)
-        n_free = 2 if solved is not None and str(solved[0]) == 'horizontal' else 3
         return Epoch(OK, position=pos, covariance=0.5 * (cov + cov.T), residuals=residuals,
-                     chi2=_nansum(d2), dof=int(sum(dof)) - n_free, **common)
+                     chi2=_nansum(d2), dof=spare, **common)
 
 
 def _solved(run, bs):
@@ -438,15 +436,31 @@ def _solved(run, bs):
     return pos, cov
 
 
+#: Most stations :func:`_refuted_station` leaves out in turn (one solve each): the three that
+#: claim the smallest σ and the three farthest from the others, the likeliest to make a set
+#: singular; this bounds a degenerate epoch of a large network to six solves.
+REFUTE_CANDIDATES = 3
+
+
 def _refuted_station(run, make_set, used, estimator, kwargs, outlier_gate, min_stations,
                      horizontal):
     """Index of the station whose d² (:func:`normalized_residuals`) at the fix of the
-    others is largest and beyond its gate, among the stations whose removal leaves a
+    others is largest and beyond its gate, among the candidates whose removal leaves a
     solvable set with an ``ok`` fix; None when there is none (a geometry that is degenerate
-    whichever station is left out). One solve per station: run only for a degenerate set."""
+    whichever station is left out). Candidates: every station of a set of at most
+    2 × :data:`REFUTE_CANDIDATES`, else those with the smallest σ_θ and those farthest from
+    the median station position (one solve per candidate)."""
+    n = len(used)
+    order = range(n)
+    if n > 2 * REFUTE_CANDIDATES:
+        pos = np.array([b.position for b in used], dtype=float)
+        far = np.linalg.norm(pos - np.median(pos, axis=0), axis=1)
+        sig = [b.sigma_azimuth for b in used]
+        order = sorted(set(sorted(range(n), key=sig.__getitem__)[:REFUTE_CANDIDATES])
+                       | set(np.argsort(-far, kind='stable')[:REFUTE_CANDIDATES].tolist()))
     best, best_ratio = None, 1.0
     whole = make_set(used)
-    for i in range(len(used)):
+    for i in order:
         rest = used[:i] + used[i + 1:]
         if len(rest) < int(min_stations) or count_reason(rest, horizontal) is not None:
             continue
@@ -458,44 +472,6 @@ def _refuted_station(run, make_set, used, estimator, kwargs, outlier_gate, min_s
         if ratio > best_ratio:          # (NaN: not refuted)
             best, best_ratio = i, ratio
     return best
-
-
-#: Largest number of kept stations at which a fix that dropped a station is checked for
-#: ambiguity (:func:`_other_consistent_fix`): with more, a set that swaps an honest station
-#: for the dropped one can be consistent only near the same fix.
-AMBIGUITY_MAX_STATIONS = 3
-#: Mahalanobis distance² between two fixes (under the sum of their covariances) beyond which
-#: they are different answers: the χ²₃ 0.9999 quantile.
-AMBIGUITY_D2 = float(chisq.ppf(0.9999, 3))
-
-
-def _other_consistent_fix(run, make_set, used, rejected, pos, cov, estimator, kwargs,
-                          outlier_gate, min_stations, horizontal):
-    """(kept station, dropped station, distance m) when a dropped station, put back in place
-    of a kept one, gives another fix that passes the gate (every d² within its χ² gate) and
-    lies beyond :data:`AMBIGUITY_D2` from ``pos`` (Mahalanobis, P + P'): then the bearings
-    support two answers, as three stations with one wrong do when each pair is consistent
-    (three azimuth-only stations always). None when no swap does."""
-    for r in rejected:
-        for j in range(len(used)):
-            alt = used[:j] + used[j + 1:] + [r]
-            if len(alt) < int(min_stations) or count_reason(alt, horizontal) is not None:
-                continue
-            bs = make_set(alt)
-            fix = _solved(run, bs)
-            if fix is None:
-                continue
-            _, _, _, excess = _gate_at(estimator, bs, alt, fix[0], kwargs, outlier_gate)
-            if not excess <= 1.0:
-                continue
-            diff = fix[0] - pos
-            try:
-                m2 = float(diff @ np.linalg.solve(cov + fix[1], diff))
-            except np.linalg.LinAlgError:
-                continue
-            if m2 > AMBIGUITY_D2:
-                return used[j].station, r.station, float(np.linalg.norm(diff))
-    return None
 
 
 def _gate_at(estimator, bs, used, pos, kwargs, outlier_gate):
