@@ -142,10 +142,9 @@ class FusionNode(Node):
     # ------------------------------------------------------------------ run-time parameters
     def _refuse_on_channel_host(self, params):
         """A channel host runs no pipeline: a run-time change here would be accepted and do
-        nothing, so it is refused with the nodes that take it (``use_sim_time`` aside)."""
-        names = [x.name for x in params if x.name != 'use_sim_time']
-        if not names:
-            return SetParametersResult(successful=True)
+        nothing (``use_sim_time`` too: the channel nodes took it at start-up), so it is
+        refused with the nodes that take it."""
+        names = [x.name for x in params]
         where = ', '.join(n.get_fully_qualified_name()
                           for n in self.channel_host.nodes.values())
         return SetParametersResult(successful=False, reason=(

@@ -182,6 +182,13 @@ def declare_schema(node, node_name):
     from .core import parameters as schema
     params = schema.schema(node_name)
     overrides = getattr(node, '_parameter_overrides', {})
+    # Before the checks, so that a misspelt name is named also when another value stops
+    # the node.
+    known = {p.name for p in params} | set(schema.renamed(node_name))
+    text = schema.unknown_message(node_name, [
+        n for n in overrides if n not in known and not schema.ros_builtin(n)])
+    if text is not None:
+        node.get_logger().warning(text)
     values = {}
     for p in params:
         value = _declare_one(node, p)
@@ -206,10 +213,6 @@ def declare_schema(node, node_name):
                 for old in p.deprecated}
     node.add_pre_set_parameters_callback(
         lambda ps: [_as_double(x) if x.name in doubles else x for x in ps])
-    unknown = [n for n in overrides if not node.has_parameter(n) and not schema.ros_builtin(n)]
-    text = schema.unknown_message(node_name, unknown)
-    if text is not None:
-        node.get_logger().warning(text)
     return values
 
 

@@ -495,7 +495,7 @@ def test_channel_host_refuses_run_time_changes_and_names_the_channel_nodes(ros):
         assert res.reason == ('estimator: this node only hosts the fusion nodes of channels; '
                               'set parameters on /chost/a/fusion, /chost/b/fusion')
         assert host.get_parameter('estimator').value == 'mle'
-        assert host.set_parameters([Parameter('use_sim_time', value=False)])[0].successful
+        assert not host.set_parameters([Parameter('use_sim_time', value=True)])[0].successful
         channel = host.channel_host.nodes['a']
         assert channel.set_parameters([Parameter('estimator', value='ls')])[0].successful
         assert channel.config.estimator == 'ls'

@@ -235,6 +235,12 @@ def test_integer_array_on_the_command_line(tmp_path):
         interrupt(proc, 10)
 
 
+def test_a_misspelt_name_is_named_also_when_another_value_stops_the_node(ros, capfd):
+    with pytest.raises(ros_common.ParameterError, match="'sigma_azimuth_deg'"):
+        make_node(ros, 'station_node', sigma_azimth_deg=3.0, sigma_azimuth_deg=-1.0)
+    assert "'sigma_azimth_deg' (did you mean 'sigma_azimuth_deg'?)" in capfd.readouterr().err
+
+
 def test_unknown_names_get_the_closest_parameter():
     assert schema.unknown_message('fusion_node', []) is None
     assert schema.unknown_message('fusion_node', ['zzzz']) == \

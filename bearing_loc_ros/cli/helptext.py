@@ -14,7 +14,8 @@ DESCRIPTION = ('Networked direction finding from the command line: localize emit
                'process bags.')
 TOP_EXAMPLE = 'bearing_loc plan map --scenario seed000 --altitude 5000 --png map.png'
 TOP_EPILOG = ('Run "bearing_loc VERB --help" for the options of a verb. Exit codes: 0 success, '
-              '2 bad input (one line on stderr naming the field), 1 other failure.')
+              '2 bad input or an output that cannot be written (one line on stderr naming '
+              'the field or flag), 1 other failure.')
 
 #: One example command line per verb.
 EXAMPLES = {
