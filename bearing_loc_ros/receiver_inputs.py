@@ -265,6 +265,16 @@ class _PostHandler(BaseHTTPRequestHandler):
     def log_message(self, *args):   # silence the default stderr access log
         pass
 
+    def log_error(self, fmt, *args):
+        """http.server's own errors (a client silent within its headers, a malformed
+        request line): counted and logged as :meth:`_Server.handle_error` does."""
+        kind = 'client_disconnects' if fmt.startswith('Request timed out') else \
+            'request_errors'
+        src = self.server.source
+        src._count(kind)
+        src._warn(kind, f'JSON POST listener: request from {self.client_address[0]}: '
+                        f'{(fmt % args)[:120]} (counted as {kind})')
+
     def _reply(self, code, text):
         body = (text + '\n').encode('utf-8')
         self.send_response(code)
@@ -279,7 +289,8 @@ class _PostHandler(BaseHTTPRequestHandler):
         text = (self.headers.get('Content-Length') or '').strip()
         length = int(text) if text.isascii() and text.isdigit() else -1
         if length < 0:
-            src._put([KrakenError('malformed_json', 'no Content-Length')])
+            src._put([KrakenError('malformed_json', 'no Content-Length' if not text else
+                                  f'Content-Length {text[:20]!r} is not a byte count')])
             self._reply(411, 'length required')
             return
         if length > src.max_body:
@@ -372,6 +383,11 @@ class JsonPostServer(_Source):
         self._httpd.server_close()
 
 
+#: Bytes at the start of a followed file compared at every poll to notice a rewrite in
+#: place (a recorder that truncates and writes a new recording to the same file).
+_HEAD_BYTES = 256
+
+
 class CsvFileTail(_Source):
     """Read a "Kraken App" CSV recording and follow it while it grows (module docstring).
 
@@ -395,6 +411,7 @@ class CsvFileTail(_Source):
         self._f = None
         self._ino = None
         self._buf = b''           # bytes read after the last line end
+        self._head = b''          # the file's first bytes, to notice a rewrite in place
         self._skip = False        # skipping to the end of a line (too long, or cut at open)
         self._pace = None         # (steady s, stamp ns) of the last released record
         self._held = deque()
@@ -426,6 +443,7 @@ class CsvFileTail(_Source):
             self.state, self.last_error = 'missing', f'{exc.strerror}: {self.path}'
             return False
         self._f, self._ino = f, os.fstat(f.fileno()).st_ino
+        self._head = b''
         self._restart()
         if not at_start:
             end = f.seek(0, os.SEEK_END)
@@ -443,10 +461,25 @@ class CsvFileTail(_Source):
         if st.st_ino != self._ino:
             self._count('reopened')
             self.close()
-        elif st.st_size < self._f.tell():     # byte offsets: the file is read as bytes
+        elif st.st_size < self._f.tell() or not self._same_head():
+            # Made shorter, or rewritten in place (its first bytes changed) even when the
+            # new text is already longer than what was read: read again from its start.
             self._count('truncated')
             self._f.seek(0)
+            self._head = b''
             self._restart()
+
+    def _same_head(self):
+        """True while the file's first bytes (up to :data:`_HEAD_BYTES`) are those seen
+        before; the kept copy grows with the file until it is that long."""
+        try:
+            head = os.pread(self._f.fileno(), _HEAD_BYTES, 0)
+        except OSError:
+            return True
+        if not head.startswith(self._head):
+            return False
+        self._head = head
+        return True
 
     @staticmethod
     def _decode(line):
@@ -460,7 +493,8 @@ class CsvFileTail(_Source):
     def _read_lines(self):
         """New complete lines: str, '' for a blank one, or a KrakenError (not UTF-8, too
         long); at most FILE_LINES_PER_POLL."""
-        if self._f is None and not self._open(self.from_start or self._ino is not None):
+        if self._f is None and not self._open(self.from_start or self._ino is not None
+                                              or self.state == 'missing'):
             return []
         self._check_replaced()
         if self._f is None and not self._open(True):

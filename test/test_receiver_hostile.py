@@ -237,6 +237,16 @@ def test_clients_that_hang_up_are_counted_without_a_traceback(server, capfd):
         b'HTTP/1.0 200 OK'                          # still serving
 
 
+def test_a_client_silent_within_its_headers_is_counted(server, monkeypatch):
+    # http.server handles that timeout itself: it was counted nowhere.
+    monkeypatch.setattr(ri._PostHandler, 'timeout', 0.3)
+    with socket.create_connection(('127.0.0.1', server.port), timeout=5.0) as c:
+        c.sendall(b'POST / HTTP/1.1\r\nContent-Len')
+        assert wait_for(lambda: server.snapshot()[2].get('client_disconnects', 0) == 1), \
+            server.snapshot()
+    assert len(server.logged) == 1 and 'timed out' in server.logged[0]
+
+
 def test_unbindable_post_address_names_post_address(monkeypatch):
     with pytest.raises(ValueError) as e:            # TEST-NET-1: never this machine's
         ri.make_source('kraken_json_post', post_address='192.0.2.1', post_port=0)
@@ -286,6 +296,32 @@ def test_a_lone_cr_inside_a_file_does_not_loop_it(tmp_path):
         f.write(csv_line(T0_MS + 99_000).encode())
     [r] = poll_until_quiet(t)
     assert r.stamp_ns == (T0_MS + 99_000) * 10 ** 6 and 'truncated' not in t.counts
+
+
+def test_a_file_rewritten_in_place_is_read_again_from_its_start(tmp_path):
+    # The new recording is already longer than what was read: before, the tail went on
+    # from its old offset, losing the new file's first lines (or cutting one in two).
+    path = tmp_path / 'mydata.csv'
+    path.write_bytes(''.join(csv_line(T0_MS + 1000 * i) for i in range(10)).encode())
+    t = ri.CsvFileTail(path)
+    assert len(poll_until_quiet(t)) == 10
+    with open(path, 'r+b') as f:                    # same inode, truncated and rewritten
+        f.truncate(0)
+        f.write(''.join(csv_line(T0_MS + 500_000 + 1000 * i, 'valley')
+                        for i in range(30)).encode())
+    got = poll_until_quiet(t)
+    assert [r.stamp_ns for r in got] == [(T0_MS + 500_000 + 1000 * i) * 10 ** 6
+                                         for i in range(30)]
+    assert t.counts['truncated'] == 1 and 'reopened' not in t.counts
+
+
+def test_a_file_missing_at_start_up_is_read_from_its_start(tmp_path):
+    # Also without file_from_start: it was opened at its end when it appeared.
+    path = tmp_path / 'later.csv'
+    t = ri.CsvFileTail(path, from_start=False)
+    assert poll_until_quiet(t) == [] and t.state == 'missing'
+    path.write_bytes(''.join(csv_line(T0_MS + 1000 * i) for i in range(6)).encode())
+    assert len(poll_until_quiet(t)) == 6
 
 
 def test_a_line_that_is_not_utf8_is_malformed_and_the_others_are_read(tmp_path):
