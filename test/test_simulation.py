@@ -379,6 +379,9 @@ BAD = [
     (lambda d: d['targets'].append({'position': [0, 0, 0]}), 'duplicate target namespace'),
     (lambda d: d['targets'][0].update(namespace='bad ns'), 'targets[0].namespace: not a valid'),
     (lambda d: d.update(stations=[]), 'stations: expected a non-empty list'),
+    (lambda d: d['targets'][0].update(kind='random_static', box_min=[0, 0, 0],
+                                      box_max=[1, 1, 1], count=10 ** 8),
+     'targets[0].count: must be an integer in [1, 1e+06]'),
 ]
 
 
@@ -392,6 +395,21 @@ def test_bad_scenario_names_the_key_and_file(tmp_path, mutate, expected):
         load_scenario(path)
     msg = str(exc.value)
     assert msg.startswith(f'{path}: ') and expected in msg, msg
+
+
+def test_a_target_on_a_station_or_above_it_is_not_observed(tmp_path):
+    # Its azimuth is undefined: atan2(0, 0) = 0 published "due East" with the station's σ.
+    d = _base()
+    p0 = d['stations'][0]['position']
+    d['targets'] = [{'namespace': 'on', 'position': list(p0)},
+                    {'namespace': 'above', 'position': [p0[0], p0[1], p0[2] + 500.0]}]
+    path = tmp_path / 'on_station.yaml'
+    path.write_text(yaml.safe_dump(d))
+    sim = simulate(load_scenario(path), seed=1)
+    first = d['stations'][0]['id']
+    seen = {(e.bearing.station, e.namespace) for e in sim.bearings}
+    assert not any(s == first for s, _ in seen)
+    assert {n for s, n in seen} == {'on', 'above'}       # the other stations see both
 
 
 def test_bad_yaml_syntax_and_missing_file(tmp_path):
@@ -555,7 +573,7 @@ def test_range_grown_sigma_is_clipped_to_a_valid_bearing_sigma():
                       'sigma_growth': {'range_ref': 1.0, 'report': 'actual'}},
                      {'id': 'near', 'position': [1e6, 0.0, 0.0], 'sigma_az': 1e-12,
                       'sigma_growth': {'range_ref': 1e8, 'report': 'actual'}}],
-        'targets': [{'position': [1e6, 0.0, 1.0]}]}, 'x.yaml')
+        'targets': [{'position': [1e6, 1.0, 1.0]}]}, 'x.yaml')
     sim = simulate(sc, seed=3)
     far, near = sim.stream('far'), sim.stream('near')
     assert np.all(far.range_ > 1e5) and np.all(near.range_ < 2.0)

@@ -319,6 +319,8 @@ def test_invalid_input_names_the_field():
         (dict(times=t[:, ::-1]), 't: observation times must be non-decreasing'),
         (dict(speed=-1.0), 'speed'),
         (dict(speed=np.nan), 'speed'),
+        (dict(speed=2e6), r'speed: must be > 0 and <= 1e\+06 m/s'),
+        (dict(times=t + 1e155), r't: \|t\| must be <= 1e\+10 s'),
         (dict(method='kalman'), 'method: unknown TMA estimator'),
         (dict(options={'tolerance': 1}), 'options.tolerance: unknown option'),
         (dict(options={'alpha': 1.5}), 'options.alpha: must be'),

@@ -132,6 +132,9 @@ def _good():
      'observations[2].observer: |coordinate|'),
     (lambda d: d['observations'][1].update(sigma_azimuth=1e4), 'observations[1].sigma_azimuth'),
     (lambda d: d.update(options={'max_iterations': 2.5}), 'options.max_iterations: must be an'),
+    # 1e308 s overflowed the time spans' squares ("Eigenvalues did not converge", no field)
+    (lambda d: d['observations'][4].update(t=1e308), 'observations[4].t: |t| must be <= 1e+10'),
+    (lambda d: d.update(speed=3e8), 'speed: must be <= 1e+06 m/s'),
 ])
 def test_bad_input_exits_2_naming_the_field(capsys, monkeypatch, mutate, field):
     doc = _good()

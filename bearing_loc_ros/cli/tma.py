@@ -37,6 +37,7 @@ from ..core.bearings import Bearing, BearingSet
 from ..core.conventions import compass_to_enu
 from ..core import registry
 from ..core.tma import SPEED_REFERENCES
+from ..core.tma.model import MAX_ABS_TIME, MAX_SPEED
 from . import InputError
 from .deprecation import DeprecatedOption, tma_estimator
 from .jsonio import (add_io_arguments, check_object, finite_or_none, number, read_json,
@@ -92,7 +93,10 @@ def parse_observations(items, where, defaults, compass=False):
         el = number(ob['elevation'], f'{f}.elevation')
         if abs(el) >= math.pi / 2:
             raise InputError(f'{f}.elevation: |elevation| must be < pi/2 rad')
-        row = (number(ob['t'], f'{f}.t'), obs, compass_to_enu(az) if compass else az, el,
+        t = number(ob['t'], f'{f}.t')
+        if abs(t) > MAX_ABS_TIME:
+            raise InputError(f'{f}.t: |t| must be <= {MAX_ABS_TIME:g} s')
+        row = (t, obs, compass_to_enu(az) if compass else az, el,
                number(ob['sigma_azimuth'], f'{f}.sigma_azimuth', positive=True),
                number(ob['sigma_elevation'], f'{f}.sigma_elevation', positive=True))
         try:        # the core's range checks, named by the observation's field
@@ -138,10 +142,14 @@ def parse_request(doc, method_override=None, speed_override=None, compass=False)
 
     def speed_of(d, where):
         if speed_override is not None:
-            return number(speed_override, '--speed', positive=True)
-        if d.get('speed') is None:
+            field, v = '--speed', number(speed_override, '--speed', positive=True)
+        elif d.get('speed') is None:
             raise InputError(f'{where}speed: missing (prior speed v_c, m/s)')
-        return number(d['speed'], f'{where}speed', positive=True)
+        else:
+            field, v = f'{where}speed', number(d['speed'], f'{where}speed', positive=True)
+        if v > MAX_SPEED:
+            raise InputError(f'{field}: must be <= {MAX_SPEED:g} m/s')
+        return v
 
     if ('observations' in doc) == ('problems' in doc):
         raise InputError('input: give exactly one of "observations" (one problem) or '

@@ -57,6 +57,9 @@ MAX_JITTER = 100.0
 RATE_RANGE = (1e-6, 1e6)
 #: Most truth samples of one run (truth_rate · duration · targets; ~0.5 kB each in memory).
 MAX_TRUTH_SAMPLES = 1e6
+#: Largest random_static ``count``: more targets cannot fit the 1e6 scheduled bearings of a
+#: run (checked before any target is built; 1e8 exhausted the memory first).
+MAX_COUNT = 1_000_000
 #: Largest distance of a position, waypoint, box corner or geodetic point from the ENU
 #: origin, m (a quarter of the Earth-Moon distance); also the bound of |alt| and range_ref.
 MAX_POSITION = 1e8
@@ -345,8 +348,9 @@ def _targets(src, raw, k, origin):
     if kind is not None and kind not in TARGET_KINDS:
         raise src.error(f'{where}kind', f'must be one of {TARGET_KINDS} (got {kind!r})')
     count = raw.get('count', 1)
-    if isinstance(count, bool) or not isinstance(count, int) or count < 1:
-        raise src.error(f'{where}count', f'must be an integer >= 1 (got {count!r})')
+    if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_COUNT:
+        raise src.error(f'{where}count',
+                        f'must be an integer in [1, {MAX_COUNT:g}] (got {count!r})')
     if kind == 'random_static' or ('box_min' in raw or 'box_max' in raw):
         if kind not in (None, 'random_static'):
             raise src.error(f'{where}box_min', 'only allowed with kind random_static')

@@ -241,6 +241,11 @@ def observation_times_ns(station, duration):
     return phase + k * period
 
 
+#: Horizontal range, m, below which a scheduled observation is not made (its azimuth is
+#: undefined).
+MIN_HORIZONTAL_RANGE = 1e-6
+
+
 def _simulate_stream(scenario, station, i, target, j, duration, seed, survey):
     """Arrays of every scheduled observation of target j by station i (model in module doc)."""
     t_ns = observation_times_ns(station, duration)
@@ -278,6 +283,9 @@ def _simulate_stream(scenario, station, i, target, j, duration, seed, survey):
     else:
         saz_rep, sel_rep = np.full(K, station.sigma_az), np.full(K, station.sigma_el)
     kept = ~(ndtr(z[:, _C_DROP]) < station.dropout)
+    # A target on the station or straight above it has no azimuth: nothing is observed
+    # (atan2(0, 0) = 0 would publish "due East" as a precise bearing).
+    kept &= np.hypot(d[:, 0], d[:, 1]) > MIN_HORIZONTAL_RANGE
     clock_err = (station.clock_offset + station.clock_drift * t
                  + station.clock_jitter * z[:, _C_CLOCK])
     true_ns = scenario.epoch_ns + t_ns

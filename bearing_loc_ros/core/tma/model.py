@@ -75,6 +75,13 @@ class _Data:
         return _Data(*(getattr(self, f)[idx] for f in self.__dataclass_fields__))
 
 
+#: Largest |observation time|, s (about 317 years: Unix seconds fit, and the squares of the
+#: time spans stay far inside the float range; 1e155 s overflowed them).
+MAX_ABS_TIME = 1e10
+#: Largest speed prior, m/s (the fusion node's ``target_speed`` bound).
+MAX_SPEED = 1e6
+
+
 def prepare(bearings, times, speed, speed_reference):
     """Validate one batch; raise ValueError naming the bad field."""
     if not isinstance(bearings, BearingSet):
@@ -96,14 +103,16 @@ def prepare(bearings, times, speed, speed_reference):
                          f'got {np.shape(times)}') from None
     if not np.all(np.isfinite(t)):
         raise ValueError('t: non-finite observation time')
+    if np.any(np.abs(t) > MAX_ABS_TIME):
+        raise ValueError(f't: |t| must be <= {MAX_ABS_TIME:g} s')
     if np.any(np.diff(t, axis=1) < 0):
         raise ValueError('t: observation times must be non-decreasing')
     try:
         vc = np.broadcast_to(np.asarray(speed, dtype=float), (M,)).copy()
     except ValueError:
         raise ValueError(f'speed: expected a scalar or ({M},) array') from None
-    if not np.all(np.isfinite(vc)) or np.any(vc <= 0):
-        raise ValueError('speed: must be finite and > 0 (m/s)')
+    if not np.all(np.isfinite(vc)) or np.any(vc <= 0) or np.any(vc > MAX_SPEED):
+        raise ValueError(f'speed: must be > 0 and <= {MAX_SPEED:g} m/s')
     tau = t - t[:, :1]
     obs = bearings.positions
     v_o, delta = observer_track(tau, obs)
