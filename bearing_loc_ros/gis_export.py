@@ -20,6 +20,8 @@ import errno
 import json
 import math
 import os
+import re
+from xml.sax.saxutils import escape
 
 import numpy as np
 
@@ -68,6 +70,17 @@ def write_geojson(path, fc):
     with _open_out(path) as f:
         f.write(text)
         f.write('\n')
+
+
+#: Characters XML 1.0 does not allow in text (C0 controls but tab, LF and CR; U+FFFE/FFFF;
+#: lone surrogates): replaced by U+FFFD in KML text.
+_XML_INVALID = re.compile('[\x00-\x08\x0b\x0c\x0e-\x1f\ud800-\udfff\ufffe\uffff]')
+
+
+def xml_text(text):
+    """``text`` with the characters XML 1.0 cannot hold replaced by U+FFFD (a station id
+    with a control character made the KML unreadable)."""
+    return _XML_INVALID.sub('\ufffd', text)
 
 
 def _prop_text(value):
@@ -159,11 +172,14 @@ def kml_document(fc, name='bearing_loc_ros', overlays=()):
         kind = props.get('kind', 'feature')
         if kind not in folders:
             folders[kind] = kml.newfolder(name=FOLDERS.get(kind, kind))
-        for obj in _add_geometry(folders[kind], ft['geometry'], _name(props)):
+        for obj in _add_geometry(folders[kind], ft['geometry'], xml_text(_name(props))):
             if props.get('time') and kind == 'fix':
                 obj.timestamp.when = props['time']
             for key, value in props.items():
-                obj.extendeddata.newdata(name=key, value=_prop_text(value))
+                # simplekml escapes names but writes Data values as they are: '<' or '&' in
+                # a station id made the file invalid XML.
+                obj.extendeddata.newdata(name=key,
+                                         value=escape(xml_text(_prop_text(value))))
             if kind in styles:
                 obj.style = styles[kind]
     for oname, href, corners, desc in overlays:

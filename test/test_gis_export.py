@@ -241,3 +241,21 @@ def test_export_without_a_usable_origin_fails_with_one_line(tmp_path, extra, mes
     assert proc.returncode == 2 and proc.stdout == ''
     assert len(proc.stderr.strip().splitlines()) == 1 and message in proc.stderr
     assert not (tmp_path / 'x.geojson').exists()
+
+
+def test_kml_holds_any_station_id_as_valid_xml(tmp_path):
+    # '<' or '&' in an id made the file invalid XML (simplekml writes Data values as they
+    # are), a control character too; they read back as given (controls as U+FFFD).
+    from bearing_loc_ros.gis_export import write_kml
+    ids = ['a<b', 'x&lt;y', 'c&d"\'>', 'ctl\x01\x1f', 'Łódź-站点-🛰']
+    fc = {'type': 'FeatureCollection', 'features': [
+        {'type': 'Feature', 'geometry': {'type': 'Point', 'coordinates': [11.0 + k, 48.0]},
+         'properties': {'kind': 'station', 'name': s, 'station': s}}
+        for k, s in enumerate(ids)]}
+    write_kml(tmp_path / 'ids.kml', fc)
+    root = ET.parse(tmp_path / 'ids.kml').getroot()
+    marks = list(root.iter(f'{KML}Placemark'))
+    expect = [s.replace('\x01', '\ufffd').replace('\x1f', '\ufffd') for s in ids]
+    assert [pm.findtext(f'{KML}name') for pm in marks] == expect
+    assert [{d.get('name'): d.findtext(f'{KML}value') for d in pm.iter(f'{KML}Data')}[
+        'station'] for pm in marks] == expect
