@@ -207,7 +207,9 @@ def export_locate(args, results, sets):
                         float(bs.elevation[0, i]), float(bs.sigma_az[0, i]))
             rays.append((b, p))
             stations[name] = bs.positions[0, i]
-    fc = gis.feature_collection(origin, fixes, rays, stations, args.ellipse_probability)
+    # The map features (rays, ellipses) only for the map formats: the CSV needs the fixes.
+    fc = (gis.feature_collection(origin, fixes, rays, stations, args.ellipse_probability)
+          if args.geojson or args.kml else None)
     written = []
     if args.geojson:
         with writing('--geojson', args.geojson):
