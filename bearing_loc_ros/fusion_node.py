@@ -129,6 +129,11 @@ class FusionNode(Node):
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         self._log_events()
+        floored = sorted(set(self.config.sigma_floors()[1]) - set(self.stations_param))
+        if floored and not self.discover:
+            self.get_logger().warning(
+                f'station_sigma_floors names {", ".join(floored)}, not in stations: no effect '
+                'unless such a station is added')
         if not self.stations_param and not self.discover:
             self.get_logger().error(
                 'no stations: set stations:=[...] or discover:=true (the node idles until '

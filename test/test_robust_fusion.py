@@ -100,6 +100,23 @@ def test_sigma_floor_parameters_reach_the_trust_and_are_checked():
             FusionConfig.from_parameters({'station_sigma_floors': bad})
     with pytest.raises(ValueError, match='sigma_floor_deg'):
         FusionConfig(sigma_floor_deg=float('nan')).validate()
+    for bad in (' ', 'my map', 'map\n'):
+        with pytest.raises(ValueError, match='frame_id: must be a non-empty name'):
+            FusionConfig(frame_id=bad).validate()
+
+
+@pytest.mark.ros
+def test_a_floor_for_a_station_not_listed_is_warned_about(ros, capfd):
+    from rclpy.parameter import Parameter
+    from bearing_loc_ros.fusion_node import FusionNode
+    node = FusionNode(context=ros, namespace='floors', parameter_overrides=[
+        Parameter('stations', value=['s1', 's2']),
+        Parameter('station_sigma_floors', value=['s1:1.0', 'sl:2.0'])])
+    try:
+        err = capfd.readouterr().err
+        assert 'station_sigma_floors names sl, not in stations' in err, err
+    finally:
+        node.destroy_node()
 
 
 def test_sigma_floor_raises_a_too_good_claim_in_the_fix():

@@ -159,8 +159,10 @@ class FusionConfig:
 
     def validate(self):
         """Raise ``ValueError`` naming the first invalid field; return self."""
-        if not isinstance(self.frame_id, str) or not self.frame_id:
-            raise ValueError('frame_id: must be a non-empty string')
+        if not isinstance(self.frame_id, str) or not self.frame_id or \
+                any(c.isspace() for c in self.frame_id):
+            raise ValueError(f'frame_id: must be a non-empty name without spaces, got '
+                             f'{self.frame_id!r}')
         if self.trigger not in TRIGGERS:
             raise ValueError(f'trigger: {self.trigger!r} is not one of {list(TRIGGERS)}')
         if not (math.isfinite(float(self.rate)) and 0.0 < float(self.rate) <= 1000.0):
