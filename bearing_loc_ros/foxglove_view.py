@@ -11,22 +11,34 @@ foxglove-sdk, understood by Foxglove and by Lichtblick releases that speak it):
 * ``/map_geojson`` (foxglove schema ``foxglove.GeoJSON``, as foxglove-sdk ships it): the
   current picture for the Map panel (stations, last bearing rays, last fix, its error
   ellipse and the fix trail, :class:`~bearing_loc_ros.core.gis.LivePicture`), at most every
-  ``geojson_period`` s, when a geodetic origin is set;
+  ``geojson_period`` s, when a geodetic origin is set. Only fixes and bearings in the world
+  frame ``frame_id`` that :class:`~bearing_loc_ros.core.gis.LivePicture` can draw are used;
+  the others, and inputs older than what the picture holds (out of order), are counted in
+  ``dropped`` / ``rejected`` (:meth:`FoxgloveView.stats`) and logged at most once per
+  :data:`LOG_THROTTLE_S` per reason. A stamp going back by more than
+  :data:`~bearing_loc_ros.core.gis.CLOCK_JUMP_NS` is a clock restart (bag replayed, simulation
+  restarted, an earlier stamp in the future): the picture starts afresh from it;
 * ``/<station>/navsat`` (sensor_msgs/NavSatFix, latched) for every station seen in a bearing
   message, when a geodetic origin is set;
-* ``/view/fix_stats`` (JSON): for every fix, its σ (sqrt of the covariance diagonal and
-  horizontal sqrt(C_xx + C_yy), m) and the fix rate (fixes per second of fix stamps over the
-  last :data:`RATE_WINDOW_NS`), for the layout's plot;
+* ``/view/fix_stats`` (JSON, schema :data:`STATS_SCHEMA_NAME`): for every fix in the world
+  frame, its σ (sqrt of the covariance diagonal and horizontal sqrt(C_xx + C_yy), m) and the
+  fix rate (fixes per second of fix stamps over the last :data:`RATE_WINDOW_NS`,
+  :class:`~bearing_loc_ros.core.gis.FixRate`), for the layout's plot;
 * the server time (Foxglove ``time`` capability) from ``/clock`` when ``use_time`` is set
   (a node running with ``use_sim_time``, or a bag).
 
 Slow clients: foxglove-sdk queues at most ``backlog`` messages per client and drops the
-oldest data message when the queue is full, so a stalled client costs bounded memory.
+oldest data message when the queue is full, so a stalled client costs bounded memory. Its
+per-message send errors of a client that went away (``Broken pipe``, up to ``backlog``
+lines) are logged once per client and :data:`LOG_THROTTLE_S`.
 """
 
-from collections import deque
+from collections import Counter
 import importlib
+import json
+import logging
 import math
+import sys
 import threading
 import time
 
@@ -43,11 +55,72 @@ CLOCK_TYPE = 'rosgraph_msgs/msg/Clock'
 BEARING_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
 DEFAULT_BACKLOG = 512
 STATS_TOPIC = '/view/fix_stats'
-RATE_WINDOW_NS = 10_000_000_000
+STATS_SCHEMA_NAME = 'bearing_loc_ros.FixStats'
+RATE_WINDOW_NS = gis.RATE_WINDOW_NS
+#: Seconds between two log lines of one kind (rejections per reason, a client's errors).
+LOG_THROTTLE_S = 10.0
+#: foxglove-sdk's logger of per-client send/receive errors (pyo3-log name of the Rust module).
+SDK_CLIENT_LOGGER = 'foxglove.websocket.connected_client.poller'
 STATS_SCHEMA = {'type': 'object', 'properties': {
     k: {'type': 'number'} for k in ('stamp_s', 'sigma_east_m', 'sigma_north_m', 'sigma_up_m',
                                     'sigma_horizontal_m', 'sigma_3d_m', 'fix_rate_hz')}}
 STATS_SCHEMA['properties']['stamp_ns'] = {'type': 'integer'}
+
+
+class Throttle:
+    """At most one log line per key and ``period`` s (monotonic clock); the next line after
+    a quiet period says how many were left out. Bounded: keys idle for a period are pruned
+    once more than ``max_keys`` are held."""
+
+    def __init__(self, period=LOG_THROTTLE_S, max_keys=1024, clock=time.monotonic):
+        self.period, self.max_keys, self.clock = float(period), int(max_keys), clock
+        self._last = {}           # key -> (time of the last line, lines left out since)
+        self._lock = threading.Lock()
+
+    def allow(self, key):
+        """None when a line of ``key`` is to be left out, else the number left out before."""
+        now = self.clock()
+        with self._lock:
+            last = self._last.get(key)
+            if last is not None and now - last[0] < self.period:
+                self._last[key] = (last[0], last[1] + 1)
+                return None
+            if len(self._last) >= self.max_keys:
+                self._last = {k: v for k, v in self._last.items() if now - v[0] < self.period}
+            self._last[key] = (now, 0)
+            return 0 if last is None else last[1]
+
+
+class _ClientErrorFilter(logging.Filter):
+    """Throttles foxglove-sdk's per-message errors of one client ('Error sending message to
+    client ADDR: ...'): one line per client and kind per :data:`LOG_THROTTLE_S`."""
+
+    def __init__(self):
+        super().__init__()
+        self.throttle = Throttle()
+
+    def filter(self, record):
+        text = record.getMessage()
+        left = self.throttle.allow(text.split(': ', 1)[0])
+        if left is None:
+            return False
+        if left:
+            record.msg, record.args = f'{text} ({left} similar lines left out)', None
+        return True
+
+
+_CLIENT_FILTER = _ClientErrorFilter()
+
+
+def throttle_sdk_client_errors():
+    """Install the :class:`_ClientErrorFilter` on foxglove-sdk's client logger (idempotent)."""
+    logger = logging.getLogger(SDK_CLIENT_LOGGER)
+    if _CLIENT_FILTER not in logger.filters:
+        logger.addFilter(_CLIENT_FILTER)
+
+
+def _stderr_log(text):
+    print(f'view: {text}', file=sys.stderr, flush=True)
 
 
 def wanted_topic(topic, msgtype, leaves=DEFAULT_LEAVES, extra=DEFAULT_GLOBAL):
@@ -80,7 +153,9 @@ class FoxgloveView:
     """Channels, forwarding, latched re-send and the map picture (module docstring).
 
     Thread-safe: :meth:`forward` may be called from any thread; the server's listener
-    callbacks run on foxglove-sdk's threads.
+    callbacks run on foxglove-sdk's threads. ``frame_id``: the world frame of the ENU
+    picture; fixes and bearings in any other frame are not drawn. ``log(text)``: warnings
+    (default: standard error), already throttled.
     """
 
     def __init__(self, host='127.0.0.1', port=8765, name='bearing_loc_ros', origin=None,
@@ -89,7 +164,7 @@ class FoxgloveView:
         import foxglove
         from foxglove.websocket import Capability, ServerListener
 
-        self.log = log or (lambda text: None)
+        self.log = log or _stderr_log
         self.frame_id = frame_id
         self.origin = gis.check_origin(origin) if origin else None
         self.picture = gis.LivePicture(self.origin, probability) if self.origin else None
@@ -104,12 +179,19 @@ class FoxgloveView:
         self.forwarded = 0
         self.forwarded_bytes = 0
         self.dropped = 0          # messages the picture could not use (counted)
+        self.rejected = Counter()  # reason -> messages not used (dropped by reason)
+        self.clock_restarts = 0
         self.subscriptions = 0
         self.time_ns = None
+        self._throttle = Throttle()
         self.context = foxglove.Context()
-        self._fix_stamps = deque()
-        from foxglove import Channel
-        self._stats_channel = Channel(STATS_TOPIC, schema=STATS_SCHEMA, context=self.context)
+        self._fix_rate = gis.FixRate(RATE_WINDOW_NS)
+        from foxglove import Channel, Schema
+        self._stats_channel = Channel(
+            STATS_TOPIC, message_encoding='json', context=self.context,
+            schema=Schema(name=STATS_SCHEMA_NAME, encoding='jsonschema',
+                          data=json.dumps(STATS_SCHEMA).encode('utf-8')))
+        throttle_sdk_client_errors()
         view = self
 
         class Listener(ServerListener):
@@ -203,39 +285,78 @@ class FoxgloveView:
         from .ros_conversions import time_to_ns
         try:
             self.set_time(time_to_ns(deserialize_message(raw, Clock).clock))
-        except Exception:  # a malformed /clock message: counted, never fatal
-            self.dropped += 1
+        except Exception as exc:  # a malformed /clock message: counted, never fatal
+            self._drop('/clock', 'malformed', str(exc) or type(exc).__name__)
+
+    def _warn(self, key, text):
+        left = self._throttle.allow(key)
+        if left is not None:
+            self.log(text + (f' ({left} similar lines left out)' if left else ''))
+
+    def _drop(self, topic, reason, detail):
+        """Count a message the picture does not use, and log it (throttled per reason)."""
+        self.dropped += 1
+        self.rejected[reason] += 1
+        self._warn(reason, f'{topic}: message not used ({reason}: {detail}); '
+                           f'{self.rejected[reason]} {reason} so far')
+
+    def _ordered(self, topic, order, stamp_ns):
+        """Count and log a :class:`~bearing_loc_ros.core.gis.LivePicture` time-order result."""
+        if order == gis.OUT_OF_ORDER:
+            self._drop(topic, 'out_of_order', f'stamp {stamp_ns / 1e9:.3f} s is older than '
+                       'what the map shows')
+        elif order == gis.RESTARTED:
+            self.clock_restarts += 1
+            self._warn('clock_restart', f'{topic}: stamp {stamp_ns / 1e9:.3f} s went back by '
+                       f'more than {gis.CLOCK_JUMP_NS / 1e9:g} s: clock restart, the map '
+                       f'starts again ({self.clock_restarts} so far)')
 
     def _observe(self, topic, raw, log_time_ns):
+        """A fix or bearing message: validated (world frame, drawable) before it reaches the
+        fix statistics and the picture; anything else is counted and logged (throttled)."""
         from geometry_msgs.msg import PoseWithCovarianceStamped
         from rclpy.serialization import deserialize_message
         from .ros_conversions import bearing_from_msg, fix_from_msg
         leaf = topic.rstrip('/').rsplit('/', 1)[-1]
+        if leaf not in ('fix', 'bearing') or leaf == 'bearing' and self.picture is None:
+            return
         try:
             msg = deserialize_message(raw, PoseWithCovarianceStamped)
+        except Exception as exc:  # malformed CDR: counted, never fatal
+            self._drop(topic, 'malformed', str(exc) or type(exc).__name__)
+            return
+        frame = msg.header.frame_id
+        if frame != self.frame_id:
+            self._drop(topic, 'wrong_frame', f'frame_id {frame!r}; the map draws frame '
+                       f'{self.frame_id!r} only')
+            return
+        try:
             if leaf == 'fix':
                 stamp, pos, cov = fix_from_msg(msg)
-                self._fix_stats(stamp, cov, log_time_ns)
-                if self.picture is not None:
-                    self.picture.update_fix(gis.GeoFix(stamp, pos, cov, 'ok'))
-            elif leaf == 'bearing' and self.picture is not None:
-                b = bearing_from_msg(msg, station_of(topic))
-                self.picture.update_bearing(b)
-                self._station_navsat(topic, b, log_time_ns)
+                # The fix message carries no status, estimator or stations: none are drawn.
+                item = gis.GeoFix(stamp, pos, cov, None, None, None)
+                gis.check_live_fix(item)
             else:
-                return
-        except Exception:  # malformed or contract-breaking message: counted, never fatal
-            self.dropped += 1
+                item = bearing_from_msg(msg, station_of(topic), expected_frame=self.frame_id)
+                gis.check_live_bearing(item)
+        except ValueError as exc:  # contract-breaking message: counted, never fatal
+            self._drop(topic, getattr(exc, 'reason', f'bad_{leaf}'), str(exc))
             return
+        if leaf == 'fix':
+            order = self._fix_stats(item.stamp_ns, item.covariance, log_time_ns)
+            if self.picture is not None:
+                order = self.picture.update_fix(item)
+        else:
+            order = self.picture.update_bearing(item)
+            if order != gis.OUT_OF_ORDER:
+                self._station_navsat(topic, item, log_time_ns)
+        self._ordered(topic, order, item.stamp_ns)
         self.publish_geojson(log_time_ns)
 
     def _fix_stats(self, stamp, cov, log_time_ns):
-        """Log σ (m) and the fix rate (Hz, over RATE_WINDOW_NS of stamps) of a fix."""
-        stamps = self._fix_stamps
-        stamps.append(stamp)
-        while stamps and stamps[0] < stamp - RATE_WINDOW_NS:
-            stamps.popleft()
-        span = (stamps[-1] - stamps[0]) / 1e9 if len(stamps) > 1 else 0.0
+        """Log σ (m) and the fix rate (Hz, :class:`~bearing_loc_ros.core.gis.FixRate`) of a
+        fix; return the rate's time-order result."""
+        rate, order = self._fix_rate.add(stamp)
         d = [float(cov[i, i]) for i in range(3)]
 
         def root(v):
@@ -245,8 +366,15 @@ class FoxgloveView:
             'sigma_north_m': root(d[1]), 'sigma_up_m': root(d[2]),
             'sigma_horizontal_m': root(d[0] + d[1]),
             'sigma_3d_m': root(sum(d)),
-            'fix_rate_hz': (len(stamps) - 1) / span if span > 0 else None},
+            'fix_rate_hz': rate},
             log_time=log_time_ns)
+        return order
+
+    def restart(self):
+        """Start the picture and the fix rate afresh (a bag replayed again)."""
+        if self.picture is not None:
+            self.picture.reset()
+        self._fix_rate = gis.FixRate(RATE_WINDOW_NS)
 
     def _station_navsat(self, topic, b, log_time_ns):
         """Publish a station's position as NavSatFix when it is new or moved."""
@@ -256,7 +384,7 @@ class FoxgloveView:
         from rclpy.serialization import serialize_message
         from .ros_conversions import fix_to_navsat
         msg = fix_to_navsat(b.position, b.position_covariance, b.stamp_ns, self.origin,
-                            b.frame_id or self.frame_id)
+                            self.frame_id)
         self._station_pos[b.station] = key
         navsat = topic[:-len('bearing')] + 'navsat'
         self.forward(navsat, 'sensor_msgs/msg/NavSatFix', serialize_message(msg), log_time_ns)
@@ -273,8 +401,10 @@ class FoxgloveView:
         try:
             text = geojson_text(self.picture.collection())
         except ValueError as exc:
-            self.log(f'geojson: {exc}')
-            self.dropped += 1
+            # Never again (inputs are checked), but a picture that cannot be drawn must not
+            # stop the map: it is dropped and the map starts afresh.
+            self.picture.reset()
+            self._drop(GEOJSON_TOPIC, 'undrawable', f'{exc}; the map starts again')
             return False
         msg = GeoJson(geojson=text)
         with self._lock:
@@ -284,10 +414,14 @@ class FoxgloveView:
         return True
 
     def stats(self):
-        """Counters: forwarded messages/bytes, channels, subscriptions, dropped."""
+        """Counters: forwarded messages/bytes, channels, subscriptions, dropped (messages the
+        picture or the fix statistics did not use), rejected (dropped by reason: wrong_frame,
+        out_of_order, bad_fix, malformed, the bearing contract's reasons...) and
+        clock_restarts."""
         return {'forwarded': self.forwarded, 'forwarded_bytes': self.forwarded_bytes,
                 'channels': len(self._channels), 'subscriptions': self.subscriptions,
-                'dropped': self.dropped}
+                'dropped': self.dropped, 'rejected': dict(self.rejected),
+                'clock_restarts': self.clock_restarts}
 
     def stop(self):
         """Stop the server (idempotent)."""
@@ -300,7 +434,9 @@ def serve_bag(view, paths, rate=1.0, loop=False, stop=None, topics=None, log=pri
     Raw CDR bytes from :class:`bearing_loc_ros.bagio.BagReader`; the server time follows
     ``/clock`` when the bag has it, else the bag time of each message. ``stop``: a
     threading.Event that ends the replay; ``topics``: forward only these (default: all).
-    Returns the number of messages forwarded.
+    With ``loop`` every pass after the first starts the picture afresh
+    (:meth:`FoxgloveView.restart`): the bag's stamps start again. Returns the number of
+    messages forwarded.
     """
     import heapq
     from . import bagio
@@ -308,7 +444,11 @@ def serve_bag(view, paths, rate=1.0, loop=False, stop=None, topics=None, log=pri
         raise ValueError(f'rate: must be > 0, got {rate}')
     stop = stop or threading.Event()
     sent = 0
+    passes = 0
     while True:
+        if passes:
+            view.restart()
+        passes += 1
         readers = [bagio.BagReader(p) for p in paths]
         try:
             for r in readers:

@@ -7,7 +7,9 @@ the ROS graph and forwards the CDR bytes unchanged to Foxglove/Lichtblick client
 ``truth``, every ``<station>/bearing``, ``/diagnostics`` and ``/clock`` (the server time
 when the node runs with ``use_sim_time``). With ``geodetic_origin`` set it also serves the
 GeoJSON picture on ``/map_geojson`` and each station's position as NavSatFix on
-``/<station>/navsat``.
+``/<station>/navsat``. The picture and ``/view/fix_stats`` use fixes and bearings in the
+world frame ``map`` only; the other messages are counted and logged (at most every 10 s
+per reason, with the count so far).
 
 Parameters (all read-only; declared from the schema in core.parameters): print them with
 ``python -m bearing_loc_ros.core.parameters --markdown view_node``.
@@ -63,6 +65,10 @@ class ViewNode(Node):
         period, origin = p['discovery_period'], p['geodetic_origin']
         geo_period, prob = p['geojson_period'], p['ellipse_probability']
         backlog = p['max_backlog']
+        frame = p['frame_id']
+        if not frame or any(c.isspace() for c in frame):
+            raise ParameterError('frame_id', f'must be a non-empty name without spaces, got '
+                                             f'{frame!r}')
         if origin:
             from .core.gis import check_origin
             try:
@@ -73,7 +79,8 @@ class ViewNode(Node):
         try:
             self.view = FoxgloveView(host=host, port=port, origin=origin or None, use_time=sim,
                                      backlog=backlog, geojson_period=geo_period,
-                                     probability=prob, log=self.get_logger().warning)
+                                     probability=prob, frame_id=frame,
+                                     log=self.get_logger().warning)
         except Exception as exc:  # foxglove-sdk raises RuntimeError for a busy port
             raise ParameterError(_blamed(host, exc), f'cannot listen on {host}:{port}: '
                                  f'{exc}') from None

@@ -1,4 +1,5 @@
 """core.gis without files: ellipse probability, geodesic rays, antimeridian and polar origins."""
+import json
 import math
 
 from matplotlib.path import Path
@@ -189,3 +190,141 @@ def test_sigma_probability_inverts_ellipse_scale():
     m = np.einsum('ki,ij,kj->k', d, np.linalg.inv(C[:2, :2]), d)
     np.testing.assert_allclose(m, 1.0, rtol=1e-9)
     assert ring.shape == (64, 3)
+
+
+def _fc_text(pic):
+    """The picture as GeoJSON text (what the live view sends); raises if it cannot be drawn."""
+    return geojson_text(pic.collection())
+
+
+@pytest.mark.parametrize('pos, cov', [
+    ([math.nan, 0.0, 0.0], np.eye(3)), ([0.0, math.inf, 0.0], np.eye(3)),
+    ([1e13, 0.0, 0.0], np.eye(3)), ([0.0, 0.0, 0.0], np.diag([math.inf, 1.0, 1.0])),
+    ([0.0, 0.0, 0.0], np.full((3, 3), math.nan)), ([0.0, 0.0, 0.0], np.eye(2))])
+def test_live_picture_refuses_an_undrawable_fix_and_goes_on(pos, cov):
+    """A NaN/inf fix never enters the picture (it used to sit in the trail, and every later
+    picture failed with 'enu: expected finite coordinates')."""
+    pic = gis.LivePicture(MUNICH)
+    assert pic.update_fix(gis.GeoFix(1, np.array([10.0, 0.0, 0.0]), np.eye(3))) == gis.ACCEPTED
+    with pytest.raises(ValueError, match='fix (position|covariance)') as exc:
+        pic.update_fix(gis.GeoFix(2, np.array(pos), np.asarray(cov)))
+    assert '\n' not in str(exc.value)
+    assert pic.fix.stamp_ns == 1 and len(pic.track) == 1
+    assert pic.update_fix(gis.GeoFix(3, np.array([20.0, 0.0, 0.0]), np.eye(3))) == gis.ACCEPTED
+    fc = json.loads(_fc_text(pic))
+    by = {f['properties']['kind']: f for f in fc['features']}
+    assert by['fix']['properties']['stamp_ns'] == 3 and by['track']['properties']['fixes'] == 2
+
+
+@pytest.mark.parametrize('field, value', [('position', np.array([math.nan, 0.0, 0.0])),
+                                          ('azimuth', math.inf), ('sigma_azimuth', math.nan),
+                                          ('stamp_ns', -1)])
+def test_live_picture_refuses_an_undrawable_bearing(field, value):
+    pic = gis.LivePicture(MUNICH)
+    good = Bearing('a', 1, np.array([0.0, -3000.0, 0.0]), 0.5)
+    pic.update_bearing(good)
+    bad = Bearing('a', 2, np.array([0.0, -3000.0, 0.0]), 0.5)
+    setattr(bad, field, value)
+    with pytest.raises(ValueError, match='bearing'):
+        pic.update_bearing(bad)
+    assert pic.bearings['a'] is good
+    assert json.loads(_fc_text(pic))['features']
+
+
+def test_live_picture_clock_restart_starts_afresh_and_late_inputs_are_dropped():
+    """A stamp in the future no longer freezes the picture: the next normal stamp goes back by
+    more than CLOCK_JUMP_NS and restarts it; a stamp back by less is out of order."""
+    s = gis.NS_PER_S
+    pic = gis.LivePicture(MUNICH)
+
+    def fix(t, x=0.0):
+        return gis.GeoFix(t, np.array([x, 0.0, 0.0]), np.eye(3))
+
+    def bearing(station, t):
+        return Bearing(station, t, np.array([0.0, -3000.0, 0.0]), 0.5)
+    assert pic.update_fix(fix(1 * s, 1.0)) == gis.ACCEPTED
+    assert pic.update_bearing(bearing('a', 1 * s)) == gis.ACCEPTED
+    assert pic.update_fix(fix((2**31 - 1) * s, 2.0)) == gis.ACCEPTED
+    assert pic.update_fix(fix(3 * s, 3.0)) == gis.RESTARTED
+    assert pic.fix.stamp_ns == 3 * s and not pic.bearings
+    assert [t for t, _ in pic.track] == [3 * s]
+    for k in range(4, 10):
+        assert pic.update_fix(fix(k * s, float(k))) == gis.ACCEPTED
+    assert pic.fix.stamp_ns == 9 * s and len(pic.track) == 7
+    assert pic.update_fix(fix(9 * s - gis.CLOCK_JUMP_NS, -1.0)) == gis.OUT_OF_ORDER
+    assert pic.fix.stamp_ns == 9 * s and len(pic.track) == 7
+    assert pic.update_bearing(bearing('a', 8 * s)) == gis.ACCEPTED
+    assert pic.update_bearing(bearing('a', 8 * s - 1)) == gis.OUT_OF_ORDER
+    assert pic.bearings['a'].stamp_ns == 8 * s
+    # A bag replayed again: its first bearing restarts the picture, which then follows it.
+    assert pic.update_bearing(bearing('a', 1 * s)) == gis.RESTARTED
+    assert pic.fix is None and not pic.track and list(pic.bearings) == ['a']
+    assert pic.update_bearing(bearing('b', 1 * s)) == gis.ACCEPTED
+    assert pic.update_fix(fix(1 * s, 1.0)) == gis.ACCEPTED
+    fc = json.loads(_fc_text(pic))
+    kinds = [f['properties']['kind'] for f in fc['features']]
+    assert kinds.count('bearing') == 2 and kinds[-1] == 'fix'
+    assert fc['features'][-1]['properties']['stamp_ns'] == 1 * s
+
+
+def test_fix_rate_memory_is_bounded_and_follows_a_clock_restart():
+    """The rate's stamps used to grow without bound for equal stamps or after one future
+    stamp (300,000 after 300,000 fixes)."""
+    rate = gis.FixRate()
+    for _ in range(3 * gis.RATE_MAX_STAMPS):
+        hz, order = rate.add(0)
+    assert hz is None and order == gis.ACCEPTED and len(rate.stamps) == gis.RATE_MAX_STAMPS
+    rate = gis.FixRate()
+    rate.add((2**31 - 1) * gis.NS_PER_S)
+    orders = []
+    for k in range(1, 1001):                 # 10 Hz for 100 s
+        hz, order = rate.add(k * gis.NS_PER_S // 10)
+        orders.append(order)
+    assert orders[0] == gis.RESTARTED and set(orders[1:]) == {gis.ACCEPTED}
+    assert len(rate.stamps) == 101 and hz == pytest.approx(10.0)
+    hz2, order = rate.add(50 * gis.NS_PER_S)             # 50 s back: a restart
+    assert order == gis.RESTARTED and hz2 is None and len(rate.stamps) == 1
+    rate.add(50 * gis.NS_PER_S + 10**8)
+    assert rate.add(50 * gis.NS_PER_S)[1] == gis.OUT_OF_ORDER and len(rate.stamps) == 2
+
+
+def test_a_ray_over_the_pole_is_split_at_the_pole_not_at_the_antimeridian():
+    """Reproducer: origin 85 N 10 E, a station 100 km south of it bearing due north, ray
+    750 km long: it passes over the North Pole (its longitude jumps from 10 to -170). It was
+    split as an antimeridian crossing, drawn 180 deg along the map's top edge."""
+    origin = (85.0, 10.0, 0.0)
+    station = np.array([0.0, -100_000.0, 0.0])
+    lon, lat = gis.ray_lonlat(station, math.pi / 2, 750_000.0, origin)
+    geom = gis.line_geometry(lon, lat)
+    assert geom['type'] == 'MultiLineString' and len(geom['coordinates']) == 2
+    a, b = geom['coordinates']
+    assert a[-1] == [10.0, 90.0] and b[0] == [-170.0, 90.0]
+    for part in (a, b):
+        assert all(abs(q[0] - p[0]) < 1e-6 for p, q in zip(part, part[1:]))   # meridians
+    # The South Pole, directly, and a near miss (drawn as it goes, no split).
+    parts = gis.split_line([-30.0, -30.0, 150.0, 150.0], [-89.0, -89.9, -89.9, -89.0])
+    assert len(parts) == 2 and parts[0][-1].tolist() == [-30.0, -90.0]
+    assert parts[1][0].tolist() == [150.0, -90.0]
+    near = gis.split_line([0.0, 60.0, 120.0], [89.0, 89.5, 89.0])
+    assert len(near) == 1
+    # An antimeridian crossing is still split there.
+    am = gis.split_line([179.0, -179.0], [10.0, 12.0])
+    assert [p.tolist() for p in am] == [[[179.0, 10.0], [180.0, 11.0]],
+                                        [[-180.0, 11.0], [-179.0, 12.0]]]
+
+
+def test_origin_altitude_is_bounded():
+    assert gis.check_origin((48.0, 11.0, -1e6)) == (48.0, 11.0, -1e6)
+    for alt in (1e12, -2e6):
+        with pytest.raises(ValueError, match='origin: altitude'):
+            gis.check_origin((48.0, 11.0, alt))
+
+
+def test_a_fix_without_provenance_draws_no_status_estimator_or_stations():
+    """Live fixes (the fix message carries none of them) draw no status, estimator or
+    stations rather than 'ok', '' and []."""
+    live, = gis.fix_features(gis.GeoFix(1, np.zeros(3), np.eye(3), None, None, None),
+                             MUNICH)[:1]
+    assert not {'status', 'estimator', 'stations'} & set(live['properties'])
+    full = gis.fix_features(gis.GeoFix(1, np.zeros(3), np.eye(3), 'ok', 'mle', ['a']), MUNICH)
+    assert full[0]['properties']['status'] == 'ok' and full[1]['properties']['estimator'] == 'mle'

@@ -3,6 +3,7 @@ a client of the Foxglove WebSocket protocol (test/view_client.py) that decodes w
 serves and compares it with what the fusion node publishes over DDS."""
 import asyncio
 import json
+import math
 import os
 import re
 import threading
@@ -224,6 +225,7 @@ def test_live_view_serves_what_the_fusion_publishes(scenario_file):
     assert a.times and all(1000e9 <= t <= 1100e9 for t in a.times)
     assert np.all(np.diff(a.times) >= 0)
     # The plot channel: σ of each fix and the fix rate (1 Hz bearings -> 1 Hz fixes).
+    assert a.by_topic['/view/fix_stats']['schemaName'] == 'bearing_loc_ros.FixStats'
     stats = [json.loads(p) for _, p in a.messages['/view/fix_stats']]
     assert len(stats) == len(dds)
     for st in stats:
@@ -235,11 +237,15 @@ def test_live_view_serves_what_the_fusion_publishes(scenario_file):
     assert len(counts) == 20 and min(counts) >= 2, counts
 
 
-def test_view_refuses_a_polar_origin_and_a_busy_port():
+def test_view_refuses_a_polar_or_too_high_origin_and_a_busy_port():
     with start_node('bearing_loc_ros.view_node',
                     ['-p', 'port:=0', '-p', 'geodetic_origin:=[89.9,0.0,0.0]']) as bad:
         assert bad.wait(20.0) == 1
         assert 'polar' in bad.output() and 'Traceback' not in bad.output()
+    with start_node('bearing_loc_ros.view_node',
+                    ['-p', 'port:=0', '-p', 'geodetic_origin:=[48.0,11.0,1e12]']) as high:
+        assert high.wait(20.0) == 1                  # was accepted
+        assert "parameter 'geodetic_origin'" in high.output() and 'altitude' in high.output()
     import socket
     s = socket.socket()
     s.bind(('127.0.0.1', 0))
@@ -326,8 +332,229 @@ def test_view_serves_a_bag_directly(tmp_path):
     stamps = [fix_from_msg(deserialize_message(p, PoseWithCovarianceStamped))[0]
               for _, p in c.messages['/fix']]
     fix = [f for f in fc['features'] if f['properties']['kind'] == 'fix'][0]
-    assert fix['properties']['stamp_ns'] == max(stamps)     # newest fix, also after a loop
+    # A fix of the bag (each pass starts the picture afresh: test_bag_loop_picture_follows_
+    # every_pass; the last fix of a pass is the newest).
+    assert fix['properties']['stamp_ns'] in stamps
     from bearing_loc_ros import bagio
     with bagio.BagReader(tmp_path / 'sim') as r:
         lo, hi = r.start_time_ns, r.end_time_ns
     assert all(lo <= t <= hi for t in c.times)       # the bag's /clock, not the wall clock
+
+
+# ------------------------------------------------------------------ the view's input rules
+FIX_TYPE = 'geometry_msgs/msg/PoseWithCovarianceStamped'
+
+
+def fix_cdr(sec, pos=(1000.0, 2000.0, 100.0), cov=None, frame='map', nanosec=0):
+    from rclpy.serialization import serialize_message
+    m = PoseWithCovarianceStamped()
+    m.header.stamp.sec, m.header.stamp.nanosec, m.header.frame_id = sec, nanosec, frame
+    m.pose.pose.position.x, m.pose.pose.position.y, m.pose.pose.position.z = pos
+    m.pose.pose.orientation.w = 1.0
+    c = np.zeros((6, 6))
+    c[:3, :3] = np.diag([100.0, 400.0, 900.0]) if cov is None else cov
+    m.pose.covariance = c.ravel().tolist()
+    return serialize_message(m)
+
+
+def bearing_cdr(sec, frame='map', station_x=0.0):
+    """A station_1 bearing message (azimuth 0.5 rad from (x, -3 km, 0)); ``station_x`` may
+    be non-finite (set after the conversion, which refuses it)."""
+    from rclpy.serialization import serialize_message
+    from bearing_loc_ros.core.bearings import Bearing
+    from bearing_loc_ros.ros_conversions import bearing_to_msg
+    msg = bearing_to_msg(Bearing('station_1', sec * 10**9, np.array([0.0, -3000.0, 0.0]), 0.5,
+                                 frame_id=frame))
+    msg.pose.pose.position.x = station_x
+    return serialize_message(msg)
+
+
+@pytest.fixture
+def view():
+    """An in-process view (loopback, any port, Munich origin); its log lines in ``.lines``."""
+    from bearing_loc_ros.foxglove_view import FoxgloveView
+    lines = []
+    v = FoxgloveView(port=0, origin=ORIGIN, geojson_period=0.0, log=lines.append)
+    v.lines = lines
+    yield v
+    v.stop()
+
+
+def geojson_text_of(v):
+    """The GeoJSON text of the picture the view last sent on /map_geojson."""
+    from bearing_loc_ros.foxglove_view import GEOJSON_TOPIC
+    topic, msg, _ = v._latched[v._geo_channel.id()]
+    assert topic == GEOJSON_TOPIC
+    return geojson_payload(bytes(msg.encode()))
+
+
+def shown_fix_stamp_s(v):
+    """Stamp (s) of the fix in the picture the view last sent on /map_geojson, or None."""
+    fc = json.loads(geojson_text_of(v))
+    fixes = [f for f in fc['features'] if f['properties']['kind'] == 'fix']
+    return fixes[0]['properties']['stamp_ns'] / 1e9 if fixes else None
+
+
+def test_view_rejects_non_finite_fixes_and_the_map_goes_on(view):
+    """One NaN/inf fix used to enter the trail; every later picture then failed ('geojson:
+    enu: expected finite coordinates', logged per fix). Now it is counted and logged (once
+    per reason and 10 s), and the map follows the good fixes."""
+    view.forward('/fix', FIX_TYPE, fix_cdr(1), 1)
+    assert shown_fix_stamp_s(view) == 1.0
+    bad = [fix_cdr(2, pos=(math.nan, 0.0, 0.0)), fix_cdr(2, pos=(0.0, math.inf, 0.0)),
+           fix_cdr(2, cov=np.diag([math.nan, 1.0, 1.0])), fix_cdr(2, pos=(1e300, 0.0, 0.0))]
+    for _ in range(25):
+        for raw in bad:
+            view.forward('/fix', FIX_TYPE, raw, 2)
+    view.forward('/station_1/bearing', FIX_TYPE, bearing_cdr(2, station_x=math.nan), 2)
+    for k in range(3, 13):
+        view.forward('/fix', FIX_TYPE, fix_cdr(k, pos=(1000.0 + 100 * k, 2000.0, 100.0)), k)
+        assert shown_fix_stamp_s(view) == k
+    st = view.stats()
+    assert st['rejected'] == {'bad_fix': 100, 'bad_position': 1} and st['dropped'] == 101
+    assert len(view.lines) == 2, view.lines              # throttled: one line per reason
+    assert 'bad_fix' in view.lines[0] and 'finite' in view.lines[0]
+    assert not any('geojson' in line for line in view.lines)
+    fc = json.loads(geojson_text_of(view))
+    track = [f for f in fc['features'] if f['properties']['kind'] == 'track'][0]
+    assert track['properties']['fixes'] == 11
+    # /view/fix_stats only for the fixes used, and the live fix draws no invented provenance.
+    fix = [f for f in fc['features'] if f['properties']['kind'] == 'fix'][0]
+    assert not {'status', 'estimator', 'stations'} & set(fix['properties'])
+
+
+def test_view_draws_only_fixes_and_bearings_in_its_world_frame(view):
+    """A fix in base_link or with an empty frame_id was drawn as if in the origin's ENU
+    frame; now only frame 'map' (the view's frame_id) is drawn."""
+    view.forward('/fix', FIX_TYPE, fix_cdr(1, frame='base_link', pos=(5.0, 0.0, 0.0)), 1)
+    view.forward('/fix', FIX_TYPE, fix_cdr(2, frame='', pos=(7.0, 0.0, 0.0)), 2)
+    view.forward('/station_1/bearing', FIX_TYPE, bearing_cdr(2, frame='odom'), 2)
+    assert view.picture.fix is None and not view.picture.bearings
+    assert view.stats()['rejected'] == {'wrong_frame': 3}
+    assert len(view.lines) == 1 and "'base_link'" in view.lines[0] and "'map'" in view.lines[0]
+    assert not view._fix_rate.stamps                   # no σ plotted for them either
+    view.forward('/fix', FIX_TYPE, fix_cdr(3), 3)
+    view.forward('/station_1/bearing', FIX_TYPE, bearing_cdr(3), 3)
+    fc = json.loads(geojson_text_of(view))
+    kinds = [f['properties']['kind'] for f in fc['features']]
+    assert kinds == ['station', 'bearing', 'ellipse', 'fix']
+    assert fc['features'][-1]['properties']['position_enu_m'] == [1000.0, 2000.0, 100.0]
+
+
+def test_view_frame_id_selects_the_world_frame_drawn():
+    # A fusion node running in another world frame (its frame_id) is drawn when the view is
+    # told that frame (view_node frame_id, bearing_loc view --frame-id).
+    from bearing_loc_ros.foxglove_view import FoxgloveView
+    lines = []
+    v = FoxgloveView(port=0, origin=ORIGIN, geojson_period=0.0, log=lines.append,
+                     frame_id='enu_site')
+    try:
+        v.forward('/fix', FIX_TYPE, fix_cdr(1), 1)                          # frame 'map'
+        v.forward('/fix', FIX_TYPE, fix_cdr(2, frame='enu_site'), 2)
+        assert shown_fix_stamp_s(v) == 2.0 and v.stats()['rejected'] == {'wrong_frame': 1}
+    finally:
+        v.stop()
+    from bearing_loc_ros.cli import main
+    assert main(['view', '--frame-id', 'my map', '--port', '0']) == 2
+
+
+def test_view_survives_a_future_stamp_and_bounds_its_fix_rate_memory(view):
+    """One fix stamped 2^31-1 s froze the map for good (older fixes were dropped) and the
+    fix-rate stamps grew without bound; a stamp back by more than CLOCK_JUMP_NS is now a
+    clock restart, by less an out-of-order drop (counted)."""
+    from bearing_loc_ros.core import gis
+    view.forward('/fix', FIX_TYPE, fix_cdr(1), 1)
+    view.forward('/fix', FIX_TYPE, fix_cdr(2**31 - 1), 2)
+    for k in range(3, 13):
+        view.forward('/fix', FIX_TYPE, fix_cdr(k, pos=(1000.0 + 100 * k, 2000.0, 100.0)), k)
+        assert shown_fix_stamp_s(view) == k
+    view.forward('/fix', FIX_TYPE, fix_cdr(11), 13)          # 1 s late: out of order
+    assert shown_fix_stamp_s(view) == 12
+    st = view.stats()
+    assert st['clock_restarts'] == 1 and st['rejected'] == {'out_of_order': 1}
+    assert any('clock restart' in line for line in view.lines)
+    view.geojson_period = 3600.0                                 # no picture per fix
+    raw = fix_cdr(0)
+    for k in range(gis.RATE_MAX_STAMPS + 500):                  # all stamped 0 (restart)
+        view.forward('/fix', FIX_TYPE, raw, k)
+    assert len(view._fix_rate.stamps) <= gis.RATE_MAX_STAMPS
+    assert view.publish_geojson(0, force=True) and shown_fix_stamp_s(view) == 0.0
+    assert view.stats()['clock_restarts'] == 2
+
+
+def test_fix_stats_channel_has_a_stable_schema_name(view):
+    from bearing_loc_ros.foxglove_view import STATS_SCHEMA, STATS_SCHEMA_NAME
+    assert view._stats_channel.schema_name() == STATS_SCHEMA_NAME == 'bearing_loc_ros.FixStats'
+    schema = view._stats_channel.schema()
+    assert schema.encoding == 'jsonschema' and json.loads(bytes(schema.data)) == STATS_SCHEMA
+
+
+def test_a_gone_clients_send_errors_are_throttled_per_client():
+    """foxglove-sdk logs one 'Broken pipe' line per queued message of a client that went away
+    (up to 512 per stalled client); the view lets one per client and 10 s through."""
+    import logging
+    from bearing_loc_ros import foxglove_view as fv
+    fv.throttle_sdk_client_errors()
+    fv.throttle_sdk_client_errors()
+    logger = logging.getLogger(fv.SDK_CLIENT_LOGGER)
+    assert logger.filters.count(fv._CLIENT_FILTER) == 1
+    flt = fv._ClientErrorFilter()
+
+    def record(client):
+        return logging.LogRecord(fv.SDK_CLIENT_LOGGER, logging.ERROR, 'x', 1,
+                                 f'Error sending message to client {client}: IO error: '
+                                 'Broken pipe (os error 32)', None, None)
+    passed = [flt.filter(record('127.0.0.1:40260')) for _ in range(512)]
+    assert passed.count(True) == 1 and passed[0]
+    assert flt.filter(record('127.0.0.1:40266'))
+    t = [0.0]
+    flt.throttle.clock = lambda: t[0]
+    flt.throttle._last.clear()
+    assert flt.filter(record('[::1]:1'))
+    assert not flt.filter(record('[::1]:1'))
+    t[0] = fv.LOG_THROTTLE_S
+    rec = record('[::1]:1')
+    assert flt.filter(rec) and '(1 similar lines left out)' in rec.getMessage()
+
+
+def test_bag_loop_picture_follows_every_pass(tmp_path):
+    """``bearing_loc view --bag ... --loop`` kept showing the first pass's last fix: the
+    stamps start again with each pass. Every pass now starts the picture afresh; a 2 s bag
+    (shorter than the clock-restart jump) too."""
+    from bearing_loc_ros import bagio
+    from bearing_loc_ros.core.bearings import Bearing
+    from bearing_loc_ros.foxglove_view import FoxgloveView, serve_bag
+    bag = tmp_path / 'short'
+    t0 = 1000 * 10**9
+    with bagio.BagWriter(bag) as w:
+        w.add_topic('/fix', FIX_TYPE)
+        w.add_topic('/station_1/bearing', FIX_TYPE)
+        for k in range(10):
+            t = t0 + k * 2 * 10**8
+            w.write('/station_1/bearing', t, bagio.bearing_message(
+                Bearing('station_1', t, np.array([0.0, -3000.0, 0.0]), 0.5)))
+            w.write('/fix', t, bagio.fix_message([100.0 * k, 0.0, 0.0], np.eye(3), t))
+    v = FoxgloveView(port=0, origin=ORIGIN, geojson_period=0.0, log=lambda text: None)
+    passes, seen = [1], []
+    stop = threading.Event()
+    forward = v.forward
+
+    def watch(topic, msgtype, raw, log_time_ns):
+        forward(topic, msgtype, raw, log_time_ns)
+        if topic == '/fix':
+            seen.append((passes[0], log_time_ns, v.picture.fix.stamp_ns,
+                         shown_fix_stamp_s(v)))
+
+    def on_pass(text):
+        passes[0] += 1
+        if passes[0] > 3:
+            stop.set()
+    v.forward = watch
+    try:
+        serve_bag(v, [str(bag)], rate=1000.0, loop=True, stop=stop, log=on_pass)
+    finally:
+        v.stop()
+    assert [p for p, *_ in seen] == [1] * 10 + [2] * 10 + [3] * 10
+    for _, sent, held, shown in seen:
+        assert held == sent and shown == sent / 1e9
+    assert v.stats()['rejected'] == {}

@@ -26,6 +26,9 @@ def add_arguments(parser):
                         metavar=('LAT_DEG', 'LON_DEG', 'ALT_M'),
                         help='geodetic origin of the ENU frame: enables /map_geojson and '
                              'station NavSatFix topics')
+    parser.add_argument('--frame-id', default='map',
+                        help='world (ENU) frame of the fixes and bearings drawn on the map '
+                             "(default map; the fusion node's frame_id)")
     parser.add_argument('--rate', type=float, default=1.0, help='bag replay speed factor')
     parser.add_argument('--loop', action='store_true', help='replay the bags again when done')
     parser.add_argument('--topics', nargs='+', default=None,
@@ -37,6 +40,9 @@ def add_arguments(parser):
 
 
 def _check(args):
+    if not args.frame_id or any(c.isspace() for c in args.frame_id):
+        raise InputError(f'--frame-id: must be a non-empty name without spaces, got '
+                         f'{args.frame_id!r}')
     if not 0 <= args.port <= 65535:
         raise InputError(f'--port: must be 0..65535, got {args.port}')
     if not args.rate > 0 or args.rate != args.rate or args.rate == float('inf'):
@@ -62,7 +68,8 @@ def run_bag(args):
             raise InputError(str(exc)) from None
     try:
         view = FoxgloveView(host=args.host, port=args.port, origin=args.origin, use_time=True,
-                            backlog=args.max_backlog or DEFAULT_BACKLOG)
+                            backlog=args.max_backlog or DEFAULT_BACKLOG,
+                            frame_id=args.frame_id)
     except RuntimeError as exc:
         print(f'bearing_loc view: cannot listen on {args.host}:{args.port}: {exc}',
               file=sys.stderr)
@@ -87,7 +94,9 @@ def run_bag(args):
 def run_live(args):
     """Run view_node in this process with parameters from the flags."""
     from ..view_node import main
-    ros = ['--ros-args', '-p', f'host:={args.host}', '-p', f'port:={args.port}']
+    import json
+    ros = ['--ros-args', '-p', f'host:={args.host}', '-p', f'port:={args.port}',
+           '-p', f'frame_id:={json.dumps(args.frame_id)}']     # a YAML string, '123' too
     if args.origin is not None:
         ros += ['-p', 'geodetic_origin:=[' + ','.join(f'{v!r}' for v in args.origin) + ']']
     if args.topics:

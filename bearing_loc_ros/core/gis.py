@@ -20,13 +20,16 @@ Conventions (DESIGN.md "Frames, units, angles"):
   covariance C₂ falls inside with probability p (default 95 %, k = 2.4477).
 * Antimeridian: lines and polygons that cross ±180° of longitude are split into
   ``MultiLineString`` / ``MultiPolygon`` parts that meet at ±180° (RFC 7946 section 3.1.9).
+  A line passing over a pole (a longitude step of nearly 180° between two vertices) is split
+  at the pole instead: the parts meet at ±90° latitude.
   Polar origins (|lat0| > :data:`MAX_ORIGIN_LAT_DEG`) are refused with a one-line
   ``ValueError``: a local tangent-plane picture there does not map onto longitude/latitude.
 
-One module (about 500 lines) on purpose: the ellipse, antimeridian splitting and feature
+One module (about 700 lines) on purpose: the ellipse, antimeridian splitting and feature
 builders share the origin checks and the ring/line builders and are read together.
 """
 
+from collections import deque
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
 import math
@@ -48,6 +51,12 @@ RAY_OVERSHOOT = 1.25
 DEFAULT_RAY_LENGTH = 10_000.0
 #: Largest |latitude| of a geodetic origin, degrees (polar origins are refused).
 MAX_ORIGIN_LAT_DEG = 85.0
+#: Largest |altitude| of a geodetic origin, m.
+MAX_ORIGIN_ALT_M = 1e6
+#: Largest |ENU coordinate| of a live fix or station, m (as the ROS message contract).
+MAX_ABS_ENU_M = 1e12
+#: A longitude step within this of 180° between two line vertices is a pass over a pole.
+POLE_STEP_TOL_DEG = 1.0
 #: Closest approach of a drawn ellipse to a pole, degrees of latitude.
 POLE_MARGIN_DEG = 0.5
 #: Decimal places of output degrees (1e-9 deg is about 0.1 mm).
@@ -58,8 +67,8 @@ NS_PER_S = 1_000_000_000
 def check_origin(origin):
     """Validate a geodetic origin (lat0_deg, lon0_deg, h0_m); return it as a float tuple.
 
-    ValueError (one line) for a malformed origin or a polar one (|lat0| above
-    :data:`MAX_ORIGIN_LAT_DEG`).
+    ValueError (one line) for a malformed origin, a polar one (|lat0| above
+    :data:`MAX_ORIGIN_LAT_DEG`) or one beyond :data:`MAX_ORIGIN_ALT_M` in altitude.
     """
     if origin is None:
         raise ValueError('origin: a geodetic origin [lat_deg, lon_deg, alt_m] is required for '
@@ -68,6 +77,8 @@ def check_origin(origin):
     if abs(lat) > MAX_ORIGIN_LAT_DEG:
         raise ValueError(f'origin: latitude {lat:g} deg is polar (beyond +-{MAX_ORIGIN_LAT_DEG:g}'
                          ' deg); a local ENU picture cannot be drawn in longitude/latitude there')
+    if abs(alt) > MAX_ORIGIN_ALT_M:
+        raise ValueError(f'origin: altitude {alt:g} m is outside +-{MAX_ORIGIN_ALT_M:g} m')
     return lat, lon, alt
 
 
@@ -165,18 +176,31 @@ def _cross_lat(lon_a, lat_a, lon_b, lat_b, edge):
 
 
 def split_line(lon, lat):
-    """Split a polyline at the antimeridian: list of (k, 2) [lon, lat] parts.
+    """Split a polyline at the antimeridian and at the poles: list of (k, 2) [lon, lat] parts.
 
-    A step of more than 180° in longitude between consecutive vertices is taken as a
-    crossing; the crossing latitude is interpolated linearly in (unwrapped) longitude and
-    both parts end on the meridian, at +180 on one side and −180 on the other.
+    Between consecutive vertices a and b, with the longitude step Δ = λ_b − λ_a wrapped to
+    [−180, 180):
+
+    * |Δ| within :data:`POLE_STEP_TOL_DEG` of 180° is a pass over a pole (an east-west move
+      cannot turn half the globe between two vertices of a line): the line ends at
+      (λ_a, ±90°) and the next part starts at (λ_b, ±90°), the pole of the hemisphere of
+      φ_a + φ_b (north when 0), so nothing is drawn along the map's top or bottom edge;
+    * otherwise a raw step of more than 180° is an antimeridian crossing: the crossing
+      latitude is interpolated linearly in (unwrapped) longitude and both parts end on the
+      meridian, at +180 on one side and −180 on the other.
     """
     lon = _wrap_lon(lon)
     lat = np.asarray(lat, dtype=float)
     parts, cur = [], [[lon[0], lat[0]]]
     for i in range(1, lon.size):
         a, b = lon[i - 1], lon[i]
-        if abs(b - a) > 180.0:
+        step = float(_wrap_lon(b - a))
+        if abs(step) >= 180.0 - POLE_STEP_TOL_DEG:
+            pole = -90.0 if lat[i - 1] + lat[i] < 0.0 else 90.0
+            cur.append([a, pole])
+            parts.append(np.array(cur))
+            cur = [[b, pole]]
+        elif abs(b - a) > 180.0:
             b_un = b - 360.0 if b > a else b + 360.0
             edge = 180.0 if b_un > a else -180.0
             y = _cross_lat(a, lat[i - 1], b_un, lat[i], edge)
@@ -242,7 +266,7 @@ def _positions(parts, decimals=DEG_DECIMALS):
 
 
 def line_geometry(lon, lat):
-    """GeoJSON LineString (or MultiLineString when split at the antimeridian) geometry."""
+    """GeoJSON LineString (or MultiLineString when split at the antimeridian or a pole)."""
     parts = _positions(split_line(lon, lat))
     if len(parts) == 1:
         return {'type': 'LineString', 'coordinates': parts[0]}
@@ -310,7 +334,8 @@ def iso_time(stamp_ns):
 @dataclass
 class GeoFix:
     """One fix to draw: ENU position (3,) m, covariance (3, 3) m², stamp ns (None: no
-    time), and provenance."""
+    time), and provenance (status, estimator, stations; each None when unknown, as for a
+    live ``fix`` message, and then left out of the drawn properties)."""
 
     stamp_ns: typing.Optional[int]
     position: np.ndarray
@@ -341,8 +366,8 @@ def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
     """Point feature of a fix and, when drawable, its error-ellipse polygon feature.
 
     Point properties: kind 'fix', time (ISO 8601 UTC), stamp_ns, status, estimator,
-    stations, position_enu_m, covariance_enu_m2 (row-major 3x3), sigma_east_m,
-    sigma_north_m, sigma_up_m, sigma_horizontal_m = sqrt(C_xx + C_yy), sigma_3d_m =
+    stations (each left out when None), position_enu_m, covariance_enu_m2 (row-major 3x3),
+    sigma_east_m, sigma_north_m, sigma_up_m, sigma_horizontal_m = sqrt(C_xx + C_yy), sigma_3d_m =
     sqrt(trace C), and ellipse (probability, semi-axes m, orientation rad ENU) or
     ellipse_error (why none is drawn: non-finite covariance, too large, ...).
     """
@@ -355,15 +380,19 @@ def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
         v = float(v)
         return v if math.isfinite(v) else None
 
-    props = {'kind': 'fix', 'time': iso_time(fix.stamp_ns), 'stamp_ns': _stamp(fix.stamp_ns),
-             'status': str(fix.status), 'estimator': str(fix.estimator),
-             'stations': list(fix.stations), 'position_enu_m': [num(v) for v in p],
-             'covariance_enu_m2': [num(v) for v in c.ravel()],
-             'sigma_east_m': num(math.sqrt(d[0])) if d[0] >= 0 else None,
-             'sigma_north_m': num(math.sqrt(d[1])) if d[1] >= 0 else None,
-             'sigma_up_m': num(math.sqrt(d[2])) if d[2] >= 0 else None,
-             'sigma_horizontal_m': num(math.sqrt(max(d[0] + d[1], 0.0))),
-             'sigma_3d_m': num(math.sqrt(max(np.sum(d), 0.0)))}
+    props = {'kind': 'fix', 'time': iso_time(fix.stamp_ns), 'stamp_ns': _stamp(fix.stamp_ns)}
+    for key, value in (('status', fix.status), ('estimator', fix.estimator)):
+        if value is not None:
+            props[key] = str(value)
+    if fix.stations is not None:
+        props['stations'] = list(fix.stations)
+    props.update(position_enu_m=[num(v) for v in p],
+                 covariance_enu_m2=[num(v) for v in c.ravel()],
+                 sigma_east_m=num(math.sqrt(d[0])) if d[0] >= 0 else None,
+                 sigma_north_m=num(math.sqrt(d[1])) if d[1] >= 0 else None,
+                 sigma_up_m=num(math.sqrt(d[2])) if d[2] >= 0 else None,
+                 sigma_horizontal_m=num(math.sqrt(max(d[0] + d[1], 0.0))),
+                 sigma_3d_m=num(math.sqrt(max(np.sum(d), 0.0))))
     if fix_id is not None:
         props['id'] = fix_id
     out = [_feature(point_geometry(lon, lat, alt), props)]
@@ -378,8 +407,10 @@ def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
     ell = {'probability': float(probability), 'semi_major_m': a, 'semi_minor_m': b,
            'orientation_rad': ang}
     props['ellipse'] = ell
-    eprops = {'kind': 'ellipse', 'time': props['time'], 'stamp_ns': props['stamp_ns'],
-              'estimator': props['estimator'], **ell}
+    eprops = {'kind': 'ellipse', 'time': props['time'], 'stamp_ns': props['stamp_ns']}
+    if 'estimator' in props:
+        eprops['estimator'] = props['estimator']
+    eprops.update(ell)
     if fix_id is not None:
         eprops['fix_id'] = fix_id
     out.append(_feature(geom, eprops))
@@ -488,6 +519,95 @@ def grid_corners_lonlat(origin_x, origin_y, width_m, height_m, altitude, origin)
     return np.column_stack([lon, lat])
 
 
+#: A live input stamped more than this before what the picture holds (ns) is a clock restart.
+CLOCK_JUMP_NS = 5 * NS_PER_S
+#: Window (ns of fix stamps) and largest sample of :class:`FixRate`.
+RATE_WINDOW_NS = 10 * NS_PER_S
+RATE_MAX_STAMPS = 4096
+#: Results of :meth:`LivePicture.update_fix` / :meth:`LivePicture.update_bearing`.
+ACCEPTED, RESTARTED, OUT_OF_ORDER = 'accepted', 'restarted', 'out_of_order'
+
+
+def _finite_enu(p, what):
+    p = np.asarray(p, dtype=float)
+    # Scalar comparisons (NaN fails them): once per live message, ~1 µs.
+    if p.shape != (3,) or not all(abs(v) <= MAX_ABS_ENU_M for v in p.tolist()):
+        raise ValueError(f'{what}: expected 3 finite ENU coordinates within '
+                         f'+-{MAX_ABS_ENU_M:g} m')
+
+
+def _check_stamp(stamp_ns, what):
+    if stamp_ns is not None and (isinstance(stamp_ns, bool) or int(stamp_ns) != stamp_ns
+                                 or stamp_ns < 0):
+        raise ValueError(f'{what}: stamp must be an integer >= 0 ns, got {stamp_ns!r}')
+
+
+def check_live_fix(fix):
+    """ValueError (one line, naming the field) unless a :class:`GeoFix` can be drawn live:
+    position 3 finite ENU coordinates within :data:`MAX_ABS_ENU_M`, covariance a finite
+    (3, 3) array, stamp an integer >= 0 ns (or None)."""
+    _finite_enu(fix.position, 'fix position')
+    c = np.asarray(fix.covariance, dtype=float)
+    if c.shape != (3, 3) or not np.isfinite(c).all():
+        raise ValueError('fix covariance: expected a finite (3, 3) array, m^2')
+    _check_stamp(fix.stamp_ns, 'fix')
+
+
+def check_live_bearing(bearing):
+    """ValueError (one line, naming the field) unless a core Bearing can be drawn live:
+    station position as :func:`check_live_fix`'s, finite azimuth, finite σ_θ > 0, stamp an
+    integer >= 0 ns."""
+    _finite_enu(bearing.position, 'bearing position')
+    if not math.isfinite(float(bearing.azimuth)):
+        raise ValueError('bearing azimuth: must be finite')
+    sa = float(bearing.sigma_azimuth)
+    if not (math.isfinite(sa) and sa > 0.0):
+        raise ValueError('bearing sigma_azimuth: must be finite and > 0')
+    _check_stamp(bearing.stamp_ns, 'bearing')
+
+
+def stamp_order(stamp_ns, held_ns):
+    """How a live input stamped ``stamp_ns`` relates to the stamp held for it (``held_ns``).
+
+    :data:`ACCEPTED` when either is None or the stamp does not go backwards;
+    :data:`RESTARTED` when it goes back by more than :data:`CLOCK_JUMP_NS` (the clock
+    restarted: a bag replayed again, a simulation restarted, or the held stamp was in the
+    future); :data:`OUT_OF_ORDER` when it goes back by at most that (a late message).
+    """
+    if stamp_ns is None or held_ns is None or stamp_ns >= held_ns:
+        return ACCEPTED
+    return RESTARTED if held_ns - stamp_ns > CLOCK_JUMP_NS else OUT_OF_ORDER
+
+
+class FixRate:
+    """Fix rate (Hz) over the last :data:`RATE_WINDOW_NS` of fix stamps, in bounded memory.
+
+    :meth:`add` keeps at most ``max_stamps`` stamps (the rate of a faster stream is taken
+    over the last ``max_stamps`` fixes). Time order follows :func:`stamp_order`: a clock
+    restart starts the window afresh; an out-of-order stamp is not added.
+    """
+
+    def __init__(self, window_ns=RATE_WINDOW_NS, max_stamps=RATE_MAX_STAMPS):
+        self.window_ns = int(window_ns)
+        self.stamps = deque(maxlen=max(int(max_stamps), 2))
+
+    def add(self, stamp_ns):
+        """Add a fix stamp (int ns); return (rate Hz or None, :func:`stamp_order` result).
+
+        The rate is (n − 1) / span over the n stamps in the window; None with fewer than two
+        stamps or a zero span."""
+        stamps = self.stamps
+        order = stamp_order(stamp_ns, stamps[-1] if stamps else None)
+        if order == RESTARTED:
+            stamps.clear()
+        if order != OUT_OF_ORDER:
+            stamps.append(int(stamp_ns))
+            while stamps[0] < stamps[-1] - self.window_ns:
+                stamps.popleft()
+        span = (stamps[-1] - stamps[0]) / 1e9 if stamps else 0.0
+        return ((len(stamps) - 1) / span if span > 0 else None), order
+
+
 class LivePicture:
     """The current picture of a live system: last bearing per station, last fixes.
 
@@ -497,6 +617,14 @@ class LivePicture:
     fix, or ``ray_length`` m without one), the trail as a LineString (kind 'track'), and
     the last fix with its error ellipse. ``changed`` is set by every update and cleared by
     :meth:`collection`.
+
+    Input rules: an input that cannot be drawn (:func:`check_live_fix`,
+    :func:`check_live_bearing`) raises ValueError and leaves the picture as it was. Time
+    (:func:`stamp_order`, against the current fix or the station's last bearing): an input
+    older by at most :data:`CLOCK_JUMP_NS` is dropped (returns :data:`OUT_OF_ORDER`); one
+    older by more is a clock restart (a bag replayed again, a simulation restarted, or what
+    the picture holds was stamped in the future): the picture starts afresh (:meth:`reset`)
+    with that input (returns :data:`RESTARTED`); anything else is taken (:data:`ACCEPTED`).
     """
 
     def __init__(self, origin, probability=DEFAULT_PROBABILITY, ray_length=DEFAULT_RAY_LENGTH,
@@ -508,25 +636,46 @@ class LivePicture:
         self.trail = max(int(trail), 0)
         self.bearings = {}
         self.fix = None
-        self.track = []
+        self.track = deque(maxlen=self.trail)    # (stamp_ns, ENU position (3,))
         self.changed = False
 
+    def reset(self):
+        """Forget everything (bearings, fix, trail); the next picture is empty."""
+        self.bearings.clear()
+        self.fix = None
+        self.track.clear()
+        self.changed = True
+
+    def _order(self, stamp_ns, held_ns):
+        order = stamp_order(stamp_ns, held_ns)
+        if order == RESTARTED:
+            self.reset()
+        return order
+
     def update_bearing(self, bearing):
-        """Keep ``bearing`` (a core Bearing) if it is the newest of its station."""
+        """Take ``bearing`` (a core Bearing) as its station's last one (class docstring rules);
+        return :data:`ACCEPTED`, :data:`RESTARTED` or :data:`OUT_OF_ORDER`."""
+        check_live_bearing(bearing)
         old = self.bearings.get(bearing.station)
-        if old is None or bearing.stamp_ns >= old.stamp_ns:
+        order = self._order(bearing.stamp_ns, None if old is None else old.stamp_ns)
+        if order != OUT_OF_ORDER:
             self.bearings[bearing.station] = bearing
             self.changed = True
+        return order
 
     def update_fix(self, fix):
-        """Keep ``fix`` (a :class:`GeoFix`) as the current one and extend the trail."""
-        if self.fix is not None and fix.stamp_ns < self.fix.stamp_ns:
-            return
+        """Take ``fix`` (a :class:`GeoFix`) as the current one and extend the trail (class
+        docstring rules); return :data:`ACCEPTED`, :data:`RESTARTED` or
+        :data:`OUT_OF_ORDER`."""
+        check_live_fix(fix)
+        order = self._order(fix.stamp_ns, None if self.fix is None else self.fix.stamp_ns)
+        if order == OUT_OF_ORDER:
+            return order
         self.fix = fix
         if self.trail:
-            self.track.append(np.asarray(fix.position, dtype=float))
-            del self.track[:-self.trail]
+            self.track.append((fix.stamp_ns, np.array(fix.position, dtype=float)))
         self.changed = True
+        return order
 
     def collection(self):
         """The FeatureCollection dict of the current picture (see class docstring)."""
@@ -537,7 +686,7 @@ class LivePicture:
                                 ray_length=None if target is not None else self.ray_length,
                                 probability=self.probability)
         if len(self.track) >= 2:
-            lon, lat, _ = enu_to_lonlat(np.array(self.track), self.origin)
+            lon, lat, _ = enu_to_lonlat(np.array([p for _, p in self.track]), self.origin)
             fc['features'].insert(2 * len(self.bearings), _feature(
                 line_geometry(lon, lat), {'kind': 'track', 'fixes': len(self.track)}))
         return fc

@@ -369,6 +369,8 @@ def _view_schema():
           's', 0.05, 60.0),
         P('geodetic_origin', DOUBLE_ARRAY, [], '[lat_deg, lon_deg, alt_m] of the ENU frame '
           '(WGS84); enables /map_geojson and the station NavSatFix topics'),
+        P('frame_id', STRING, 'map', "World (ENU) frame of the fixes and bearings drawn on "
+          "the map; others are counted and left out (the fusion node's frame_id)"),
         P('geojson_period', DOUBLE, 0.5, 'Minimum interval between GeoJSON pictures', 's',
           0.0, 3600.0),
         P('ellipse_probability', DOUBLE, 0.95, 'Probability of the drawn error ellipse', '',
