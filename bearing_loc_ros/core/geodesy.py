@@ -22,6 +22,8 @@ Everything is vectorised: latitudes, longitudes and heights broadcast against ea
 ENU/ECEF points are arrays of shape (..., 3).
 """
 
+from math import isfinite
+
 import numpy as np
 import pymap3d
 
@@ -63,6 +65,15 @@ def geodetic_triplet(values, field):
     vals = list(values)
     if len(vals) != 3:
         raise ValueError(f'{field}: expected [lat_deg, lon_deg, alt_m], got {len(vals)} values')
+    try:
+        # Three plain numbers (the usual case, checked per point by the map exports): on
+        # floats; anything else, and every error message, through check_geodetic.
+        lat, lon, alt = (float(v) for v in vals)
+        if isfinite(lat) and isfinite(lon) and isfinite(alt) and abs(lat) <= 90.0 \
+                and abs(lon) <= 180.0:
+            return lat, lon, alt
+    except (TypeError, ValueError):
+        pass
     lat, lon, alt = check_geodetic(vals[0], vals[1], vals[2], field)
     return float(lat), float(lon), float(alt)
 
