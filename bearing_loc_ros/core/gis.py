@@ -32,6 +32,7 @@ builders share the origin checks and the ring/line builders and are read togethe
 from collections import deque
 from dataclasses import dataclass, field
 from datetime import datetime, timezone
+from functools import lru_cache
 import math
 import typing
 
@@ -288,6 +289,22 @@ def point_geometry(lon, lat, alt):
                                              round(float(alt), 4)]}
 
 
+@lru_cache(maxsize=4096)
+def _station_frame(x, y, z, origin):
+    """(lon_deg, lat_deg, R) of the station at ENU (x, y, z) m: its geodetic position and the
+    rotation R from the origin's ENU axes to its own. Cached: a map export draws many rays
+    from few stations."""
+    lon, lat, _ = enu_to_lonlat(np.array([x, y, z], dtype=float), origin)
+    rot = geodesy.enu_axes_rotation(origin, float(lat), float(lon))
+    rot.setflags(write=False)
+    return float(lon), float(lat), rot
+
+
+def _frame_of(station_enu, origin):
+    x, y, z = np.asarray(station_enu, dtype=float).reshape(3).tolist()
+    return _station_frame(x, y, z, check_origin(origin))
+
+
 def compass_at(azimuth, station_enu, origin):
     """Initial geodesic azimuth (deg, clockwise from North) at a station of an ENU azimuth θ.
 
@@ -296,8 +313,7 @@ def compass_at(azimuth, station_enu, origin):
     azimuth is atan2(d'_E, d'_N) (the horizontal part; the meridian convergence is
     (λ − λ0) sin φ).
     """
-    lon, lat, _ = enu_to_lonlat(np.asarray(station_enu, dtype=float), origin)
-    rot = geodesy.enu_axes_rotation(check_origin(origin), float(lat), float(lon))
+    rot = _frame_of(station_enu, origin)[2]
     d = rot @ np.array([math.cos(azimuth), math.sin(azimuth), 0.0])
     return math.degrees(math.atan2(d[0], d[1])) % 360.0
 
@@ -312,7 +328,7 @@ def ray_lonlat(station_enu, azimuth, length, origin, points=RAY_POINTS):
     length = float(length)
     if not (math.isfinite(length) and length > 0.0):
         raise ValueError(f'length: ray length must be finite and > 0 m, got {length!r}')
-    lon0, lat0, _ = enu_to_lonlat(np.asarray(station_enu, dtype=float), origin)
+    lon0, lat0, _ = _frame_of(station_enu, origin)
     az = compass_at(azimuth, station_enu, origin)
     dist = np.linspace(0.0, length, int(points))
     lat, lon = vincenty.vreckon(float(lat0), float(lon0), dist, az, ell=geodesy.WGS84)
