@@ -272,3 +272,14 @@ def test_locate_geo_csv_alone_builds_no_map_features(capsys, tmp_path, request_f
     code, _, err = run(capsys, ['locate', request_file, '--geo-csv', str(out), *ORIGIN])
     assert code == 0, err
     assert out.read_text().startswith('stamp_ns,time,x_m')
+
+
+def test_plan_map_kml_image_must_not_overwrite_the_heat_map(capsys, tmp_path):
+    # --kml m.kml writes its map image to m_accuracy.png: with --png m_accuracy.png the heat
+    # map was silently replaced by the overlay.
+    png, kml = tmp_path / 'm_accuracy.png', tmp_path / 'm.kml'
+    one_error(*run(capsys, ['plan', 'map', '--stations', '0,0,0;20,0,0', '--altitude', '500',
+                            '--sigma-deg', '0.1', '--png', str(png), '--kml', str(kml),
+                            *ORIGIN]),
+              'bearing_loc plan', f"--kml: its map image {str(png)!r} is also the file of --png")
+    assert not png.exists() and not kml.exists()

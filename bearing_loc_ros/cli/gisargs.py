@@ -95,6 +95,15 @@ def _check_paths(args):
             if _same_file(path, other_path):
                 raise InputError(f'{name}: {path!r} is also the file of {other}')
         given.append((name, path))
+    kml = getattr(args, 'kml', None)
+    if kml and getattr(args, 'verb', None) == 'plan':
+        # plan map --kml writes its map image next to the KML: not over the heat map.
+        overlay = overlay_png_path(kml)
+        for flag in ('png', 'csv'):
+            other = getattr(args, flag, None)
+            if isinstance(other, str) and _same_file(overlay, other):
+                raise InputError(f'--kml: its map image {overlay!r} is also the file of '
+                                 f'--{flag}')
     p = getattr(args, 'ellipse_probability', 0.5)
     if not (math.isfinite(p) and 0.0 < p < 1.0):
         raise InputError(f'--ellipse-probability: must be in (0, 1), got {p:g}')
