@@ -293,6 +293,18 @@ def test_evaluate_cli_bad_input_names_the_field(capsys, tmp_path):
     assert cap.err == '' and 'joint' in cap.out and 'RMSE/CRLB' in cap.out
 
 
+def test_an_unused_target_altitude_is_warned_about(capsys):
+    # A 3D scenario fixes the height from its elevations: the stated altitude was silently
+    # unused (locate says so in the same case).
+    base = ['evaluate', '--scenario', SEED003, '--trials', '5', '--quiet', '--estimator',
+            'ls', '--sigma-deg', '1', '--sweep', 'none', '--target-altitude', '1000']
+    assert cli_main(base) == 0
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'warning: --target-altitude not used' in err
+    assert cli_main(base + ['--dimension', 'horizontal']) == 0
+    assert 'warning' not in capsys.readouterr().err
+
+
 def test_azimuth_only_scenario_runs_the_joint_sweep_only(capsys):
     # Its azimuth sweep would repeat the joint rows and its elevation sweep vary an angle no
     # station measures: the default --sweep both runs the joint sweep, with a note.

@@ -220,6 +220,11 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
             if 'robust' in scoped or 'consistency' in scoped:
                 options[e] = scoped
     solve_options = _solve_options(tr, dimension, target_altitude, target_altitude_sigma)
+    if target_altitude is not None and dimension != 'horizontal' and tr.has_elevation.any():
+        why = ('--dimension 3d' if dimension == '3d' else
+               "the scenario's elevations observe the height (solve 3d)")
+        print(f'bearing_loc evaluate: warning: --target-altitude not used: {why}; '
+              '--dimension horizontal applies it', file=sys.stderr)
     t0 = time.perf_counter()
     rows = ev.evaluate(estimators, tr, sigmas, sweeps, seed, fixed_sigma_deg, options,
                        progress, outliers=outliers, solve_options=solve_options)
