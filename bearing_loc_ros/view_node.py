@@ -8,19 +8,22 @@ the ROS graph and forwards the CDR bytes unchanged to Foxglove/Lichtblick client
 when the node runs with ``use_sim_time``). With ``geodetic_origin`` set it also serves the
 GeoJSON picture on ``/map_geojson`` and each station's position as NavSatFix on
 ``/<station>/navsat``. The picture and ``/view/fix_stats`` use fixes and bearings in the
-world frame ``map`` only; the other messages are counted and logged (at most every 10 s
-per reason, with the count so far).
+world frame ``frame_id`` only; the other messages are counted and logged (at most every
+10 s per reason, with the count so far) and reported on ``/diagnostics`` (every
+``diagnostics_period`` s: forwarded messages and bytes, channels, dropped, dropped by
+reason, clock restarts; WARN while messages are being left out).
 
 Parameters (all read-only; declared from the schema in core.parameters): print them with
 ``python -m bearing_loc_ros.core.parameters --markdown view_node``.
 """
 
+from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
 from .foxglove_view import FoxgloveView, message_class, wanted_topic
-from .ros_common import declare_schema, main_for, ParameterError
+from .ros_common import declare_schema, diagnostic_status, main_for, OK, ParameterError, WARN
 
 
 def subscription_qos(publishers):
@@ -92,6 +95,9 @@ class ViewNode(Node):
         steady = Clock(clock_type=ClockType.STEADY_TIME)
         self.create_timer(period, self._discover, clock=steady)
         self.create_timer(max(geo_period, 0.1), self._flush_geojson, clock=steady)
+        self.diag_pub = self.create_publisher(DiagnosticArray, '/diagnostics', 10)
+        self._dropped_before = 0
+        self.create_timer(p['diagnostics_period'], self._publish_diagnostics, clock=steady)
         self.get_logger().info(
             f'Foxglove WebSocket server on ws://{host}:{self.view.port} (subprotocol '
             f'foxglove.sdk.v1){"; server time from /clock" if sim else ""}')
@@ -133,6 +139,24 @@ class ViewNode(Node):
 
     def _flush_geojson(self):
         self.view.publish_geojson(self.get_clock().now().nanoseconds)
+
+    def diagnostic_status(self):
+        """``<node>: view``: the view's counters (FoxgloveView.stats, rejections by reason
+        as ``rejected.<reason>``); WARN when messages were left out since the last one."""
+        st = self.view.stats()
+        values = {k: v for k, v in st.items() if k != 'rejected'}
+        values.update({f'rejected.{k}': v for k, v in sorted(st['rejected'].items())})
+        new = st['dropped'] - self._dropped_before
+        self._dropped_before = st['dropped']
+        level, message = (WARN, f'{new} message(s) left out of the map since the last report') \
+            if new else (OK, 'serving')
+        return diagnostic_status(f'{self.get_name()}: view', level, message, values)
+
+    def _publish_diagnostics(self):
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [self.diagnostic_status()]
+        self.diag_pub.publish(arr)
 
     def destroy_node(self):
         """Stop the WebSocket server, then destroy the node."""

@@ -441,6 +441,29 @@ def test_view_draws_only_fixes_and_bearings_in_its_world_frame(view):
     assert fc['features'][-1]['properties']['position_enu_m'] == [1000.0, 2000.0, 100.0]
 
 
+def test_view_node_reports_its_counters_on_diagnostics():
+    # The view's rejections were visible only in throttled warnings.
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from rclpy.parameter import Parameter
+    from bearing_loc_ros.view_node import ViewNode
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = ViewNode(context=ctx, parameter_overrides=[
+        Parameter('port', value=0), Parameter('geodetic_origin', value=list(ORIGIN))])
+    try:
+        assert node.diagnostic_status().level == DiagnosticStatus.OK
+        node.view.forward('/fix', FIX_TYPE, fix_cdr(1), 1)
+        node.view.forward('/fix', FIX_TYPE, fix_cdr(2, frame='base_link'), 2)
+        st = node.diagnostic_status()
+        values = {kv.key: kv.value for kv in st.values}
+        assert st.level == DiagnosticStatus.WARN and st.name == 'view: view'
+        assert values['dropped'] == '1' and values['rejected.wrong_frame'] == '1'
+        assert node.diagnostic_status().level == DiagnosticStatus.OK     # nothing new
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
 def test_view_frame_id_selects_the_world_frame_drawn():
     # A fusion node running in another world frame (its frame_id) is drawn when the view is
     # told that frame (view_node frame_id, bearing_loc view --frame-id).

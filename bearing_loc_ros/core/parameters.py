@@ -377,6 +377,8 @@ def _view_schema():
           1e-6, 1.0 - 1e-9),
         P('max_backlog', INTEGER, VIEW_DEFAULT_BACKLOG, 'Messages queued per WebSocket client '
           'before the oldest is dropped', '', 1, 1_000_000),
+        P('diagnostics_period', DOUBLE, 1.0, 'Period of the /diagnostics status (wall clock)',
+          's', 0.1, 3600.0),
     )
 
 
