@@ -256,6 +256,14 @@ def test_seed_validation():
             simulate(sc, seed=bad)
     with pytest.raises(ValueError, match='duration'):
         simulate(sc, duration=-1.0)
+    # Too many bearings: the message names the station whose rate dominates.
+    fast = parse_scenario({'duration': 10.0, 'stations': [
+        {'id': 'slow', 'position': [0.0, 0.0, 0.0], 'sigma_az': 0.01, 'rate': 1.0},
+        {'id': 'fast', 'position': [1e3, 0.0, 0.0], 'sigma_az': 0.01, 'rate': 1e6}],
+        'targets': [{'position': [0.0, 1e3, 100.0]}]}, 'x.yaml')
+    with pytest.raises(ValueError, match=r'duration: 10 s gives .* \(the largest rate: '
+                                         r'station fast, 1e\+06 Hz\)'):
+        simulate(fast)
 
 
 # --- trajectories, moving stations, geodetic, namespaces --------------------------------------

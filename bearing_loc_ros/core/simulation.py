@@ -323,9 +323,11 @@ def check_duration(scenario, duration=None):
                          f'{n_truth:.3g} truth samples, more than {MAX_TRUTH_SAMPLES:g}')
     n_obs = duration * sum(st.rate for st in scenario.stations) * len(scenario.targets)
     if n_obs > MAX_SIMULATED_BEARINGS:
+        top = max(scenario.stations, key=lambda st: st.rate)
         raise ValueError(f'duration: {duration:g} s gives duration x rates x targets = '
                          f'{n_obs:.3g} bearings, more than the {MAX_SIMULATED_BEARINGS:g} one '
-                         f'run holds in memory')
+                         f'run holds in memory (the largest rate: station {top.id}, '
+                         f'{top.rate:g} Hz)')
     return duration
 
 
