@@ -40,6 +40,7 @@ import numpy as np
 from pymap3d import vincenty
 
 from . import geodesy
+from .bearings import MAX_ABS_POSITION
 
 #: Default probability of the drawn error ellipses.
 DEFAULT_PROBABILITY = 0.95
@@ -54,8 +55,8 @@ DEFAULT_RAY_LENGTH = 10_000.0
 MAX_ORIGIN_LAT_DEG = 85.0
 #: Largest |altitude| of a geodetic origin, m.
 MAX_ORIGIN_ALT_M = 1e6
-#: Largest |ENU coordinate| of a live fix or station, m (as the ROS message contract).
-MAX_ABS_ENU_M = 1e12
+#: Largest |ENU coordinate| of a live fix or station, m: the bearing contract's bound.
+MAX_ABS_ENU_M = MAX_ABS_POSITION
 #: A longitude step within this of 180° between two line vertices is a pass over a pole.
 POLE_STEP_TOL_DEG = 1.0
 #: Closest approach of a drawn ellipse to a pole, degrees of latitude.
