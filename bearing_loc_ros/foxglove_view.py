@@ -43,6 +43,7 @@ import threading
 import time
 
 from .core import gis
+from .log_throttle import LOG_THROTTLE_S, Throttle  # noqa: F401 (LOG_THROTTLE_S re-exported)
 
 #: Topic of the GeoJSON picture.
 GEOJSON_TOPIC = '/map_geojson'
@@ -57,38 +58,12 @@ DEFAULT_BACKLOG = 512
 STATS_TOPIC = '/view/fix_stats'
 STATS_SCHEMA_NAME = 'bearing_loc_ros.FixStats'
 RATE_WINDOW_NS = gis.RATE_WINDOW_NS
-#: Seconds between two log lines of one kind (rejections per reason, a client's errors).
-LOG_THROTTLE_S = 10.0
 #: foxglove-sdk's logger of per-client send/receive errors (pyo3-log name of the Rust module).
 SDK_CLIENT_LOGGER = 'foxglove.websocket.connected_client.poller'
 STATS_SCHEMA = {'type': 'object', 'properties': {
     k: {'type': 'number'} for k in ('stamp_s', 'sigma_east_m', 'sigma_north_m', 'sigma_up_m',
                                     'sigma_horizontal_m', 'sigma_3d_m', 'fix_rate_hz')}}
 STATS_SCHEMA['properties']['stamp_ns'] = {'type': 'integer'}
-
-
-class Throttle:
-    """At most one log line per key and ``period`` s (monotonic clock); the next line after
-    a quiet period says how many were left out. Bounded: keys idle for a period are pruned
-    once more than ``max_keys`` are held."""
-
-    def __init__(self, period=LOG_THROTTLE_S, max_keys=1024, clock=time.monotonic):
-        self.period, self.max_keys, self.clock = float(period), int(max_keys), clock
-        self._last = {}           # key -> (time of the last line, lines left out since)
-        self._lock = threading.Lock()
-
-    def allow(self, key):
-        """None when a line of ``key`` is to be left out, else the number left out before."""
-        now = self.clock()
-        with self._lock:
-            last = self._last.get(key)
-            if last is not None and now - last[0] < self.period:
-                self._last[key] = (last[0], last[1] + 1)
-                return None
-            if len(self._last) >= self.max_keys:
-                self._last = {k: v for k, v in self._last.items() if now - v[0] < self.period}
-            self._last[key] = (now, 0)
-            return 0 if last is None else last[1]
 
 
 class _ClientErrorFilter(logging.Filter):

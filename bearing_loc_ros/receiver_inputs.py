@@ -45,6 +45,7 @@ import urllib.request
 from .core import kraken
 from .core.kraken import KrakenError
 from .core.receiver import ReceiverGeometry
+from .log_throttle import Throttle
 
 MODES = ('kraken_xml_http', 'kraken_csv_http', 'kraken_json_post', 'kraken_csv_file')
 STAMPS = ('receiver', 'receive')
@@ -97,16 +98,12 @@ class _Source:
         self.state = 'starting'
         self.last_error = ''
         self.log = logging.getLogger(__name__).warning
-        self._logged = {}
+        self._throttle = Throttle(LOG_THROTTLE_S)
 
     def _warn(self, kind, text):
         """Log ``text`` unless a ``kind`` warning was logged less than LOG_THROTTLE_S ago."""
-        now = time.monotonic()
-        with self._lock:
-            last = self._logged.get(kind)
-            if last is not None and now - last < LOG_THROTTLE_S:
-                return
-            self._logged[kind] = now
+        if self._throttle.allow(kind) is None:
+            return
         try:
             self.log(text)
         except Exception:   # noqa: BLE001 - a broken logger must not stop an input
