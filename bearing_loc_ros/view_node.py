@@ -22,6 +22,7 @@ from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 
+from .core.conventions import check_frame_id
 from .foxglove_view import FoxgloveView, message_class, wanted_topic
 from .ros_common import declare_schema, diagnostic_status, main_for, OK, ParameterError, WARN
 
@@ -68,10 +69,10 @@ class ViewNode(Node):
         period, origin = p['discovery_period'], p['geodetic_origin']
         geo_period, prob = p['geojson_period'], p['ellipse_probability']
         backlog = p['max_backlog']
-        frame = p['frame_id']
-        if not frame or any(c.isspace() for c in frame):
-            raise ParameterError('frame_id', f'must be a non-empty name without spaces, got '
-                                             f'{frame!r}')
+        try:
+            frame = check_frame_id(p['frame_id'])
+        except ValueError as exc:
+            raise ParameterError('frame_id', str(exc).partition(': ')[2]) from None
         if origin:
             from .core.gis import check_origin
             try:

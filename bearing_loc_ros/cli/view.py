@@ -40,9 +40,11 @@ def add_arguments(parser):
 
 
 def _check(args):
-    if not args.frame_id or any(c.isspace() for c in args.frame_id):
-        raise InputError(f'--frame-id: must be a non-empty name without spaces, got '
-                         f'{args.frame_id!r}')
+    from ..core.conventions import check_frame_id
+    try:
+        check_frame_id(args.frame_id, '--frame-id')
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     if not 0 <= args.port <= 65535:
         raise InputError(f'--port: must be 0..65535, got {args.port}')
     if not args.rate > 0 or args.rate != args.rate or args.rate == float('inf'):

@@ -216,3 +216,11 @@ def bearing_covariance6(position_covariance, sigma_az, sigma_el=None):
     cov[IDX_EL_VAR] = NO_ELEVATION_VARIANCE if sigma_el is None else sigma_el ** 2
     cov[IDX_AZ_VAR] = sigma_az ** 2
     return cov
+
+
+def check_frame_id(frame_id, field='frame_id'):
+    """Return ``frame_id`` when it is a usable world frame name: a non-empty string without
+    whitespace (ROS frame names hold none); else ValueError ``<field>: ...``."""
+    if not isinstance(frame_id, str) or not frame_id or any(c.isspace() for c in frame_id):
+        raise ValueError(f'{field}: must be a non-empty name without spaces, got {frame_id!r}')
+    return frame_id

@@ -13,6 +13,7 @@ import re
 from .. import parameters as _parameters
 from .. import registry as _registry
 from ..alignment import AlignmentConfig, seconds_to_ns
+from ..conventions import check_frame_id
 from ..tma import SPEED_REFERENCES
 
 NS_PER_S = 1_000_000_000
@@ -159,10 +160,7 @@ class FusionConfig:
 
     def validate(self):
         """Raise ``ValueError`` naming the first invalid field; return self."""
-        if not isinstance(self.frame_id, str) or not self.frame_id or \
-                any(c.isspace() for c in self.frame_id):
-            raise ValueError(f'frame_id: must be a non-empty name without spaces, got '
-                             f'{self.frame_id!r}')
+        check_frame_id(self.frame_id)
         if self.trigger not in TRIGGERS:
             raise ValueError(f'trigger: {self.trigger!r} is not one of {list(TRIGGERS)}')
         if not (math.isfinite(float(self.rate)) and 0.0 < float(self.rate) <= 1000.0):
