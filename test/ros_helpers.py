@@ -4,6 +4,8 @@
   ROS_DOMAIN_ID (set in conftest) and returns a :class:`NodeProcess`.
 * :class:`NodeProcess` stops its child with SIGINT, waits with a timeout, escalates to
   SIGTERM then SIGKILL, and always reaps it. Use it as a context manager.
+* :func:`free_udp_port` gives a loopback UDP port outside the kernel's ephemeral range, so
+  no socket another process opens in the meantime (DDS, a probe) can take it first.
 * :func:`spin_until` spins an executor until a predicate holds or a timeout passes.
 * :class:`Probe` is a node in a fresh rclpy context with its own executor, torn down by
   :meth:`Probe.close`.
@@ -12,6 +14,8 @@
   :func:`static3_bags` simulates the static3 scenario into a bag of every storage.
 """
 import os
+import random
+import socket
 import sys
 import time
 
@@ -55,6 +59,31 @@ def start_node(module, ros_args=(), args=(), env=None):
     if ros_args:
         cmd += ['--ros-args', *ros_args]
     return NodeProcess(cmd, env=env or node_env())
+
+
+def free_udp_port():
+    """A free loopback UDP port the kernel never hands out on its own.
+
+    A port found by binding port 0 lies in the ephemeral range: between the probe and the
+    node's own bind, any socket opened meanwhile (a DDS participant, another test) may get
+    it. Ports above ``ip_local_port_range`` are only ever taken by explicit binds; DDS's
+    well-known ports (7400 + 250 × domain + …) stay below 61,000 for the domain IDs the
+    tests use (≤ 209).
+    """
+    try:
+        with open('/proc/sys/net/ipv4/ip_local_port_range') as f:
+            high = int(f.read().split()[1])
+    except (OSError, ValueError, IndexError):
+        high = 60999
+    first = min(max(high + 1, 61000), 65000)
+    for port in random.sample(range(first, 65400), 200):
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            try:
+                s.bind(('127.0.0.1', port))
+            except OSError:
+                continue
+            return port
+    raise RuntimeError('no free UDP port above the ephemeral range')
 
 
 def spin_until(executor, predicate, timeout):

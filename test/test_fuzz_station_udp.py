@@ -18,7 +18,7 @@ import pytest
 import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
-from ros_helpers import spin_until
+from ros_helpers import free_udp_port, spin_until
 
 from bearing_loc_ros.station_node import StationNode
 
@@ -54,9 +54,7 @@ def station():
     context = rclpy.Context()
     rclpy.init(context=context)
     executor = SingleThreadedExecutor(context=context)
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        port = s.getsockname()[1]
+    port = free_udp_port()
     node = StationNode(context=context, namespace='/fuzz_udp', parameter_overrides=[
         Parameter('position', value=[0.0, 0.0, 0.0]), Parameter('udp_port', value=port),
         Parameter('diagnostics_period_s', value=3600.0)])

@@ -21,7 +21,7 @@ from nav_msgs.msg import Odometry
 import numpy as np
 import pytest
 from rclpy.parameter import Parameter
-from ros_helpers import node_env, Probe, REPO, spin_until, start_node
+from ros_helpers import free_udp_port, node_env, Probe, REPO, spin_until, start_node
 from scipy.spatial.transform import Rotation
 
 from bearing_loc_ros.core.conventions import azimuth_elevation, wrap_angle
@@ -34,12 +34,6 @@ TOL = 1e-9  # rad; float64 angles through a few trig calls and a quaternion
 T0 = 1_700_000_000_000_000_000  # an observation time, ns
 STATION = [100.0, -50.0, 10.0]
 TARGET = np.array([900.0, 400.0, 300.0])
-
-
-def _free_udp_port():
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
-        s.bind(('127.0.0.1', 0))
-        return s.getsockname()[1]
 
 
 def _send(port, obj):
@@ -84,7 +78,7 @@ class Harness:
         for name, cfg in self.CONFIGS.items():
             cfg = dict(cfg)
             if cfg.get('udp_port') == 'free':
-                cfg['udp_port'] = self.ports[name] = _free_udp_port()
+                cfg['udp_port'] = self.ports[name] = free_udp_port()
             overrides = [Parameter(k, value=v) for k, v in cfg.items()]
             node = StationNode(context=self.context, namespace=f'/st_{name}',
                                parameter_overrides=overrides)
@@ -331,7 +325,7 @@ def test_bad_parameter_files_exit_1_naming_the_parameter(tmp_path):
 
 def test_separate_process_over_dds():
     """The node in its own process (example config/station.yaml, UDP on) talking over DDS."""
-    port = _free_udp_port()
+    port = free_udp_port()
     dds = Probe('dds_probe')
     probe, ex = dds.node, dds.executor
     got = []
