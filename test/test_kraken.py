@@ -70,6 +70,23 @@ def test_xml_hostile_inputs():
     assert reason_of(kraken.parse_xml, text_freq) == ('bad_number', 'FREQUENCY')
 
 
+@pytest.mark.parametrize('garbled, field', [
+    ('433_92', 'FREQUENCY'),                        # float() would read 43392
+    ('\uff14\uff13\uff13.92', 'FREQUENCY'),    # full-width digits: float() reads 433.92
+    ('1_700_000_000_123', 'TIME'),                  # Decimal() would read the same stamp
+    ('0x1F', 'CONF')])
+def test_text_numbers_are_ascii_decimals(garbled, field):
+    """A field written with digit-group underscores or non-ASCII digits is garbled, not
+    another number: Python's float() and Decimal() would accept it."""
+    original = {'FREQUENCY': b'433.92', 'TIME': b'1700000000123', 'CONF': b'<CONF>87'}[field]
+    value = garbled.encode() if field != 'CONF' else b'<CONF>' + garbled.encode()
+    data = read('doa_basic.xml').replace(original, value)
+    assert reason_of(kraken.parse_xml, data) == ('bad_number', field)
+    line = read('mydata.csv', 'r').splitlines()[0].split(',')
+    line[4] = garbled                               # the frequency column
+    assert reason_of(kraken.parse_csv_line, ','.join(line)) == ('bad_number', 'frequency')
+
+
 def test_csv_recording_two_channels_with_spectrum():
     lines = read('mydata.csv', 'r').splitlines()
     assert len(lines) == 6

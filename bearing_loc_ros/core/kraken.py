@@ -44,6 +44,7 @@ from dataclasses import dataclass
 import decimal
 import json
 import math
+import re
 from xml.etree.ElementTree import ParseError
 
 from defusedxml import DefusedXmlException
@@ -135,6 +136,23 @@ class KrakenRecord:
 
 # ------------------------------------------------------------------------------ fields
 
+#: A number written in text (XML, CSV): ASCII decimal digits with an optional sign, point and
+#: exponent, or nan/inf (refused as not finite). Python's float() and Decimal() also take
+#: digit-group underscores ("1_75" = 175) and non-ASCII digits ("１２"): a receiver never
+#: writes those, so such a field is garbled and refused, not read as another number.
+_NUMBER_TEXT = re.compile(r'[+-]?(?:(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|nan|inf(?:inity)?)',
+                          re.ASCII | re.IGNORECASE)
+
+
+def _number_text(text, name):
+    """``text`` stripped when it is a number in :data:`_NUMBER_TEXT`'s grammar, else
+    KrakenError ``bad_number``."""
+    text = text.strip()
+    if not _NUMBER_TEXT.fullmatch(text):
+        raise KrakenError('bad_number', f'{name}: {text[:40]!r} is not a number', name)
+    return text
+
+
 def _float(value, name, lo=-math.inf, hi=math.inf):
     """A finite float within [lo, hi] from text or a JSON number, else KrakenError."""
     if isinstance(value, bool) or value is None:
@@ -142,12 +160,7 @@ def _float(value, name, lo=-math.inf, hi=math.inf):
     if isinstance(value, BadNumber):
         raise KrakenError('bad_number', f'{name}: {value.problem}', name)
     if isinstance(value, str):
-        text = value.strip()
-        try:
-            x = float(text)
-        except ValueError:
-            raise KrakenError('bad_number', f'{name}: {text[:40]!r} is not a number',
-                              name) from None
+        x = float(_number_text(value, name))
     elif isinstance(value, (int, float, decimal.Decimal)):
         try:
             x = float(value)
@@ -169,7 +182,7 @@ def _stamp_ms(value, name, allow_zero=False):
     if isinstance(value, BadNumber):
         raise KrakenError('bad_number', f'{name}: {value.problem}', name)
     try:
-        d = decimal.Decimal(value.strip() if isinstance(value, str) else value)
+        d = decimal.Decimal(_number_text(value, name) if isinstance(value, str) else value)
     except (decimal.InvalidOperation, ValueError, TypeError):
         raise KrakenError('bad_number', f'{name}: {str(value)[:40]!r} is not a number',
                           name) from None
