@@ -258,6 +258,9 @@ def table_error(tmp_path, capsys, rows, head=None, name='t.csv'):
     (7, float('nan'), 'sigma_elevation: missing (required when elevation is given)'),
     (1, 'east', 'x: must be a number'),
     (0, '1.5', 'problem: must be an integer id'),
+    (0, '1_5', 'problem: must be an integer id'),           # int() would read 15
+    (3, '1_0', 'z: must be a number'),                      # float() would read 10
+    (3, '\uff11\uff10', 'z: must be a number'),                 # full-width digits
     (2, -2e12, 'y: |coordinate| must be <= 1e+12 m'),
     (4, 2e4, 'azimuth: |azimuth| must be <= 10000 rad'),
 ])

@@ -387,14 +387,28 @@ def _csv_rows(reader, width):
     return rows, lines
 
 
+def _garbled(col):
+    """Index of the first field with digit-group underscores or non-ASCII characters, or
+    None. numpy and float() read '1_5' as 15 and full-width digits as digits: in a data file
+    such a field is garbled, not that number."""
+    text = ''.join(col)
+    if text.isascii() and '_' not in text:
+        return None
+    return next(k for k, s in enumerate(col) if not s.isascii() or '_' in s)
+
+
 def _csv_floats(col, name, lines, ids):
     """Text column -> float array; empty = NaN (a missing value, judged by the rules)."""
-    try:
-        return np.array([s or 'nan' for s in col], dtype=float)
-    except ValueError:
-        pass
-    for line, problem, s in zip(lines, ids.tolist(), col):
+    bad = _garbled(col)
+    if bad is None:
         try:
+            return np.array([s or 'nan' for s in col], dtype=float)
+        except ValueError:
+            pass
+    for k, (line, problem, s) in enumerate(zip(lines, ids.tolist(), col)):
+        try:
+            if k == bad:
+                raise ValueError(s)
             float(s or 'nan')
         except ValueError:
             raise InputError(f'line {line} (problem {problem}): {name}: must be a number, got '
@@ -403,12 +417,16 @@ def _csv_floats(col, name, lines, ids):
 
 
 def _csv_integers(col, lines):
-    try:
-        return np.array(col, dtype=np.int64)
-    except (ValueError, OverflowError):
-        pass
-    for line, s in zip(lines, col):
+    bad = _garbled(col)
+    if bad is None:
         try:
+            return np.array(col, dtype=np.int64)
+        except (ValueError, OverflowError):
+            pass
+    for k, (line, s) in enumerate(zip(lines, col)):
+        try:
+            if k == bad:
+                raise ValueError(s)
             np.int64(int(s))
         except (ValueError, OverflowError):
             raise InputError(f'line {line}: problem: must be an integer id, got {s[:40]!r}') \
