@@ -514,10 +514,10 @@ def test_bag_simulate_refuses_an_unbounded_scenario(tmp_path, capsys):
 # --- overrides of a valid scenario (Python API and `bag simulate --duration`) -----------------
 
 def _slow_scenario(**top):
-    """One station at 1e-6 Hz (no bearing in 1e5 s), no truth: only the duration matters."""
+    """One station at 1e-6 Hz (one bearing, at t = 0), no truth: only the duration matters."""
     return parse_scenario(dict({'duration': 10.0, 'truth_rate': 0.0,
                                 'stations': [{'id': 'a', 'position': [0.0, 0.0, 0.0],
-                                              'rate': 1e-6, 'phase': 1e5}],
+                                              'rate': 1e-6}],
                                 'targets': [{'position': [100.0, 0.0, 0.0]}]}, **top), 'x.yaml')
 
 
@@ -543,6 +543,17 @@ def test_duration_override_has_the_scenario_bounds():
         simulate(fast, duration=2.0 * MAX_SIMULATED_BEARINGS / 1e3)
 
 
+def test_a_station_whose_phase_is_past_the_end_is_an_error():
+    """phase >= duration: the station would make no bearing (it silently made none)."""
+    d = _base()
+    d['stations'][1]['phase'] = d['duration']
+    sc = parse_scenario(d, 'x.yaml')
+    with pytest.raises(ValueError, match=r"^duration: 2 s ends before the first observation "
+                                         r"of station \S+ \(phase 2 s\)"):
+        simulate(sc)
+    assert simulate(sc, duration=2.5).bearings                  # a longer run observes it
+
+
 def test_bag_simulate_duration_override_is_bounded(tmp_path, capsys):
     """`bag simulate --duration` beyond MAX_TIME (a MemoryError building /clock at epoch 2e9)
     or giving more /clock messages than a bag holds: exit 2, one line naming duration."""
@@ -551,7 +562,7 @@ def test_bag_simulate_duration_override_is_bounded(tmp_path, capsys):
     path = tmp_path / 'slow.yaml'
     path.write_text(yaml.safe_dump({'duration': 10.0, 'epoch': 2e9, 'truth_rate': 0.0,
                                     'stations': [{'id': 'a', 'position': [0.0, 0.0, 0.0],
-                                                  'rate': 1e-6, 'phase': 1e5}],
+                                                  'rate': 1e-6}],
                                     'targets': [{'position': [100.0, 0.0, 0.0]}]}))
     ticks = 2.0 * MAX_CLOCK_TICKS / 100.0         # seconds of /clock at 100 Hz
     for duration in ('5e8', '1.0000001e7', f'{ticks:g}'):

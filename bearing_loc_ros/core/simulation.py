@@ -303,7 +303,9 @@ def check_duration(scenario, duration=None):
     override (the simulator node's ``duration``, ``bag simulate --duration``, the Python API)
     cannot do what the loader refuses: 0 < duration <= MAX_TIME (1e7 s; every stamp stays
     within int32 ROS seconds), truth_rate · duration · targets <= MAX_TRUTH_SAMPLES (1e6) and
-    duration · Σ rate · targets <= MAX_SIMULATED_BEARINGS (1e6 scheduled observations).
+    duration · Σ rate · targets <= MAX_SIMULATED_BEARINGS (1e6 scheduled observations), and
+    every station's first observation (its ``phase``) before the end: a station that would
+    make no bearing is an error, not a silent gap in the network.
 
     Raises ValueError ``duration: <problem>`` (the CLI prints it as one line, exit 2).
     """
@@ -328,6 +330,11 @@ def check_duration(scenario, duration=None):
                          f'{n_obs:.3g} bearings, more than the {MAX_SIMULATED_BEARINGS:g} one '
                          f'run holds in memory (the largest rate: station {top.id}, '
                          f'{top.rate:g} Hz)')
+    late = [st for st in scenario.stations if st.phase >= duration]
+    if late:
+        raise ValueError(f'duration: {duration:g} s ends before the first observation of '
+                         f'station {late[0].id} (phase {late[0].phase:g} s): it would make no '
+                         f'bearing')
     return duration
 
 
