@@ -15,7 +15,10 @@ and a state for ``/diagnostics`` and recovers by itself:
   bound to ``127.0.0.1`` by default, accepting the receiver's JSON POST on any path; 200 for
   a parsed reading, 400 with the rejection reason (``truncated_body`` when the client sent
   less than its Content-Length), 411 without a Content-Length, 413 over the size limit, 405
-  for other methods. Clients that disconnect are counted, not reported with a traceback.
+  for other methods. Clients that disconnect are counted, not reported with a traceback. At
+  most :data:`MAX_POST_CONNECTIONS` connections are served at once (more are closed at
+  once, ``connections_refused``) and each at most :data:`POST_DEADLINE_S` (then it is shut
+  down, ``slow_clients``): clients that trickle bytes cannot hold threads without end.
 * :class:`CsvFileTail`: a recorded "Kraken App" CSV file read from the start (or its end)
   and followed while it grows (tail); a truncated or replaced file is read again from the
   start, a missing one is waited for. Lines end with LF, CR LF or a lone CR; a line over
@@ -33,6 +36,7 @@ import errno
 import http.client
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 import logging
+import math
 import os
 import socket
 import sys
@@ -53,6 +57,13 @@ QUEUE_SIZE = 1000
 MAX_POST_BYTES = 64 * 1024
 #: Default TCP port of the JSON POST listener (the station parameter kraken.post_port).
 POST_PORT = 8082
+#: Connections the JSON POST listener serves at once (a receiver posts one reading at a
+#: time); a further one is closed unread and counted ``connections_refused``.
+MAX_POST_CONNECTIONS = 16
+#: Longest a POST connection may last, s (a reading takes milliseconds); a client still
+#: sending then, a byte at a time within the per-read timeout, is shut down
+#: (``slow_clients``).
+POST_DEADLINE_S = 10.0
 #: Lines read from a file per poll (the node polls every few tens of ms).
 FILE_LINES_PER_POLL = 500
 #: Longest line of a recorded CSV file, bytes (the document limit of the parsers; a real
@@ -323,6 +334,52 @@ class _Server(ThreadingHTTPServer):
     daemon_threads = True
     allow_reuse_address = True
 
+    def server_activate(self):
+        super().server_activate()
+        self._open = {}                 # connection socket -> steady time it was accepted
+        self._open_lock = threading.Lock()
+
+    def process_request(self, request, client_address):
+        """Serve the connection in a thread, unless :data:`MAX_POST_CONNECTIONS` are open."""
+        with self._open_lock:
+            full = len(self._open) >= self.source.max_connections
+            if not full:
+                self._open[request] = time.monotonic()
+        if full:
+            src = self.source
+            src._count('connections_refused')
+            src._warn('connections_refused', f'JSON POST listener: {len(self._open)} '
+                      f'connections open, one from {client_address[0]} closed '
+                      f'(counted as connections_refused)')
+            self.shutdown_request(request)
+            return
+        super().process_request(request, client_address)
+
+    def process_request_thread(self, request, client_address):
+        try:
+            super().process_request_thread(request, client_address)
+        finally:
+            with self._open_lock:
+                self._open.pop(request, None)
+
+    def service_actions(self):
+        """Every poll of serve_forever: shut down connections open longer than the
+        deadline (their thread's blocked read then returns and the thread ends)."""
+        limit = time.monotonic() - self.source.deadline_s
+        with self._open_lock:
+            late = [r for r, t in self._open.items() if t < limit]
+            for r in late:
+                self._open[r] = math.inf        # shut down once
+        for r in late:
+            self.source._count('slow_clients')
+            self.source._warn('slow_clients', f'JSON POST listener: a connection open longer '
+                              f'than {self.source.deadline_s:g} s shut down (counted as '
+                              f'slow_clients)')
+            try:
+                r.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+
     def handle_error(self, request, client_address):
         """A request failed: count it and log one throttled line (no traceback). A client
         that disconnected or went silent is ``client_disconnects``, anything else
@@ -349,10 +406,13 @@ class JsonPostServer(_Source):
     """
 
     def __init__(self, address='127.0.0.1', port=POST_PORT, max_body=MAX_POST_BYTES,
-                 queue_size=QUEUE_SIZE):
+                 queue_size=QUEUE_SIZE, max_connections=MAX_POST_CONNECTIONS,
+                 deadline_s=POST_DEADLINE_S):
         super().__init__(queue_size)
         self.address = address
         self.max_body = int(max_body)
+        self.max_connections = int(max_connections)
+        self.deadline_s = float(deadline_s)
         family = socket.getaddrinfo(address, int(port), type=socket.SOCK_STREAM)[0][0]
         server = _Server6 if family == socket.AF_INET6 else _Server
         self._httpd = server((address, int(port)), _PostHandler)   # OSError if not bindable

@@ -247,6 +247,40 @@ def test_a_client_silent_within_its_headers_is_counted(server, monkeypatch):
     assert len(server.logged) == 1 and 'timed out' in server.logged[0]
 
 
+def test_post_connections_are_capped_and_a_trickling_client_is_cut(monkeypatch):
+    """Each connection held a thread for as long as its client sent a byte within the read
+    timeout: idle or trickling clients could open threads without end."""
+    srv = ri.JsonPostServer('127.0.0.1', 0, max_connections=2, deadline_s=0.6).start()
+    srv.logged = []
+    srv.log = srv.logged.append
+    try:
+        idle = [socket.create_connection(('127.0.0.1', srv.port), timeout=5.0)
+                for _ in range(2)]
+        assert wait_for(lambda: len(srv._httpd._open) == 2)
+        with socket.create_connection(('127.0.0.1', srv.port), timeout=5.0) as third:
+            assert third.recv(10) == b''                        # closed unread
+        assert srv.snapshot()[2]['connections_refused'] == 1
+        for c in idle:
+            c.close()
+        assert wait_for(lambda: not srv._httpd._open)
+        with socket.create_connection(('127.0.0.1', srv.port), timeout=5.0) as slow:
+            start = time.monotonic()
+            with pytest.raises(OSError):
+                for byte in b'POST / HTTP/1.1\r\nX-Padding: ' + b'x' * 100:
+                    slow.sendall(bytes([byte]))                 # within the read timeout
+                    time.sleep(0.05)
+                    if slow.recv(1, socket.MSG_DONTWAIT | socket.MSG_PEEK) == b'':
+                        raise ConnectionResetError('closed by the server')
+            assert time.monotonic() - start < 5.0               # cut near the deadline
+        assert wait_for(lambda: srv.snapshot()[2].get('slow_clients') == 1), srv.snapshot()
+        assert raw_post(srv.port, b'Content-Length: %d\r\n' % len(GOOD_JSON), GOOD_JSON) == \
+            b'HTTP/1.0 200 OK'                                  # still serving
+        assert any('connections_refused' in line for line in srv.logged)
+        assert any('slow_clients' in line for line in srv.logged)
+    finally:
+        srv.stop()
+
+
 def test_unbindable_post_address_names_post_address(monkeypatch):
     with pytest.raises(ValueError) as e:            # TEST-NET-1: never this machine's
         ri.make_source('kraken_json_post', post_address='192.0.2.1', post_port=0)
@@ -440,6 +474,7 @@ def test_max_age_with_receive_stamps_is_refused():
 
 SOURCE_KEYS = ('requests', 'timeout', 'unreachable', 'http_status', 'http_error',
                'internal_error', 'slow', 'recoveries', 'client_disconnects', 'request_errors',
+               'connections_refused', 'slow_clients',
                'lines', 'missing', 'reopened', 'truncated', 'replay_jumps', 'queue_overflow')
 REASONS = ('future_time', 'stale_time', 'truncated_body', 'no_clock', 'too_large',
            'malformed_csv', 'bad_number')
