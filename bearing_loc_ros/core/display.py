@@ -7,6 +7,7 @@ quaternions (x, y, z, w).
 """
 
 from dataclasses import dataclass
+import time
 
 import numpy as np
 
@@ -24,6 +25,12 @@ AUTO_SIZE_FACTOR = 3.0
 AUTO_MIN_SIZE = 100.0
 AUTO_CELLS = 100
 MAX_MAP_CELLS = 2000
+#: A recomputation for moved stations of the same set waits at least this long after the
+#: last map, s, and at least MOVE_COST_FACTOR × that map's compute time: the node computes
+#: the map on its executor, so moving stations (or a station whose position jumps) may take
+#: at most about 1 / MOVE_COST_FACTOR of its time (a 2000 × 2000 map takes seconds).
+MIN_MOVE_INTERVAL_S = 1.0
+MOVE_COST_FACTOR = 20.0
 
 
 def log_color_limits(error, vmin=None, vmax=None):
@@ -230,7 +237,10 @@ class AccuracyMap:
     :meth:`update` takes the pipeline's geometry (station -> (position (3,) m, σ_θ rad, σ_ψ
     rad or NaN), FusionCore.geometry()) and returns (GridSpec, int8 cell values) when the set
     of live stations changed or, with two or more, one moved more than ``move_threshold``,
-    else None. Cell value
+    else None. Given the steady time ``now_s`` of the call, a recomputation for moved stations
+    waits until max(:data:`MIN_MOVE_INTERVAL_S`, :data:`MOVE_COST_FACTOR` × the last map's
+    compute time) after the last map (a later call computes it); a new station set is
+    computed at once. Cell value
     = error_to_occupancy(ε) of ε = sqrt(trace P) per cell (core.planning.occupancy_error_map,
     the CRLB or the CTLS first-order error of Wang, Zhang & Wu eqs. (30)-(32)). No live
     station: every cell −1 (unknown) on the last grid. ValueError from the planning core
@@ -243,14 +253,15 @@ class AccuracyMap:
         self.last = None          # OccupancyErrorMap of the last map (None: all unknown)
         self.stations = []        # live station names of the last map
         self._key = None          # (station names, positions) of the last map
+        self._next_move_s = -np.inf  # steady time from which moved stations recompute it
 
-    def _changed(self, names, positions):
+    def _changed(self, names, positions, now_s):
         if self._key is None:
             return True
         old_names, old_pos = self._key
         if names != old_names:
             return True
-        if len(names) < 2:
+        if len(names) < 2 or now_s < self._next_move_s:
             # No station, or one: every cell is unobservable whatever its position, so a
             # single moving station (a DF car) does not recompute the map as it drives.
             return False
@@ -259,11 +270,15 @@ class AccuracyMap:
             thr = self.grid.resolution
         return bool(np.max(np.linalg.norm(positions - old_pos, axis=1)) > thr)
 
-    def update(self, geometry):
-        """(grid, data) of a new map, or None when nothing changed (class docstring)."""
+    def update(self, geometry, now_s=None):
+        """(grid, data) of a new map, or None when nothing changed or a recomputation for
+        moved stations is not due (class docstring). ``now_s``: steady time, s (None: the
+        process's monotonic clock)."""
+        start = time.monotonic()
+        now_s = start if now_s is None else float(now_s)
         names = sorted(geometry)
         positions = np.array([geometry[s][0] for s in names]).reshape(-1, 3)
-        if not self._changed(names, positions):
+        if not self._changed(names, positions, now_s):
             return None
         m = self.config
         if names:
@@ -281,4 +296,6 @@ class AccuracyMap:
             return None
         self._key = (names, positions)
         self.grid, self.last, self.stations = grid, om, names
+        cost = time.monotonic() - start
+        self._next_move_s = now_s + cost + max(MIN_MOVE_INTERVAL_S, MOVE_COST_FACTOR * cost)
         return grid, data
