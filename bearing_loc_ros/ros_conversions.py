@@ -158,7 +158,9 @@ def bearing_from_msg(msg, station, expected_frame=None):
     (``bad_azimuth_variance``), elevation variance neither −1 nor such a σ²
     (``bad_elevation_variance``), a position covariance that is not finite, symmetric and
     positive semi-definite (``bad_position_covariance``,
-    :func:`~bearing_loc_ros.core.fusion.stations.covariance3_problem`), header.stamp not
+    :func:`~bearing_loc_ros.core.fusion.stations.covariance3_problem`), a NaN or infinite
+    entry anywhere else in the covariance (``bad_covariance``: the other entries are not
+    read, but a non-finite one shows a broken sender), header.stamp not
     normalised (``bad_stamp``: nanosec ≥ 10⁹ or sec < 0, :func:`time_to_ns`); the first rule
     that applies, in this order.
 
@@ -240,6 +242,11 @@ def _bearing_from_fields(station, frame, sec, nanosec, px, py, pz, qx, qy, qz, q
     problem = covariance3_problem(rows[0] + rows[1] + rows[2])
     if problem is not None:
         raise ConversionError('bad_position_covariance', problem)
+    if not math.isfinite(sum(c)):       # finite entries can overflow the sum: look closer
+        bad = next((k for k, v in enumerate(c) if not math.isfinite(v)), None)
+        if bad is not None:
+            raise ConversionError('bad_covariance', f'covariance[{bad}] = {c[bad]} (row '
+                                  f'{bad // 6}, column {bad % 6}) is not finite')
     sec, nanosec = int(sec), int(nanosec)
     if sec < 0 or not 0 <= nanosec < NS_PER_S:
         raise ConversionError('bad_stamp', f'stamp sec={sec} nanosec={nanosec} is not '

@@ -298,6 +298,26 @@ def test_rejects_frames_and_position_covariance(b, other):
     assert _reason(msg) == 'bad_position_covariance'
 
 
+@pytest.mark.parametrize('index, value', [(21, math.nan), (5, math.inf), (29, -math.inf)])
+def test_a_non_finite_entry_anywhere_in_the_covariance_is_rejected(index, value):
+    """Only the position block and the two angle variances are read; a NaN or inf elsewhere
+    (roll variance, a cross term) was accepted without a word."""
+    msg = rc.bearing_to_msg(Bearing('s1', 1, np.array([10.0, 20.0, 0.0]), 0.5, 0.2, 0.01,
+                                    0.01))
+    cov = list(msg.pose.covariance)
+    cov[index] = value
+    msg.pose.covariance = cov
+    for read in (lambda: rc.bearing_from_msg(msg, 's1'),
+                 lambda: rc.bearing_from_cdr(serialize_message(msg), 's1')):
+        with pytest.raises(rc.ConversionError, match=rf'covariance\[{index}\]') as err:
+            read()
+        assert err.value.reason == 'bad_covariance'
+    cov[index] = 0.0
+    cov[21] = cov[22] = 1e308                           # huge but finite: not read, accepted
+    msg.pose.covariance = cov
+    assert rc.bearing_from_msg(msg, 's1').azimuth == pytest.approx(0.5)
+
+
 def _with_position_covariance(P):
     msg = rc.bearing_to_msg(Bearing('s1', 1, np.array([10.0, 20.0, 0.0]), 0.5, 0.2, 0.01, 0.01))
     cov = list(msg.pose.covariance)

@@ -30,7 +30,7 @@ FUZZ = settings(max_examples=500, derandomize=True, database=None, deadline=None
                 suppress_health_check=list(HealthCheck))
 BEARING_REASONS = ('empty_frame_id', 'wrong_frame', 'bad_position', 'bad_quaternion',
                    'nonzero_roll', 'bad_azimuth_variance', 'bad_elevation_variance',
-                   'bad_position_covariance', 'bad_stamp')
+                   'bad_position_covariance', 'bad_covariance', 'bad_stamp')
 RAW_REASONS = ('bad_stamp', 'bad_azimuth', 'bad_elevation')
 ODOMETRY_REASONS = ('odometry_wrong_frame', 'odometry_bad_stamp', 'odometry_bad_position',
                     'odometry_bad_quaternion', 'odometry_bad_covariance')
