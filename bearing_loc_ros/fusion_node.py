@@ -216,8 +216,8 @@ class FusionNode(Node):
                                               now if now is not None else 0)
             self._log_events()
             return
-        # Before the first /clock message ROS time is 0: the bearing's stamp stands in.
-        epochs = self.core.add_bearing(bearing, now if now is not None else bearing.stamp_ns)
+        # Before the first /clock message ROS time is 0 (now None): the core's stand-in.
+        epochs = self.core.add_bearing(bearing, now)
         if epochs:
             self._publish_epochs(epochs)
             self.core.settle()

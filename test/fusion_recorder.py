@@ -20,7 +20,7 @@ def recording(path):
     add, tick = pipeline.FusionCore.add_bearing, pipeline.FusionCore.tick
     with open(path, 'ab') as out:
         def add_bearing(self, bearing, now_ns):
-            pickle.dump(('bearing', int(now_ns), bearing), out)
+            pickle.dump(('bearing', None if now_ns is None else int(now_ns), bearing), out)
             out.flush()
             return add(self, bearing, now_ns)
 

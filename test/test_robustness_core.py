@@ -163,6 +163,26 @@ def test_fusion_core_far_future_stamp_does_not_block_its_station():
     assert diag['fusion']['dropped.from_future'] == 1
 
 
+def test_before_ros_time_starts_one_stations_future_stamps_do_not_become_now():
+    """Simulated time before the first /clock: the node has no clock and the bearing's own
+    stamp stood in. One station stamping a day ahead made every honest bearing after it a
+    clock jump back: every buffer cleared, every cycle, and no from_future counted."""
+    core = FusionCore(FusionConfig(estimator='mle'), stations=['s1', 's2', 's3'])
+    t, day = 100 * S, 86400 * S
+    fixes = 0
+    for k in range(20):
+        t += S // 5
+        for st in ('s1', 's2', 's3'):
+            fixes += len(core.add_bearing(good_bearing(st, t + (day if st == 's2' else 0)),
+                                          None))
+    assert core.time_jumps <= 1                     # at most the very first cycle's
+    assert core.dropped['from_future'] >= 19
+    assert core.station_stats('s1').accepted == core.station_stats('s3').accepted == 20
+    # alone, a station's stamp is the clock, as before
+    one = FusionCore(FusionConfig(estimator='mle'), stations=['s1'])
+    assert one.registry.stand_in_now(good_bearing('s1', 5 * day)) == 5 * day
+
+
 def test_fusion_core_clock_going_back_repeatedly_is_counted():
     core = FusionCore(FusionConfig(estimator='mle', trigger='timer'), stations=['s1', 's2'])
     now = 1000 * S

@@ -178,11 +178,13 @@ class FusionCore:
     def add_bearing(self, bearing, now_ns):
         """Ingest one bearing received at node-clock time ``now_ns``; return new Epochs.
 
-        Bad bearings are counted (registry arrival checks, the strategy's refusal), never
-        raised; an accepted bearing may complete epochs (event trigger, TMA).
+        ``now_ns`` None: ROS time has not started (simulated time before the first /clock);
+        :meth:`StationRegistry.stand_in_now` stands in. Bad bearings are counted (registry
+        arrival checks, the strategy's refusal), never raised; an accepted bearing may
+        complete epochs (event trigger, TMA).
         """
-        now = int(now_ns)
         reg = self.registry
+        now = int(now_ns) if now_ns is not None else reg.stand_in_now(bearing)
         if not reg.check_station_id(bearing, now):
             return []
         refusal = self.strategy.refusal(bearing.station)

@@ -355,6 +355,20 @@ class StationRegistry:
         if now_ns is not None:
             self.advance(int(now_ns), station)
 
+    def stand_in_now(self, bearing):
+        """A stand-in for the node clock while ROS time has not started (simulated time
+        before the first /clock), ns: the lower median of this bearing's stamp and the newest
+        accepted stamp of every other station. One station's stamp alone (the bearing's own,
+        as before) let a stamp a day ahead become "now", so the next honest bearing looked
+        like the clock jumping back and cleared every buffer, every cycle; the median of the
+        stations' stamps drops it as ``from_future`` instead. With one station it is the
+        bearing's stamp."""
+        stamps = [st.last_stamp_ns for name, st in self._stats.items()
+                  if st.last_stamp_ns is not None and name != bearing.station]
+        stamps.append(int(bearing.stamp_ns))
+        stamps.sort()
+        return stamps[(len(stamps) - 1) // 2]
+
     def check_station_id(self, bearing, now):
         """True when the bearing's station id is a non-empty string; otherwise count it as
         a bad message of no station and return False."""
