@@ -132,6 +132,30 @@ def test_calibrate_checks_the_transmitter(run, tmp_path, capsys):
     assert 'maximum likelihood (converged)' in out
 
 
+@pytest.mark.parametrize('edit, message', [
+    ({'position': 5.0}, 'position: expected a list of numbers, got 5.0'),
+    ({'position_covariance': True}, 'position_covariance: expected a list of numbers'),
+    ({'geodetic_origin': 'munich'}, 'geodetic_origin: expected a list of numbers'),
+    ({'kraken': 5}, 'kraken: expected a mapping of receiver parameters, got 5'),
+    ({'kraken': {'heading_offset_deg': 'north'}},
+     'kraken.heading_offset_deg: expected a number'),
+    ({'kraken': {'post_port': 8082.5}}, 'kraken.post_port: expected an integer'),
+])
+def test_calibrate_names_a_parameter_of_the_wrong_type(run, tmp_path, capsys, edit, message):
+    """A scalar where a list belongs made calibrate and bag import end in a TypeError
+    traceback (`kraken: 5` after the whole fit)."""
+    d, logs, _ = run
+    bad = tmp_path / 'bad.yaml'
+    bad.write_text(yaml.safe_dump({f'/{s}/station_node': {'ros__parameters': dict(
+        p, **edit) if s == 'A' else p} for s, p in params().items()}))
+    assert cli_main(['calibrate', '--params', str(bad), '--out', str(tmp_path / 'o.yaml'),
+                     '--station', f'A={logs["A"]}', '--station', f'B={logs["B"]}',
+                     '--transmitter', '-1800', '1200', '0']) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert 'error: ' in err[-1] and message in err[-1], err
+    assert not any('Traceback' in line for line in err)
+
+
 def test_written_file_holds_the_correction(run):
     _, logs, written = run
     fit = fit_calibration(*residuals_of(logs))
