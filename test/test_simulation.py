@@ -543,6 +543,15 @@ def test_duration_override_has_the_scenario_bounds():
         simulate(fast, duration=2.0 * MAX_SIMULATED_BEARINGS / 1e3)
 
 
+def test_a_scenario_error_echoes_a_short_value():
+    """A bad value was echoed whole: one line of 80 MB for a list of aliases."""
+    d = _base()
+    d['name'] = list(range(100_000))
+    with pytest.raises(ValueError, match=r'name: expected a string, got \[0, 1, 2') as exc:
+        parse_scenario(d, 'x.yaml')
+    assert len(str(exc.value)) < 200
+
+
 def test_a_station_whose_phase_is_past_the_end_is_an_error():
     """phase >= duration: the station would make no bearing (it silently made none)."""
     d = _base()

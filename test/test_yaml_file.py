@@ -20,13 +20,44 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 @pytest.mark.parametrize('text, value', [
     ('1e3', 1000.0), ('1.0e7', 1e7), ('2E-6', 2e-6), ('-1e-9', -1e-9), ('+1e3', 1000.0),
-    ('1e+3', 1000.0), ('.5', 0.5), ('1.5', 1.5), ('10', 10), ('1_000', 1000),
+    ('1e+3', 1000.0), ('.5', 0.5), ('1.5', 1.5), ('10', 10),
     ('[1e3, 2]', [1000.0, 2]), ('abc', 'abc'), ('1e', '1e'), ('e3', 'e3'), ('1.2.3', '1.2.3'),
-    ('-.5', -0.5), ('._', '._'), ('-._', '-._'), ('1_e3', '1_e3'), ('1_000.5', 1000.5),
+    ('-.5', -0.5), ('._', '._'), ('-._', '-._'), ('1_e3', '1_e3'),
+    # YAML 1.1 read these as 1000, 1000.5, 8 (octal) and 90 (base 60)
+    ('1_000', '1_000'), ('1_000.5', '1_000.5'), ('010', 10), ('1:30', '1:30'),
+    ('0o10', 8), ('0x1F', 31),
 ])
 def test_numbers_as_yaml_1_2_reads_them(text, value):
     got = load_text(text)
     assert got == value and type(got) is type(value)
+
+
+def test_a_key_given_twice_is_an_error_naming_its_line(tmp_path):
+    """`duration: 2.0` then `duration: 5.0` simulated 5 s without a word."""
+    path = tmp_path / 'twice.yaml'
+    path.write_text('duration: 2.0\nstations: []\nduration: 5.0\n')
+    with pytest.raises(ValueError, match=r"invalid YAML \(.*key 'duration' given twice in "
+                                         r"one mapping.*line 3"):
+        read_yaml(path, 'x')
+    # a merge key is not a duplicate, and its keys may be overridden
+    assert load_text('a: &x {k: 1, j: 2}\nb:\n  <<: *x\n  k: 3\n')['b'] == {'k': 3, 'j': 2}
+
+
+@pytest.mark.parametrize('params', [False, True])
+def test_aliases_that_expand_to_a_billion_values_are_refused(tmp_path, params):
+    """A 441-byte file of nested aliases ("billion laughs") made a MemoryError after 45 s
+    and 3 GB (a scenario error echoing the value) or in the parameter flattening."""
+    keys = [f'k{j}' for j in range(10)]
+    levels = ['&b0 {' + ', '.join(f'{k}: 1' for k in keys) + '}'] + [
+        f'&b{i} {{' + ', '.join(f'{k}: *b{i - 1}' for k in keys) + '}' for i in range(1, 9)]
+    path = tmp_path / 'bomb.yaml'
+    path.write_text('\n'.join(f'l{i}: {v}' for i, v in enumerate(levels)) + '\n')
+    with pytest.raises(ValueError, match=r'^x: invalid YAML \(more than 1,000,000 values '
+                                         r'once its aliases'):
+        read_yaml(path, 'x', params=params)
+    small = tmp_path / 'small.yaml'                 # aliases as such are fine
+    small.write_text('a: &p [1.0, 2.0]\nb: *p\n')
+    assert read_yaml(small, 'x', params=params) == {'a': [1.0, 2.0], 'b': [1.0, 2.0]}
 
 
 def test_inf_and_nan_stay_floats():

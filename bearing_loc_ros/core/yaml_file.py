@@ -1,9 +1,16 @@
 """YAML files of the package, read with one-line errors: its own formats (scenario files,
 bag metadata) and the nodes' parameter files (``--params-file``, ``-p NAME:=VALUE``).
 
-PyYAML follows YAML 1.1, where a float needs a dot and a signed exponent: ``1e3`` and
-``1.0e7`` are strings there, while YAML 1.2 and rcl's parameter parser read them as
-numbers. :func:`loader` (the package's own formats) adds those exponent forms.
+PyYAML follows YAML 1.1, where a float needs a dot and a signed exponent (``1e3`` and
+``1.0e7`` are strings), ``010`` is octal 8, ``1:30`` is 90 (base 60) and ``1_000`` is 1000.
+:func:`loader` (the package's own formats: scenario files, bag metadata) reads numbers as
+YAML 1.2's core schema does instead: ``1e3`` is 1000.0, ``010`` is 10, and ``1:30`` or
+``1_000`` are strings (which a number field then refuses). It also refuses a key given twice
+in one mapping (YAML forbids it; PyYAML kept the last silently).
+
+Every reader refuses a document whose aliases (``*name``) expand to more than
+:data:`MAX_VALUES` values: a few hundred bytes of nested aliases ("billion laughs") expand
+to 10⁹ values, which a program walking or printing the data cannot survive.
 
 A parameter file must give the offline tools (``bag process --params-file``, ``calibrate``
 and ``bag import --params``) exactly the values the nodes get, and rcl's parser is neither
@@ -29,33 +36,93 @@ An empty value, an empty list and a list mixing types (``[1, 2.5]``) are errors.
 import re
 import sys
 
-#: YAML 1.2 (core schema) floats, plus YAML 1.1's: an exponent no longer needs a dot or a
-#: sign (``1e3``, ``1.0e7``, ``2E-6``), and ``.inf``/``.nan`` as before.
+#: YAML 1.2 core schema integers and floats (``1e3``, ``1.0e7``, ``2E-6``, ``.inf``, ``.nan``;
+#: no ``_`` digit groups, no base-60 ``1:30``, ``010`` decimal).
+_INT = re.compile(r'^(?:[-+]?[0-9]+|0o[0-7]+|0x[0-9a-fA-F]+)$')
 _FLOAT = re.compile(r'''^(?:
-    [-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
-  | [-+]?[0-9]+[eE][-+]?[0-9]+
-  | [-+]?\.[0-9][0-9_]*(?:[eE][-+]?[0-9]+)?
-  | [-+]?[0-9][0-9_]*(?::[0-5]?[0-9])+\.[0-9_]*
+    [-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?
   | [-+]?\.(?:inf|Inf|INF)
   | \.(?:nan|NaN|NAN))$''', re.X)
+_INT_TAG = 'tag:yaml.org,2002:int'
+_FLOAT_TAG = 'tag:yaml.org,2002:float'
+#: Most values (mapping entries, list items and scalars, an alias counted each time it is
+#: used) one YAML document may expand to. Real files hold thousands (a long waypoint list).
+MAX_VALUES = 1_000_000
 
 _LOADER = None
 
 
+def _no_duplicate_keys(loader, node):
+    """ConstructorError at the second occurrence of a key of the mapping ``node``."""
+    from yaml.constructor import ConstructorError
+    seen = set()
+    for key_node, _ in node.value:
+        if key_node.tag == 'tag:yaml.org,2002:merge':
+            continue
+        key = loader.construct_object(key_node, deep=True)
+        try:
+            new = key not in seen
+        except TypeError:                       # an unhashable key: the constructor says so
+            return
+        if not new:
+            raise ConstructorError(None, None, f'key {str(key)[:60]!r} given twice in one '
+                                   'mapping', key_node.start_mark)
+        seen.add(key)
+
+
+def _yaml12_int(loader, node):
+    """An integer of YAML 1.2's core schema (``010`` is ten, ``0o10`` eight, ``0x10``
+    sixteen)."""
+    text = loader.construct_scalar(node)
+    if text.startswith('0o'):
+        return int(text[2:], 8)
+    if text.startswith('0x'):
+        return int(text[2:], 16)
+    return int(text, 10)
+
+
 def loader():
-    """A ``yaml.SafeLoader`` subclass (plain data only, no Python objects) that reads the
-    YAML 1.2 float forms as floats (module docstring)."""
+    """A ``yaml.SafeLoader`` subclass (plain data only, no Python objects) that reads numbers
+    as YAML 1.2's core schema and refuses duplicate keys (module docstring)."""
     global _LOADER
     if _LOADER is None:
         import yaml      # here: the commands that read no YAML do not pay its import
 
         class Loader(yaml.SafeLoader):
-            """SafeLoader with YAML 1.2 floats."""
+            """SafeLoader with YAML 1.2 numbers and no duplicate keys."""
 
-        Loader.add_implicit_resolver('tag:yaml.org,2002:float', _FLOAT,
-                                     list('-+0123456789.'))
+            def construct_mapping(self, node, deep=False):
+                if isinstance(node, yaml.MappingNode):
+                    _no_duplicate_keys(self, node)
+                return super().construct_mapping(node, deep)
+
+        Loader.yaml_implicit_resolvers = {
+            first: [(tag, rx) for tag, rx in rules if tag not in (_INT_TAG, _FLOAT_TAG)]
+            for first, rules in yaml.SafeLoader.yaml_implicit_resolvers.items()}
+        Loader.add_implicit_resolver(_INT_TAG, _INT, list('-+0123456789'))
+        Loader.add_implicit_resolver(_FLOAT_TAG, _FLOAT, list('-+0123456789.'))
+        Loader.add_constructor(_INT_TAG, _yaml12_int)
         _LOADER = Loader
     return _LOADER
+
+
+def check_expansion(doc, limit=MAX_VALUES):
+    """``doc`` when it holds at most ``limit`` values counted as a tree (an object reached
+    through several aliases counts each time), else ValueError. Stops counting at the limit,
+    so a "billion laughs" document costs at most ``limit`` steps."""
+    stack, count = [doc], 0
+    while stack:
+        v = stack.pop()
+        count += 1
+        if count > limit:
+            raise ValueError(f'more than {limit:,} values once its aliases (*name) are '
+                             'expanded')
+        if isinstance(v, dict):
+            stack.extend(v.keys())
+            stack.extend(v.values())
+        elif isinstance(v, list):
+            stack.extend(v)
+    return doc
 
 
 #: Unquoted scalars rcl reads as booleans (any other capitalisation is a string).
@@ -189,14 +256,14 @@ def load_param_text(text):
     """One value as ``-p NAME:=VALUE`` gives it to a node (:func:`params_loader`);
     ``yaml.YAMLError`` when rcl would refuse it."""
     import yaml
-    return yaml.load(text, Loader=params_loader())
+    return check_expansion(yaml.load(text, Loader=params_loader()))
 
 
 def load_text(text):
     """One YAML document (a value such as ``1e-9`` or ``[1, 2]``) parsed by :func:`loader`;
     ``yaml.YAMLError`` when it is not valid YAML."""
     import yaml
-    return yaml.load(text, Loader=loader())
+    return check_expansion(yaml.load(text, Loader=loader()))
 
 
 def read_yaml(path, label, kind='file', params=False):
@@ -205,12 +272,13 @@ def read_yaml(path, label, kind='file', params=False):
 
     Errors are ``ValueError`` of one line, prefixed ``label``: ``<label>: cannot read <kind>
     (<reason>)``, ``<label>: not a UTF-8 text file``, ``<label>: invalid YAML (<message,
-    whitespace runs made one space>)``.
+    whitespace runs made one space>)``, also for a document beyond :data:`MAX_VALUES`.
     """
     import yaml
     try:
         with open(path, encoding='utf-8') as f:
-            return yaml.load(f, Loader=params_loader() if params else loader())
+            return check_expansion(yaml.load(f, Loader=params_loader() if params else
+                                             loader()))
     except OSError as exc:
         raise ValueError(f'{label}: cannot read {kind} ({exc.strerror or exc})') from None
     except UnicodeDecodeError:
