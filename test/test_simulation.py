@@ -387,6 +387,8 @@ BAD = [
     (lambda d: d['targets'].append({'position': [0, 0, 0]}), 'duplicate target namespace'),
     (lambda d: d['targets'][0].update(namespace='bad ns'), 'targets[0].namespace: not a valid'),
     (lambda d: d.update(stations=[]), 'stations: expected a non-empty list'),
+    (lambda d: d.update(station_defaults=0), 'station_defaults: expected a mapping, got int'),
+    (lambda d: d.update(station_defaults=[]), 'station_defaults: expected a mapping, got list'),
     (lambda d: d['targets'][0].update(kind='random_static', box_min=[0, 0, 0],
                                       box_max=[1, 1, 1], count=10 ** 8),
      'targets[0].count: must be an integer in [1, 1e+06]'),

@@ -414,7 +414,9 @@ def parse_scenario(data, source='<dict>'):
     origin = None
     if data.get('geodetic_origin') is not None:
         origin = _geodetic(src, data['geodetic_origin'], 'geodetic_origin')
-    defaults = data.get('station_defaults') or {}
+    defaults = data.get('station_defaults')
+    if defaults is None:                        # absent or empty (`station_defaults:`)
+        defaults = {}
     _mapping(src, defaults, 'station_defaults',
              tuple(k for k in STATION_KEYS if k != 'id' and k not in MOTION_KEYS))
     raw_st = data.get('stations')
