@@ -391,7 +391,7 @@ BAD = [
     (lambda d: d.update(station_defaults=[]), 'station_defaults: expected a mapping, got list'),
     (lambda d: d['targets'][0].update(kind='random_static', box_min=[0, 0, 0],
                                       box_max=[1, 1, 1], count=10 ** 8),
-     'targets[0].count: must be an integer in [1, 1e+06]'),
+     'targets[0].count: must be an integer in [1, 1000]'),
 ]
 
 

@@ -58,9 +58,10 @@ MAX_JITTER = 100.0
 RATE_RANGE = (1e-6, 1e6)
 #: Most truth samples of one run (truth_rate · duration · targets; ~0.5 kB each in memory).
 MAX_TRUTH_SAMPLES = 1e6
-#: Largest random_static ``count``: more targets cannot fit the 1e6 scheduled bearings of a
-#: run (checked before any target is built; 1e8 exhausted the memory first).
-MAX_COUNT = 1_000_000
+#: Largest random_static ``count``. Each source is a target with its own topics (a bag
+#: topic, simulator publishers per station): ``bag simulate`` takes about 5 ms per source, so
+#: 1e6 sources (the former bound) ran for hours in gigabytes; 1000 take about 5 s.
+MAX_COUNT = 1000
 #: Largest distance of a position, waypoint, box corner or geodetic point from the ENU
 #: origin, m (a quarter of the Earth-Moon distance); also the bound of |alt| and range_ref.
 MAX_POSITION = 1e8
