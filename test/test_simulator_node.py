@@ -105,6 +105,7 @@ def test_bad_parameters_and_scenarios_exit_1(tmp_path):
         (['-p', f'scenario:={bad_path}'], f'{bad_path}: stations[0].rate: must be > 0'),
         (ok + ['-p', 'time_scale:=-1.0'], "parameter 'time_scale'"),
         (ok + ['-p', 'seed:=-2'], "parameter 'seed'"),
+        (ok + ['-p', 'duration:=1e8'], "parameter 'duration'"),   # beyond MAX_TIME
     ]
     procs = [(start_node(MODULE, args), expect) for args, expect in cases]
     for p, expect in procs:
@@ -113,6 +114,12 @@ def test_bad_parameters_and_scenarios_exit_1(tmp_path):
             out = p.output()
             assert code == 1, out
             assert f'error: {expect}' in out, out
+
+
+def test_duration_parameter_has_the_scenario_bound():
+    from bearing_loc_ros.core.parameters import param
+    from bearing_loc_ros.core.scenario_loader import MAX_TIME
+    assert param('simulator_node', 'duration').max == MAX_TIME
 
 
 def test_resolve_scenario_path_cwd_then_share(tmp_path, monkeypatch):

@@ -342,7 +342,7 @@ def _simulator_schema():
         P('publish_clock', BOOL, True, 'Publish /clock (rosgraph_msgs/Clock) with the '
           'simulated time'),
         P('duration', DOUBLE, 0.0, "Simulated seconds to run; 0 = the scenario's duration",
-          's', 0.0, None),
+          's', 0.0, 1e7),
         P('start_delay', DOUBLE, 5.0, 'Longest wall-clock wait for subscribers before '
           'starting (the clock is held at the epoch meanwhile)', 's', 0.0, None),
         P('wait_for_subscribers', BOOL, True, 'Start before start_delay has passed once '
