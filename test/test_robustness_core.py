@@ -183,6 +183,17 @@ def test_before_ros_time_starts_one_stations_future_stamps_do_not_become_now():
     assert one.registry.stand_in_now(good_bearing('s1', 5 * day)) == 5 * day
 
 
+def test_diagnostics_print_stamps_exactly():
+    """A stamp of exactly ...163.604 s printed as ...163.604000092 (float seconds)."""
+    core = FusionCore(FusionConfig(estimator='mle'), stations=['s1', 's2', 's3'])
+    t = 1_796_534_163_604_000_000
+    for st in ('s1', 's2', 's3'):
+        core.add_bearing(good_bearing(st, t), t)
+    diag = {d.hardware_id or d.name: d.values for d in core.diagnostics(t)}
+    assert diag['s1']['last_stamp'] == '1796534163.604000000'
+    assert diag['fusion']['last_fix_stamp'] == '1796534163.604000000'
+
+
 def test_fusion_core_clock_going_back_repeatedly_is_counted():
     core = FusionCore(FusionConfig(estimator='mle', trigger='timer'), stations=['s1', 's2'])
     now = 1000 * S

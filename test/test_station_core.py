@@ -227,6 +227,7 @@ def test_config_enu_and_geodetic_positions():
     ({'azimuth_reference': 'north'}, 'azimuth_reference'),
     ({'azimuth_offset_deg': 400.0}, 'azimuth_offset_deg'),
     ({'frame_id': ''}, 'frame_id'),
+    ({'frame_id': 'a b'}, 'frame_id'),           # the fusion node refuses it
 ])
 def test_config_errors_name_the_parameter(kwargs, field):
     if 'position' not in kwargs and 'geodetic_position' not in kwargs and field != 'position' \

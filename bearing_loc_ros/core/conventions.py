@@ -218,6 +218,14 @@ def bearing_covariance6(position_covariance, sigma_az, sigma_el=None):
     return cov
 
 
+def stamp_text(stamp_ns):
+    """Integer ns since the epoch as exact decimal seconds (``1796534163.604000000``); a
+    float of the seconds would print ``1796534163.604000092``."""
+    stamp_ns = int(stamp_ns)
+    sign, stamp_ns = ('-', -stamp_ns) if stamp_ns < 0 else ('', stamp_ns)
+    return f'{sign}{stamp_ns // 1_000_000_000}.{stamp_ns % 1_000_000_000:09d}'
+
+
 def check_frame_id(frame_id, field='frame_id'):
     """Return ``frame_id`` when it is a usable world frame name: a non-empty string without
     whitespace (ROS frame names hold none); else ValueError ``<field>: ...``."""

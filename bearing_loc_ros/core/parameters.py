@@ -281,8 +281,8 @@ def _station_schema():
     from .station import UNITS
     P = Param
     return (
-        P('frame_id', STRING, 'map', 'World frame of the published bearings; must equal the '
-          'fusion node frame_id'),
+        P('frame_id', STRING, 'map', 'World frame of the published bearings (no spaces); must '
+          'equal the fusion node frame_id'),
         P('station_id', STRING, '', 'Station id for logs and diagnostics; empty = the node '
           'namespace'),
         P('position', DOUBLE_ARRAY, [], 'Station (array phase centre) position [x, y, z] in '

@@ -13,6 +13,7 @@ import reprlib
 import numpy as np
 
 from .bearings import SIGMA_MIN
+from .conventions import check_frame_id
 from .geodesy import geodetic_to_enu
 from .yaml_file import read_yaml
 from .scenario_model import (DEFAULT_EPOCH, DEFAULT_FRAME, DEFAULT_TRUTH_RATE, Scenario,
@@ -404,8 +405,11 @@ def parse_scenario(data, source='<dict>'):
         if not isinstance(v, str):
             raise src.error(key, f'expected a string, got {_short(v)}')
     frame_id = data.get('frame_id', DEFAULT_FRAME)
-    if not isinstance(frame_id, str) or not frame_id:
-        raise src.error('frame_id', f'expected a non-empty string, got {_short(frame_id)}')
+    try:
+        check_frame_id(frame_id if isinstance(frame_id, str) else None)
+    except ValueError:                  # the fusion node refuses the same names
+        raise src.error('frame_id', f'expected a non-empty name without spaces, got '
+                                    f'{_short(frame_id)}') from None
     duration = _within(src, 'duration', _float(src, data, 'duration', '', lo=0.0, lo_open=True,
                                                required=True), (0.0, MAX_TIME), ' s')
     epoch = _bounded(src, data, 'epoch', '', DEFAULT_EPOCH, (0.0, MAX_EPOCH), ' s')

@@ -49,7 +49,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from .bearings import Bearing, HALF_PI
-from .conventions import azimuth_elevation, los_vector, wrap_angle
+from .conventions import azimuth_elevation, check_frame_id, los_vector, wrap_angle
 # Re-exported: readings, the datagram parser and the poses are part of this module's interface.
 from .datagram import (DATAGRAM_REJECTIONS, MAX_DATAGRAM_BYTES, MAX_EXPONENT,  # noqa: F401
                        MAX_NUMBER_CHARS, parse_datagram)
@@ -165,8 +165,10 @@ def station_config(station, frame_id='map', position=(), geodetic_position=(),
 
     if not isinstance(station, str) or not station:
         raise ConfigError('station_id', 'empty (run the node in a namespace or set it)')
-    if not isinstance(frame_id, str) or not frame_id:
-        raise ConfigError('frame_id', 'must be a non-empty string')
+    try:
+        check_frame_id(frame_id)        # the fusion node refuses a name with spaces too
+    except ValueError as exc:
+        raise ConfigError('frame_id', str(exc).partition(': ')[2]) from None
     position = _config_floats(position, 'position')
     geodetic_position = _config_floats(geodetic_position, 'geodetic_position')
     geodetic_origin = _config_floats(geodetic_origin, 'geodetic_origin')

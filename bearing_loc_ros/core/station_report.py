@@ -8,6 +8,8 @@ one-line message and key/value pairs (``/diagnostics`` values). Stamps are integ
 
 from collections import Counter
 
+from .conventions import stamp_text
+
 
 class StationCounters:
     """Counters of one station: ``received`` (input -> readings), ``rejected`` (reason ->
@@ -44,8 +46,7 @@ class StationCounters:
             'published_since_last_report': new_pub,
             'rejected': total_rej,
             'last_stamp_ns': last if last is not None else '',
-            'last_stamp_s': (f'{last // 10 ** 9}.{last % 10 ** 9:09d}'
-                             if last is not None else ''),
+            'last_stamp_s': stamp_text(last) if last is not None else '',
         })
         values.update({f'received_{k}': v for k, v in sorted(self.received.items())})
         values.update({f'rejected_{k}': v for k, v in sorted(self.rejected.items())})

@@ -18,6 +18,7 @@ from collections import Counter, deque
 
 from .. import registry as _registry
 from ..alignment import DROP_REASONS, INTERPOLATED, NEAREST, seconds_to_ns
+from ..conventions import stamp_text
 from .config import FusionConfig, MODE_MULTISTATION, MODE_TMA, MODE_WINDOW, NS_PER_S
 from .multistation import MultiStationStrategy
 from .results import DiagnosticEntry, LEVEL_OK, LEVEL_WARN, NO_FIX_REASONS, NOT_CONVERGED, \
@@ -304,7 +305,7 @@ class FusionCore:
             'waiting_stations': ','.join(waiting),
             'warnings_suppressed': reg.warnings_suppressed,
             'clock_warnings': ','.join(clock),
-            'last_fix_stamp': (f'{self.last_fix_stamp_ns / NS_PER_S:.9f}'
+            'last_fix_stamp': (stamp_text(self.last_fix_stamp_ns)
                                if self.last_fix_stamp_ns is not None else 'none'),
         }
         for r in DROP_REASONS:
@@ -334,7 +335,7 @@ class FusionCore:
                   'used': st.used, 'outliers': st.outliers, 'evicted': st.evicted,
                   'evicted_future': st.evicted_future,
                   'clock_offset_s': 'n/a' if off is None else f'{off:.3f}',
-                  'last_stamp': (f'{st.last_stamp_ns / NS_PER_S:.9f}'
+                  'last_stamp': (stamp_text(st.last_stamp_ns)
                                  if st.last_stamp_ns is not None else 'none'),
                   'age_s': (f'{(now - st.last_stamp_ns) / NS_PER_S:.3f}'
                             if st.last_stamp_ns is not None else 'n/a')}
