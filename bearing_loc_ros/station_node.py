@@ -258,7 +258,8 @@ class StationNode(Node):
                 return
             self.received['udp'] += 1
             try:
-                reading = parse_datagram(data, require_t=not self.restamp_udp)
+                reading = parse_datagram(data, require_t=not self.restamp_udp,
+                                         elevation=self.config.measures_elevation)
             except ReadingError as exc:
                 self._reject(exc.reason, f'udp from {sender[0]}:{sender[1]}', exc)
                 continue

@@ -163,6 +163,29 @@ def test_literal_exponent_is_the_decimal_exponent_without_converting():
 def test_datagram_without_t_when_restamping():
     assert parse_datagram(b'{"azimuth_deg": 3}', require_t=False).azimuth == \
         pytest.approx(math.radians(3))
+    # re-stamped on receipt, t is not read: a bad one no longer rejects the datagram
+    for t in (b'"soon"', b'0', b'null', b'-5'):
+        assert parse_datagram(b'{"t": %s, "azimuth_deg": 3}' % t, require_t=False).stamp_ns == 1
+        with pytest.raises(ReadingError) as e:
+            parse_datagram(b'{"t": %s, "azimuth_deg": 3}' % t)
+        assert e.value.reason == 'bad_t'
+
+
+def test_an_azimuth_only_station_does_not_read_elevation_fields():
+    data = b'{"t": 1700000000, "azimuth_deg": 3, "elevation_deg": "n/a", ' \
+           b'"sigma_elevation_deg": -1}'
+    r = parse_datagram(data, elevation=False)
+    assert math.isnan(r.elevation) and math.isnan(r.sigma_elevation)
+    with pytest.raises(ReadingError) as e:
+        parse_datagram(data)
+    assert e.value.reason == 'bad_elevation'
+
+
+def test_a_key_given_twice_rejects_the_datagram():
+    """json keeps the last value silently: the first azimuth was lost without a count."""
+    with pytest.raises(ReadingError, match="duplicate key 'azimuth_deg'") as e:
+        parse_datagram(b'{"t": 1700000000, "azimuth_deg": 10, "azimuth_deg": 200}')
+    assert e.value.reason == 'bad_json'
 
 
 def test_raw_reading_units_and_rejections():

@@ -115,7 +115,18 @@ def _stamp_ns(t):
     return stamp_ns
 
 
-def parse_datagram(data, require_t=True):
+def _unique_object(pairs):
+    """A JSON object's dict; ValueError when a key is given twice (json keeps the last one
+    silently: ``{"azimuth_deg": 10, "azimuth_deg": 200}`` would be 200 without a word)."""
+    obj = dict(pairs)
+    if len(obj) != len(pairs):
+        seen = set()
+        dup = next(k for k, _ in pairs if k in seen or seen.add(k))
+        raise ValueError(f'duplicate key {dup[:40]!r}')
+    return obj
+
+
+def parse_datagram(data, require_t=True, elevation=True):
     """Parse one UDP datagram (UTF-8 JSON object) into a :class:`RawReading`.
 
     Format: ``{"t": unix_seconds, "azimuth_deg": a, "elevation_deg": e or null,
@@ -123,8 +134,10 @@ def parse_datagram(data, require_t=True):
     (σ_θ) and ``sigma_elevation_deg`` (σ_ψ) are optional, other keys are ignored. Angles
     are degrees in the station's ``azimuth_reference``. ``t`` is converted exactly (decimal
     arithmetic) to integer ns: t = 1700000000.123456789 -> 1700000000123456789 ns. With
-    ``require_t`` False (the node re-stamps on receipt) ``t`` may be missing; stamp_ns is
-    then 1 as a placeholder.
+    ``require_t`` False (the node re-stamps on receipt) ``t`` is not read (it may be missing
+    or anything); stamp_ns is then 1 as a placeholder. With ``elevation`` False (an
+    azimuth-only station) ``elevation_deg`` and ``sigma_elevation_deg`` are not read either:
+    a field the station ignores does not reject the datagram.
 
     Cost is linear in the datagram's length: a datagram longer than
     :data:`MAX_DATAGRAM_BYTES` is not parsed, and a number literal longer than
@@ -134,7 +147,8 @@ def parse_datagram(data, require_t=True):
     before any conversion. ``t`` is range-checked before it is scaled to ns.
 
     Rejections (:class:`ReadingError` reasons): longer than :data:`MAX_DATAGRAM_BYTES`
-    (``too_large``); not UTF-8 JSON, NaN/Infinity literals, nesting too deep (``bad_json``);
+    (``too_large``); not UTF-8 JSON, NaN/Infinity literals, nesting too deep, a key given
+    twice in one object (``bad_json``);
     not an object (``not_object``); ``t`` missing (``missing_t``), not a number, too long a
     literal or outside 1970-2038 (``bad_t``); ``azimuth_deg`` missing (``missing_azimuth``),
     not a number, too long a literal, or beyond ±:data:`.readings.MAX_ABS_ANGLE` rad
@@ -150,7 +164,7 @@ def parse_datagram(data, require_t=True):
         data = data.tobytes()
     try:
         obj = json.loads(data, parse_float=json_decimal, parse_int=_json_int,
-                         parse_constant=_reject_constant)
+                         parse_constant=_reject_constant, object_pairs_hook=_unique_object)
     except (ValueError, TypeError, RecursionError) as exc:
         raise ReadingError('bad_json', str(exc).splitlines()[0][:120]) from None
     except ArithmeticError as exc:   # decimal's errors: a last resort, literals are checked
@@ -158,19 +172,21 @@ def parse_datagram(data, require_t=True):
                                        f'({type(exc).__name__})') from None
     if not isinstance(obj, dict):
         raise ReadingError('not_object', f'expected a JSON object, got {type(obj).__name__}')
-    if 't' in obj:
-        stamp_ns = _stamp_ns(_number(obj['t'], 'bad_t', 't'))
-    elif require_t:
-        raise ReadingError('missing_t', 'no "t" (unix seconds)')
-    else:
+    if not require_t:
         stamp_ns = 1
+    elif 't' in obj:
+        stamp_ns = _stamp_ns(_number(obj['t'], 'bad_t', 't'))
+    else:
+        raise ReadingError('missing_t', 'no "t" (unix seconds)')
     if 'azimuth_deg' not in obj:
         raise ReadingError('missing_azimuth', 'no "azimuth_deg"')
     az = _number(obj['azimuth_deg'], 'bad_azimuth', 'azimuth_deg')
-    el = obj.get('elevation_deg')
+    el = obj.get('elevation_deg') if elevation else None
     el = float('nan') if el is None else _number(el, 'bad_elevation', 'elevation_deg')
     sig = []
-    for key in ('sigma_deg', 'sigma_elevation_deg'):
+    for key in ('sigma_deg', 'sigma_elevation_deg') if elevation else ('sigma_deg',):
         s = obj.get(key)
         sig.append(float('nan') if s is None else _number(s, 'bad_sigma', key))
+    if not elevation:
+        sig.append(float('nan'))
     return raw_reading(stamp_ns, az, el, 'deg', sig[0], sig[1])
