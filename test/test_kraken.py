@@ -70,6 +70,12 @@ def test_xml_hostile_inputs():
     assert reason_of(kraken.parse_xml, text_freq) == ('bad_number', 'FREQUENCY')
 
 
+def test_json_key_given_twice_is_malformed():
+    body = b'{"tStamp": 1700000000123, "radioBearing": 10, "radioBearing": 200, ' \
+           b'"conf": 0.9, "freq": 433.92}'
+    assert reason_of(kraken.parse_json, body)[0] == 'malformed_json'
+
+
 @pytest.mark.parametrize('garbled, field', [
     ('433_92', 'FREQUENCY'),                        # float() would read 43392
     ('\uff14\uff13\uff13.92', 'FREQUENCY'),    # full-width digits: float() reads 433.92

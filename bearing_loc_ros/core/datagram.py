@@ -90,7 +90,8 @@ def _json_int(text):
     return int(text)
 
 
-def _reject_constant(name):
+def reject_json_constant(name):
+    """``parse_constant`` of json.loads: NaN, Infinity and -Infinity are not JSON numbers."""
     raise ValueError(f'{name} is not allowed')
 
 
@@ -115,7 +116,7 @@ def _stamp_ns(t):
     return stamp_ns
 
 
-def _unique_object(pairs):
+def unique_json_object(pairs):
     """A JSON object's dict; ValueError when a key is given twice (json keeps the last one
     silently: ``{"azimuth_deg": 10, "azimuth_deg": 200}`` would be 200 without a word)."""
     obj = dict(pairs)
@@ -164,7 +165,7 @@ def parse_datagram(data, require_t=True, elevation=True):
         data = data.tobytes()
     try:
         obj = json.loads(data, parse_float=json_decimal, parse_int=_json_int,
-                         parse_constant=_reject_constant, object_pairs_hook=_unique_object)
+                         parse_constant=reject_json_constant, object_pairs_hook=unique_json_object)
     except (ValueError, TypeError, RecursionError) as exc:
         raise ReadingError('bad_json', str(exc).splitlines()[0][:120]) from None
     except ArithmeticError as exc:   # decimal's errors: a last resort, literals are checked

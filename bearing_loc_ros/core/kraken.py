@@ -50,7 +50,8 @@ from xml.etree.ElementTree import ParseError
 from defusedxml import DefusedXmlException
 from defusedxml.ElementTree import fromstring as _xml_fromstring
 
-from .datagram import BadNumber, json_decimal, MAX_EXPONENT
+from .datagram import (BadNumber, json_decimal, MAX_EXPONENT, reject_json_constant,
+                       unique_json_object)
 
 NS_PER_MS = 1_000_000
 #: Largest stamp a builtin_interfaces/Time can carry (sec is an int32), ns.
@@ -356,10 +357,6 @@ def parse_csv_text(text):
 JSON_REQUIRED = ('tStamp', 'radioBearing', 'conf', 'freq')
 
 
-def _reject_constant(name):
-    raise ValueError(f'{name} is not allowed')
-
-
 def _json_number(text):
     """A JSON float literal -> exact Decimal, or a BadNumber (exponent beyond ±400, read
     from the text before any conversion: ``1e1000000000000000000`` is never converted)."""
@@ -371,15 +368,17 @@ def parse_json(data):
 
     stamp = tStamp ms; doa_deg = 360 − radioBearing; confidence = conf; power_db = power;
     frequency = freq (MHz below 10⁵, else Hz); GPS fields from latitude, longitude,
-    gpsBearing, speed. Required: tStamp, radioBearing, conf, freq. NaN/Infinity literals are
-    refused (``malformed_json``). A number with a decimal exponent beyond ±400 is refused
-    before it is converted: in a field it is a ``bad_number``, in an ignored key harmless.
+    gpsBearing, speed. Required: tStamp, radioBearing, conf, freq. NaN/Infinity literals and
+    a key given twice are refused (``malformed_json``). A number with a decimal exponent
+    beyond ±400 is refused before it is converted: in a field it is a ``bad_number``, in an
+    ignored key harmless.
     A ``doaArray`` of 360 numbers becomes the spectrum; any other doaArray is ignored.
     Raises :class:`KrakenError`.
     """
     _check_size(data, 'JSON')
     try:
-        obj = json.loads(data, parse_float=_json_number, parse_constant=_reject_constant)
+        obj = json.loads(data, parse_float=_json_number, parse_constant=reject_json_constant,
+                         object_pairs_hook=unique_json_object)
     except (ValueError, TypeError, RecursionError) as exc:
         raise KrakenError('malformed_json', str(exc).splitlines()[0][:120]) from None
     except ArithmeticError as exc:   # decimal's errors: a last resort, literals are checked
