@@ -183,6 +183,43 @@ def test_before_ros_time_starts_one_stations_future_stamps_do_not_become_now():
     assert one.registry.stand_in_now(good_bearing('s1', 5 * day)) == 5 * day
 
 
+def test_a_station_whose_position_teleports_is_dropped_not_fused():
+    """A station reporting its real position and one 100 km away on alternate bearings (its
+    bearings always from the real place): the far ones made confidently wrong ok fixes
+    63 km off with three stations, and the gate blamed an honest station."""
+    core = FusionCore(FusionConfig(estimator='mle'), stations=['s1', 's2', 's3'])
+    t = 100 * S
+    errors = []
+    for k in range(40):
+        t += S // 5
+        for st in ('s1', 's2', 's3'):
+            b = good_bearing(st, t)
+            if st == 's2' and k % 2:
+                b.position = b.position + np.array([100_000.0, 0.0, 0.0])
+            for ep in core.add_bearing(b, t):
+                if ep.ok:
+                    errors.append(np.linalg.norm(ep.position - TARGET))
+    assert core.station_stats('s2').dropped['implausible_position'] == 20
+    assert len(errors) >= 38 and max(errors) < 100.0
+    events = ' '.join(text for _, text in core.drain_events())
+    assert 's2: position moved 100000 m in 0.2 s, faster than max_station_speed 1000' in events
+    # a station that really moved stays at its new place: taken as relocated
+    for k in range(5):
+        t += S // 5
+        b = good_bearing('s2', t)
+        b.position = b.position + np.array([5000.0, 0.0, 0.0])
+        core.add_bearing(b, t)
+    assert core.station_stats('s2').dropped['implausible_position'] == 22
+    assert 'taken as a relocated station' in ' '.join(x for _, x in core.drain_events())
+    # 0 turns the check off
+    off = FusionCore(FusionConfig(estimator='mle', max_station_speed=0.0), stations=['s1'])
+    for k in range(2):
+        b = good_bearing('s1', (k + 1) * S)
+        b.position = b.position + k * np.array([1e6, 0.0, 0.0])
+        off.add_bearing(b, (k + 1) * S)
+    assert off.station_stats('s1').dropped['implausible_position'] == 0
+
+
 def test_diagnostics_print_stamps_exactly():
     """A stamp of exactly ...163.604 s printed as ...163.604000092 (float seconds)."""
     core = FusionCore(FusionConfig(estimator='mle'), stations=['s1', 's2', 's3'])

@@ -40,7 +40,10 @@ DUPLICATE = 'duplicate'
 OUT_OF_ORDER = 'out_of_order'
 TOO_LATE = 'too_late'
 FROM_FUTURE = 'from_future'   # stamp > now + buffer_age (a station clock far ahead)
-DROP_REASONS = (DUPLICATE, OUT_OF_ORDER, TOO_LATE, FROM_FUTURE)
+#: The station's position moved faster than max_station_speed since its last bearing
+#: (core.fusion.stations: a GPS glitch or a bad position source).
+IMPLAUSIBLE_POSITION = 'implausible_position'
+DROP_REASONS = (DUPLICATE, OUT_OF_ORDER, TOO_LATE, FROM_FUTURE, IMPLAUSIBLE_POSITION)
 
 
 def seconds_to_ns(seconds):

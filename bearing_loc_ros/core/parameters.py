@@ -200,6 +200,10 @@ def _fusion_schema():
           'clears every buffer', 's', 0.0, 3600.0),
         P('future_tolerance', DOUBLE, 0.5, 'Bearings stamped later than now + this are '
           'dropped (dropped.from_future)', 's', 0.0, 3600.0),
+        P('max_station_speed', DOUBLE, 1000.0, 'A bearing whose station position moved '
+          'faster than this since its last accepted bearing is dropped '
+          '(dropped.implausible_position: a GPS glitch, a bad position source); 0 = no check',
+          'm/s', 0.0, 1e8),
         P('estimator', STRING, _default_estimator(), 'Estimator; a switch between a TMA '
           '(tma_*) and a multi-station estimator needs a restart', choices=_estimator_names(),
           **run),
@@ -485,7 +489,8 @@ FUSION_CONFIG_FIELDS = ('frame_id', 'trigger', 'rate', 'max_latency', 'sync_tole
                         'interpolation', 'max_interpolation_gap', 'station_timeout',
                         'buffer_size', 'buffer_age', 'min_stations', 'estimator',
                         'outlier_gate', 'time_jump_tolerance', 'target_speed', 'window',
-                        'speed_reference', 'future_tolerance', 'window_max_bearings',
+                        'speed_reference', 'future_tolerance', 'max_station_speed',
+                        'window_max_bearings',
                         'sigma_floor_deg', 'station_sigma_floors')
 #: Fusion node parameters that are estimator options (FusionConfig.estimator_options).
 ESTIMATOR_OPTIONS = ('max_iterations', 'tolerance', 'reference_range', 'step_decay',

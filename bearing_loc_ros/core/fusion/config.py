@@ -103,6 +103,9 @@ class FusionConfig:
         time_jump_tolerance: "now" going back by more than this (s) clears the buffers.
         future_tolerance: bearings stamped later than now + this (s) are dropped
             (``from_future``): a station clock ahead, or a forged stamp.
+        max_station_speed: a bearing whose station position moved faster than this (m/s)
+            since the station's last accepted bearing is dropped
+            (``implausible_position``); 0 disables the check.
         target_speed: TMA speed prior v_c, m/s (Lin et al.; required > 0 for a TMA
             estimator, 0 = unset).
         window: TMA and window modes, s: bearings older than the newest minus this leave
@@ -128,6 +131,7 @@ class FusionConfig:
     outlier_gate: float = _DEFAULTS['outlier_gate']
     time_jump_tolerance: float = _DEFAULTS['time_jump_tolerance']
     future_tolerance: float = _DEFAULTS['future_tolerance']
+    max_station_speed: float = _DEFAULTS['max_station_speed']
     target_speed: float = _DEFAULTS['target_speed']
     window: float = _DEFAULTS['window']
     speed_reference: str = _DEFAULTS['speed_reference']
@@ -172,6 +176,10 @@ class FusionConfig:
         _seconds('buffer_age', self.buffer_age, positive=True)
         _seconds('time_jump_tolerance', self.time_jump_tolerance)
         _seconds('future_tolerance', self.future_tolerance)
+        v = float(self.max_station_speed)
+        if not (math.isfinite(v) and 0.0 <= v <= 1e8):
+            raise ValueError(f'max_station_speed: must be in [0, 1e8] m/s (0 = no check), '
+                             f'got {self.max_station_speed}')
         if int(self.buffer_size) < 2:
             raise ValueError(f'buffer_size: must be >= 2, got {self.buffer_size}')
         if float(self.buffer_age) <= float(self.max_latency) + float(self.sync_tolerance):

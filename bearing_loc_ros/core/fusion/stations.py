@@ -46,7 +46,8 @@ import statistics
 
 import numpy as np
 
-from ..alignment import FROM_FUTURE, OUT_OF_ORDER, seconds_to_ns, StationBuffer, TOO_LATE
+from ..alignment import (FROM_FUTURE, IMPLAUSIBLE_POSITION, OUT_OF_ORDER, seconds_to_ns,
+                         StationBuffer, TOO_LATE)
 
 NS_PER_S = 1_000_000_000
 
@@ -64,6 +65,12 @@ GEOMETRY_MOVE_TOLERANCE_M = 1.0
 #: Consecutive out-of-order arrivals, each stamped no later than now, that evict the
 #: station's buffered bearings stamped after now.
 FUTURE_RECOVERY = 3
+#: A station position may move max_station_speed × the time since its last accepted
+#: bearing plus this many metres, plus 3 × the RMS of its stated position σ (GPS noise).
+POSITION_JUMP_SLACK_M = 10.0
+#: Consecutive dropped bearings at one new position (within the same allowance of each
+#: other) after which the station is taken to have moved there (a relocated station).
+RELOCATION_RUN = 3
 #: Valid bearings per station over which the clock offset (stamp − now) is a median.
 OFFSET_WINDOW = 9
 #: A per-message warning of one station and kind is logged at most once per this, ns.
@@ -95,6 +102,8 @@ class StationStats:
     lost: Counter = field(default_factory=Counter)   # losses reported by the transport
     _future_run: int = 0
     _stray_warning: bool = False  # clock_warning is about one stray stamp, not the clock
+    anchor: tuple = None         # ((x, y, z), stamp ns) of the last accepted bearing
+    _relocation: tuple = None    # ((x, y, z), stamp ns, count) of dropped far positions
 
     def clock_offset_s(self):
         """Median of (stamp − now) over the last OFFSET_WINDOW valid bearings, s (None
@@ -232,6 +241,7 @@ class StationRegistry:
         self._jump_tolerance_ns = seconds_to_ns(config.time_jump_tolerance)
         self.max_latency_ns = seconds_to_ns(config.max_latency)
         self.future_ns = seconds_to_ns(config.future_tolerance)
+        self.max_speed = float(config.max_station_speed)
         if old is not None and self.align != old:
             for buf in self._buffers.values():
                 buf.size, buf.age_ns = self.align.buffer_size, self.align.buffer_age_ns
@@ -413,6 +423,11 @@ class StationRegistry:
             reason = TOO_LATE
         if reason is None and stamp > now + self.future_ns:
             reason = FROM_FUTURE
+        pos = bearing.position
+        # Python floats: ~1 µs instead of ~5 µs of numpy on 3-vectors, per bearing.
+        pos = tuple(pos.tolist() if type(pos) is np.ndarray else (float(v) for v in pos))
+        if reason is None and self.max_speed > 0.0:
+            reason = self._position_jump(st, bearing, pos, stamp, now)
         if reason is not None:
             st.dropped[reason] += 1
             self.dropped[reason] += 1
@@ -446,9 +461,7 @@ class StationRegistry:
         st.evicted += buf.push(bearing)
         st.accepted += 1
         st.last_stamp_ns = stamp
-        # Python floats: ~1 µs instead of ~5 µs of numpy on 3-vectors, per bearing.
-        pos = bearing.position
-        pos = tuple(pos.tolist() if type(pos) is np.ndarray else (float(v) for v in pos))
+        st.anchor, st._relocation = (pos, stamp), None
         if st.position is None or math.dist(pos, st.position) > GEOMETRY_MOVE_TOLERANCE_M:
             st.position = pos
             self.geometry_version += 1
@@ -458,6 +471,45 @@ class StationRegistry:
             if self._next_check_ns is not None and due < self._next_check_ns:
                 self._next_check_ns = due
         return True
+
+    def _allowance_m(self, bearing, dt_ns):
+        """How far a station may move in ``dt_ns``: max_station_speed × |dt| +
+        POSITION_JUMP_SLACK_M + 3 × the RMS σ of its stated position covariance, m."""
+        c = bearing.position_covariance
+        var = 0.0 if c is None else float(c[0][0]) + float(c[1][1]) + float(c[2][2])
+        return (self.max_speed * abs(dt_ns) / NS_PER_S + POSITION_JUMP_SLACK_M
+                + 3.0 * math.sqrt(max(var, 0.0)))
+
+    def _position_jump(self, st, bearing, pos, stamp, now):
+        """IMPLAUSIBLE_POSITION when the station's position moved faster than
+        max_station_speed since its last accepted bearing (a teleporting station: a GPS
+        glitch, a bad position source), else None. RELOCATION_RUN dropped bearings in a row
+        at one new position (within the allowance of each other) are taken as a relocated
+        station: the last of them is accepted, with a warning."""
+        if st.anchor is None:
+            return None
+        p0, t0 = st.anchor
+        moved = math.dist(pos, p0)
+        if moved <= self._allowance_m(bearing, stamp - t0):
+            return None
+        run = st._relocation
+        if run is not None and math.dist(pos, run[0]) <= self._allowance_m(bearing,
+                                                                           stamp - run[1]):
+            run = (pos, stamp, run[2] + 1)
+        else:
+            run = (pos, stamp, 1)
+        st._relocation = run
+        if run[2] >= RELOCATION_RUN:
+            self.events.append(('warn', f'{bearing.station}: position moved {moved:.0f} m '
+                                        f'and stayed there for {RELOCATION_RUN} bearings: '
+                                        'taken as a relocated station'))
+            return None
+        self.warn_throttled(bearing.station, IMPLAUSIBLE_POSITION,
+                            f'{bearing.station}: position moved {moved:.0f} m in '
+                            f'{abs(stamp - t0) / NS_PER_S:.3g} s, faster than '
+                            f'max_station_speed {self.max_speed:g} m/s: bearing dropped '
+                            '(implausible_position)', now)
+        return IMPLAUSIBLE_POSITION
 
     def _evict_future(self, st, buf, stamp, now):
         """Evict ``buf``'s bearings stamped after now (a clock that was ahead, or a forged
@@ -530,6 +582,7 @@ class StationRegistry:
             buf.clear()
         for st in self._stats.values():
             st.last_stamp_ns = None
+            st.anchor = st._relocation = None
             st.state = WAITING
             st.since_ns = now
         self.last_epoch_ns = None
