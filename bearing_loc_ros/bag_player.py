@@ -53,8 +53,10 @@ def play_bag(path, rate=1.0, loop=False, clock_rate=0.0, delay=0.0,
     a clock is generated at 100 Hz. Messages of one bag instant go out before its clock tick,
     except on the passes of a ``loop`` after the first: there the clock jumps back to the
     bag's first /clock message before the first instant's data go out.
-    Topics whose message type is not installed are skipped with a warning (as rosbag2 does).
-    Before playing, waits up to ``wait_for_subscribers`` s (see :func:`wait_for_subscribers`;
+    Topics whose message type is not installed are skipped with a warning (as rosbag2 does),
+    and so are single messages that cannot be published (:func:`_play_once`: an unreadable
+    bag /clock message, one the middleware refuses), counted in a warning after the first
+    pass. Before playing, waits up to ``wait_for_subscribers`` s (see :func:`wait_for_subscribers`;
     0: no wait). ``delay`` and ``wait_for_subscribers`` are within [0, MAX_WAIT_S] s.
     Returns 0; Ctrl-C stops cleanly.
     """
@@ -178,21 +180,55 @@ def _play_once(path, pubs, clock_pub, rate, period_ns, topics, quiet, log, again
     instant's data, not after them (a node would take them for data of the end of the bag):
     a generated clock always starts a pass; the bag's first /clock message is published
     first (and again at its place).
+
+    A bag ``/clock`` message that cannot be read as a rosgraph_msgs/Clock
+    (``malformed_cdr``, as ``bag process`` counts it: a node's clock subscription could not
+    read it either) and a message the middleware refuses to publish (``publish_failed``,
+    e.g. more bytes than its type can hold) are skipped and counted. After the first pass
+    the skipped messages, and the topics of which another number of messages was read than
+    metadata.yaml lists (bagio.BagReader.count_mismatches), are named in a warning through
+    ``log``; a damaged storage file that cannot be read on raises ValueError (bagio).
     """
+    from collections import Counter
+
+    import rclpy
+    from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+    from rosbags.serde import SerdeError
     from rosgraph_msgs.msg import Clock
     from . import bagio
     from .ros_conversions import ns_to_time
+
+    skipped = Counter()
 
     def clock_at(t_ns):
         if clock_pub is not None:
             clock_pub.publish(Clock(clock=ns_to_time(max(0, t_ns))))
 
+    def readable_clock(raw):
+        try:
+            bagio.deserialize(raw, bagio.CLOCK)
+        except SerdeError:
+            skipped[bagio.CLOCK_TOPIC, 'malformed_cdr'] += 1
+            return False
+        return True
+
+    def publish(topic, raw):
+        try:
+            pubs[topic].publish(raw)
+        except _rclpy.RCLError:
+            if not rclpy.ok():          # the context is gone: not this message's fault
+                raise
+            skipped[topic, 'publish_failed'] += 1
+            return False
+        return True
+
     count = 0
     if again and clock_pub is None and bagio.CLOCK_TOPIC in pubs:
         with bagio.BagReader(path) as reader:
             for m in reader.messages(topics={bagio.CLOCK_TOPIC}):
-                pubs[bagio.CLOCK_TOPIC].publish(m.raw)
-                break
+                if readable_clock(m.raw):
+                    publish(bagio.CLOCK_TOPIC, m.raw)
+                    break
     with bagio.BagReader(path) as reader:
         t0 = reader.start_time_ns
         wall0 = time.monotonic_ns()
@@ -203,7 +239,7 @@ def _play_once(path, pubs, clock_pub, rate, period_ns, topics, quiet, log, again
         for m in reader.messages(topics=topics):
             if m.log_time_ns != current:
                 for raw in held_clock:
-                    pubs[bagio.CLOCK_TOPIC].publish(raw)
+                    count += publish(bagio.CLOCK_TOPIC, raw)
                 held_clock = []
                 current = m.log_time_ns
             due = wall0 + int((m.log_time_ns - t0) / rate)
@@ -221,12 +257,21 @@ def _play_once(path, pubs, clock_pub, rate, period_ns, topics, quiet, log, again
             if pub is None:
                 continue
             if m.topic == bagio.CLOCK_TOPIC:
-                held_clock.append(m.raw)
+                if readable_clock(m.raw):
+                    held_clock.append(m.raw)
             else:
-                pub.publish(m.raw)
-            count += 1
+                count += publish(m.topic, m.raw)
         for raw in held_clock:
-            pubs[bagio.CLOCK_TOPIC].publish(raw)
+            count += publish(bagio.CLOCK_TOPIC, raw)
         if current is not None:
             clock_at(current)
+        mismatches = reader.count_mismatches()
+    if not again:
+        if skipped:
+            log(f'bag play: warning: skipped {sum(skipped.values())} message(s) that cannot be '
+                'published: ' + '; '.join(f'{t}: {r} {n}' for (t, r), n in sorted(
+                    skipped.items())))
+        text = bagio.count_warning(mismatches)
+        if text:
+            log(f'bag play: warning: {text}')
     return count

@@ -6,9 +6,10 @@ bag, with the fusion node's parameters, and writes the fixes as a bag and a CSV.
 
 import math
 import os
+import re
 import sys
 
-from .cli import InputError, load_yaml
+from .cli import InputError
 from .core import parameters
 from .core.receiver_params import flatten
 
@@ -29,27 +30,236 @@ FUSION_DISPLAY_PARAMS = tuple(k for k in parameters.defaults('fusion_node')
     'use_sim_time', 'start_type_description_service', 'accuracy_map')
 
 
-def read_params_file(path):
-    """ros__parameters of the first node entry of a ROS 2 parameters YAML file (a dict).
+#: The fusion node's name (fusion_node.FusionNode); its namespace is ``--namespace``.
+FUSION_NODE_NAME = 'fusion'
+#: The key of a node's parameters in a ROS 2 parameter file.
+ROS_PARAMETERS = 'ros__parameters'
+#: A token of a ROS name: the characters rcl accepts in a node name or namespace.
+_TOKEN = re.compile(r'[A-Za-z0-9_]+')
 
-    Accepts ``fusion:``, ``/fusion:``, ``/**:`` or ``/ns/fusion:`` keys (the forms
-    ``--ros-args --params-file`` accepts). Raises InputError naming the file.
+
+def fusion_node_fqn(namespace=''):
+    """Fully qualified name of the fusion node in ``namespace`` ('' or '/': the root):
+    ``/fusion``, ``/tx1/fusion``."""
+    ns = namespace.strip('/')
+    return f'/{ns}/{FUSION_NODE_NAME}' if ns else f'/{FUSION_NODE_NAME}'
+
+
+def _node_name_problem(name):
+    """Why rcl's parameter file parser refuses the node name ``name`` (the keys before
+    ``ros__parameters`` joined by '/'), or None. Each token is a ROS name token not starting
+    with a digit, or a wildcard ``*`` (one token) or ``**`` (any number of tokens)."""
+    full = name if name.startswith('/') else '/' + name
+    if '//' in full:
+        return 'contains repeated forward slash'
+    *spaces, node = full[1:].split('/')
+    if not node:
+        return 'node name must not be empty'
+    for token in spaces:
+        if token not in ('*', '**'):
+            if not _TOKEN.fullmatch(token):
+                return "namespace must not contain characters other than alphanumerics, '_', " \
+                       "or '/'"
+            if token[0].isdigit():
+                return 'namespace must not have a token that starts with a number'
+    if node not in ('*', '**'):
+        if not _TOKEN.fullmatch(node):
+            return "node name must not contain characters other than alphanumerics or '_'"
+        if node[0].isdigit():
+            return 'node name must not start with a number'
+    return None
+
+
+def node_name_matches(name, fqn):
+    """True when the node name ``name`` of a parameter file entry applies to the node whose
+    fully qualified name is ``fqn``, as rclpy matches them: a leading '/' is implied, ``*``
+    stands for one token and ``**`` for any number of tokens (``/**`` every node,
+    ``/**/fusion`` every node named fusion, ``/*/fusion`` one named fusion one namespace
+    down)."""
+    full = name if name.startswith('/') else '/' + name
+    pattern = ''.join('(?:/[A-Za-z0-9_]+)*' if t == '**' else '/[A-Za-z0-9_]+' if t == '*'
+                      else '/' + re.escape(t) for t in full[1:].split('/'))
+    return re.fullmatch(pattern, fqn) is not None
+
+
+class _Refused:
+    """A parameter value that rcl reads but that is refused here (an empty list, a list of
+    lists or mappings, an explicit YAML tag, an integer of thousands of digits): its
+    InputError is raised only when the value is the fusion node's, for rcl refuses the
+    file for no node then."""
+
+    def __init__(self, error):
+        self.error = error
+
+
+def params_file_entries(path):
+    """The node entries of ROS 2 parameter file ``path`` as rcl's parser makes them: a list
+    of (node name as written, {dotted parameter name: value}).
+
+    Checked against rclpy (``--ros-args --params-file``), ROS 2 Jazzy: the keys above
+    ``ros__parameters`` are joined by '/' into the node name (``ns: {fusion:
+    {ros__parameters: ...}}`` is ``ns/fusion``); entries with the same name, also in later
+    documents of the file, are one entry at the place of the first; within an entry a
+    parameter given again (directly, or as ``a.b`` and ``a: {b: ...}``) takes the later
+    value. Values are typed as rcl types them (core.yaml_file.params_loader); one that rcl
+    reads but that is refused here (``[]``) is a ``_Refused`` holding its error. Raises
+    InputError naming the file and line for what rcl refuses: invalid YAML, an empty value
+    or a list mixing types, an alias (``*name``), a node name rcl refuses, a value where a
+    node name or ``ros__parameters`` is expected, keys after ``ros__parameters``.
     """
-    data = load_yaml(path, 'params_file', params=True)
-    if isinstance(data, dict):
-        for node, body in data.items():
-            if isinstance(body, dict) and isinstance(body.get('ros__parameters'), dict):
-                return dict(body['ros__parameters'])
-    raise InputError(f'params_file: {path}: no "<node>: ros__parameters:" mapping')
-
-
-def fusion_params(params_file=None, overrides=(), estimator=None):
-    """Fusion node parameters: schema defaults < params file < NAME=VALUE overrides <
-    estimator; each checked against the schema (type, range, allowed values). Deprecated
-    names are mapped to the current ones with a warning on stderr."""
     import yaml
+    from .core.yaml_file import params_loader
+    label = f'params_file: {path}'
+    try:
+        with open(path, encoding='utf-8') as f:
+            text = f.read()
+    except OSError as exc:
+        raise InputError(f'{label}: cannot read file ({exc.strerror or exc})') from None
+    except UnicodeDecodeError:
+        raise InputError(f'{label}: not a UTF-8 text file') from None
+    loader_class = params_loader()
+    try:
+        documents = list(yaml.compose_all(text, Loader=loader_class))
+    except yaml.YAMLError as exc:
+        raise InputError(f'{label}: invalid YAML ({" ".join(str(exc).split())})') from None
+    except RecursionError:
+        raise InputError(f'{label}: invalid YAML (nested too deeply)') from None
+    constructor = loader_class('')
+    entries = {}
+    seen = set()
+
+    def fail(node, problem):
+        raise InputError(f'{label}: line {node.start_mark.line + 1}: {problem}')
+
+    def visit(node):            # each YAML node once: rcl refuses aliases
+        if id(node) in seen:
+            fail(node, 'an alias (*name): ROS 2 parameter files cannot use them')
+        seen.add(id(node))
+
+    def key_text(key):
+        visit(key)
+        if not isinstance(key, yaml.ScalarNode):
+            fail(key, 'a key must be a name, not a list or a mapping')
+        return key.value
+
+    def value(node, name):
+        visit(node)
+        items = node.value if isinstance(node, yaml.SequenceNode) else ()
+        for child in items:
+            visit(child)
+        try:
+            return constructor.construct_document(node)
+        except (yaml.YAMLError, ValueError) as exc:
+            problem = getattr(exc, 'problem', None) or ''
+            error = InputError(f'{label}: invalid YAML ({name}: '
+                               f'{" ".join(str(exc).split())})')
+        if problem == 'no value' or (problem.startswith('a list must hold') and all(
+                isinstance(c, yaml.ScalarNode) for c in items)):
+            raise error                 # rcl refuses the file: no node starts
+        return _Refused(error)          # rcl reads it: an error only for the node it is for
+
+    def parameters(node, prefix, out):
+        for key, child in node.value:
+            name = prefix + key_text(key)
+            if isinstance(child, yaml.MappingNode):
+                visit(child)
+                parameters(child, name + '.', out)
+            else:
+                out[name] = value(child, name)
+
+    def nodes(node, names):
+        visit(node)
+        if not isinstance(node, yaml.MappingNode):
+            fail(node, f'expected "<node>: {ROS_PARAMETERS}:" mappings'
+                 + (f' under {"/".join(names)}' if names else ''))
+        after = None
+        for key, child in node.value:
+            text = key_text(key)
+            if after is not None:
+                fail(key, f'{text!r} after the {ROS_PARAMETERS} of {after} (ROS 2 refuses '
+                     'keys that follow a ros__parameters mapping)')
+            if text != ROS_PARAMETERS:
+                nodes(child, names + [text])
+                continue
+            if not names:
+                fail(key, f'{ROS_PARAMETERS} without a node name above it')
+            name = '/'.join(names)
+            problem = _node_name_problem(name)
+            if problem:
+                fail(key, f'node name {name!r}: {problem}')
+            visit(child)
+            if isinstance(child, yaml.SequenceNode) and not child.value:
+                child = yaml.MappingNode('tag:yaml.org,2002:map', [])   # rcl: no parameter
+            if not isinstance(child, yaml.MappingNode):
+                fail(child, f'the {ROS_PARAMETERS} of {name}: expected a mapping of '
+                     'parameter names to values')
+            parameters(child, '', entries.setdefault(name, {}))
+            after = name
+
+    for doc in documents:
+        if not isinstance(doc, (type(None), yaml.ScalarNode)):   # rcl skips a bare scalar
+            nodes(doc, [])
+    return list(entries.items())
+
+
+def fusion_file_parameters(path, namespace=''):
+    """{dotted name: value} the fusion node in ``namespace`` gets from parameter file
+    ``path``, as rclpy gives them: every entry whose node name matches the node
+    (:func:`node_name_matches`: ``/**``, ``fusion``, ``/fusion``, ``/<ns>/fusion``,
+    ``/**/fusion``, ``/*/fusion`` ...) in the order of :func:`params_file_entries`, a later
+    entry overriding an earlier one; entries of other nodes (``station_1:``) are ignored.
+    The second value is the list of the file's node names, None when some matched."""
+    fqn = fusion_node_fqn(namespace)
+    entries = params_file_entries(path)
+    out, matched = {}, False
+    for name, params in entries:
+        if node_name_matches(name, fqn):
+            out.update(params)
+            matched = True
+    for v in out.values():
+        if isinstance(v, _Refused):
+            raise v.error
+    return out, (None if matched else [name for name, _ in entries])
+
+
+def read_params_file(path, namespace=''):
+    """The fusion node's parameters from ROS 2 parameter file ``path`` as nested mappings
+    (dotted names nested: ``accuracy_map: {enabled: ...}``), picked and merged as
+    :func:`fusion_file_parameters` says. Raises InputError naming the file."""
+    flat, _ = fusion_file_parameters(path, namespace)
+    out = {}
+    for name, v in flat.items():
+        *parents, leaf = name.split('.')
+        node = out
+        for p in parents:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):       # 'a' and 'a.b' both given: keep it flat
+                node = None
+                break
+        if node is None:
+            out[name] = v
+        else:
+            node[leaf] = v
+    return out
+
+
+def fusion_params(params_file=None, overrides=(), estimator=None, namespace=''):
+    """Fusion node parameters: schema defaults < params file < NAME=VALUE overrides <
+    estimator; each checked against the schema (type, range, allowed values), and the
+    ``stations`` as the node checks them (``check_station_ids``: valid ids, each once).
+    The params file gives what the fusion node in ``namespace`` gets from it
+    (:func:`fusion_file_parameters`; a warning on stderr when no entry of the file is the
+    node's). Deprecated names are mapped to the current ones with a warning on stderr."""
+    import yaml
+    from .core.fusion.config import check_station_ids
     from .core.yaml_file import load_param_text
-    given = dict(read_params_file(params_file)) if params_file else {}
+    given = {}
+    if params_file:
+        given, others = fusion_file_parameters(params_file, namespace)
+        if others is not None:
+            print(f'warning: params_file: {params_file}: no entry applies to the fusion node '
+                  f'{fusion_node_fqn(namespace)} (entries: {", ".join(others) or "none"}); '
+                  'its defaults are used', file=sys.stderr)
     for item in overrides:
         name, sep, value = item.partition('=')
         if not sep or not name:
@@ -64,14 +274,20 @@ def fusion_params(params_file=None, overrides=(), estimator=None):
         given['estimator'] = estimator
     given = {k: v for k, v in flatten(given).items() if not parameters.ros_builtin(k)}
     try:
-        return parameters.resolve('fusion_node', given,
-                                  warn=lambda text: print(f'warning: {text}', file=sys.stderr))
+        params = parameters.resolve('fusion_node', given,
+                                    warn=lambda text: print(f'warning: {text}',
+                                                            file=sys.stderr))
     except ValueError as exc:
         name, _, problem = str(exc).partition(': ')
         if problem.startswith('not a parameter'):
             raise InputError(f'{name}: not a fusion node parameter'
                              f'{parameters.did_you_mean("fusion_node", name)}') from None
         raise InputError(str(exc)) from None
+    try:
+        check_station_ids(params.get('stations') or [])
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
+    return params
 
 
 def fusion_config(p):
@@ -179,7 +395,10 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
     types that are not installed are ignored with a warning through ``log``. Returns a
     summary dict (epochs, fixes, no_fix reasons, dropped, bad_messages (total) and ``bad``
     ({station or topic: {reason: n}}), and ``errors`` against ``<ns>/truth`` when the bag
-    has it).
+    has it), and ``count_mismatches`` ([(topic, read, listed)]: the topics of which another
+    number of messages was read than metadata.yaml lists, also named in a warning through
+    ``log``; a damaged storage file that cannot be read on is a ValueError, see
+    bagio.BagReader.messages).
     """
     from collections import Counter
 
@@ -257,6 +476,10 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
                         truth_p.append(bagio.position_of(msg))
 
         epochs = list(replay(core, items()))
+        mismatches = reader.count_mismatches()
+    text = bagio.count_warning(mismatches)
+    if text:
+        log(f'bag process: warning: {text}')
     fixes = [e for e in epochs if e.ok]
     stamps = np.array([e.stamp_ns for e in fixes], dtype=np.int64)
     pos = np.array([e.position for e in fixes]).reshape(-1, 3)
@@ -297,7 +520,8 @@ def process_bag(path, out, params, storage='mcap', namespace='', fix_topic='fix'
                'bad_messages': core.bad_messages + sum(unreadable.values()), 'bad': bad,
                'outliers': core.outliers, 'time_jumps': core.time_jumps,
                'estimator': config.estimator, 'fix_topic': fix_name, 'bag': out,
-               'csv': csv_path, 'errors': None, 'epoch_list': epochs}
+               'csv': csv_path, 'errors': None, 'epoch_list': epochs,
+               'count_mismatches': mismatches}
     if truth is not None:
         summary['errors'] = track_errors(truth, pos, cov)
     return summary

@@ -410,17 +410,92 @@ def _truncated_mcap_problem(path):
     return None
 
 
+def _metadata_error(meta, key, problem):
+    """The one-line ValueError of field ``key`` of metadata file ``meta``."""
+    return ValueError(f'bag: {meta}: {METADATA_KEY}.{key}: {problem}')
+
+
+def _got(value):
+    """``value`` as an error message shows it (at most 80 characters)."""
+    return repr(value) if isinstance(value, str) else str(value)[:80]
+
+
+def _check_int(meta, key, value, what='an integer', minimum=None):
+    """``value`` when it is an integer (not a bool) >= ``minimum``, else the ValueError naming
+    field ``key``."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise _metadata_error(meta, key, 'required key is missing' if value is None
+                              else f'expected {what}, got {_got(value)[:80]}')
+    if minimum is not None and value < minimum:
+        raise _metadata_error(meta, key, f'expected {what} >= {minimum}, got {value}')
+    return value
+
+
+def _check_str(meta, key, value, required=True):
+    """``value`` when it is a string (or absent and not ``required``), else the ValueError
+    naming field ``key``."""
+    if value is None and not required:
+        return value
+    if not isinstance(value, str):
+        raise _metadata_error(meta, key, 'required key is missing' if value is None
+                              else f'expected a string, got {_got(value)}')
+    return value
+
+
+def _check_topics(meta, topics):
+    """Check ``topics_with_message_count``: a list of mappings, each with an integer
+    ``message_count`` >= 0 and a ``topic_metadata`` mapping whose ``name``, ``type`` and
+    ``serialization_format`` are strings (``type_description_hash`` too when given) and
+    whose ``offered_qos_profiles``, when given, are QoS profiles ``rosbags`` reads (a list
+    of mappings, or the quoted YAML string of metadata version <= 8)."""
+    key = 'topics_with_message_count'
+    if not isinstance(topics, list):
+        raise _metadata_error(meta, key, 'required key is missing' if topics is None else
+                              f'expected a list of topics, got {_got(topics)}')
+    for k, entry in enumerate(topics):
+        at = f'{key}[{k}]'
+        if not isinstance(entry, dict):
+            raise _metadata_error(meta, at, f'expected a mapping, got {_got(entry)}')
+        _check_int(meta, f'{at}.message_count', entry.get('message_count'),
+                   'a message count', 0)
+        tm = entry.get('topic_metadata')
+        if not isinstance(tm, dict):
+            raise _metadata_error(meta, f'{at}.topic_metadata', 'required key is missing'
+                                  if tm is None else f'expected a mapping, got {_got(tm)}')
+        for name in ('name', 'type', 'serialization_format'):
+            _check_str(meta, f'{at}.topic_metadata.{name}', tm.get(name))
+        _check_str(meta, f'{at}.topic_metadata.type_description_hash',
+                   tm.get('type_description_hash'), required=False)
+        qos = tm.get('offered_qos_profiles')
+        if qos is not None:
+            from rosbags.rosbag2.metadata import parse_qos
+            try:
+                parse_qos(qos)
+            except Exception:   # rosbags raises what indexing the wrong data raises
+                raise _metadata_error(meta, f'{at}.topic_metadata.offered_qos_profiles',
+                                      f'expected a list of QoS profiles, got {_got(qos)}'
+                                      ) from None
+
+
 def read_metadata(path):
     """Parse ``<path>/metadata.yaml`` and return its ``rosbag2_bagfile_information`` dict.
 
-    Checks what callers index directly: the document is a mapping holding the mapping
-    ``rosbag2_bagfile_information``, whose ``duration.nanoseconds`` is an integer (ns) and
-    whose optional ``relative_file_paths`` is a list of strings. Anything else raises a
-    one-line ValueError ``'bag: <file>: <key>: <problem>'`` (never a YAML or Key error).
+    Checks every field a reader uses, so that a damaged or hand-edited file is named
+    instead of failing later: the document is a mapping holding the mapping
+    ``rosbag2_bagfile_information``, whose ``version`` is an integer within 1 to
+    :data:`BAG_VERSION`, ``storage_identifier`` one of :data:`STORAGES`,
+    ``relative_file_paths`` a non-empty list of file names, ``duration.nanoseconds`` and
+    ``message_count`` integers >= 0, ``starting_time.nanoseconds_since_epoch`` an integer,
+    ``compression_format`` and ``compression_mode`` strings when given, and
+    ``topics_with_message_count`` as :func:`_check_topics` says. Anything else raises a
+    one-line ValueError ``'bag: <file>: rosbag2_bagfile_information.<field>: <problem>'``
+    (never a YAML, Key or Type error). A directory without the file raises ValueError
+    ``'bag: <path> has no metadata.yaml ...'`` (naming the storage files it holds, which
+    ``ros2 bag reindex`` can describe).
     """
     meta = Path(path) / 'metadata.yaml'
     if not meta.is_file():
-        raise ValueError(f'bag: {path} has no metadata.yaml (not a rosbag2 directory?)')
+        raise ValueError(_no_metadata_problem(path))
     doc = read_yaml(meta, f'bag: {meta}', 'metadata')
     if doc is None:
         raise ValueError(f'bag: {meta}: empty file (not rosbag2 metadata)')
@@ -434,24 +509,72 @@ def read_metadata(path):
         raise ValueError(f'bag: {meta}: {METADATA_KEY}: {problem}')
     duration = info.get('duration')
     ns = duration.get('nanoseconds') if isinstance(duration, dict) else None
-    if isinstance(ns, bool) or not isinstance(ns, int):
-        problem = ('required key is missing' if ns is None
-                   else f'expected an integer (ns), got {str(ns)[:80]!r}')
-        raise ValueError(f'bag: {meta}: {METADATA_KEY}.duration.nanoseconds: {problem}')
-    files = info.get('relative_file_paths', [])
+    _check_int(meta, 'duration.nanoseconds', ns, 'an integer (ns)', 0)
+    files = info.get('relative_file_paths')
     if not isinstance(files, list) or not all(isinstance(x, str) for x in files):
-        raise ValueError(f'bag: {meta}: {METADATA_KEY}.relative_file_paths: expected a list '
-                         f'of file names, got {str(files)[:80]}')
+        raise _metadata_error(meta, 'relative_file_paths', 'required key is missing'
+                              if files is None else f'expected a list of file names, got '
+                              f'{_got(files)}')
+    if not files:
+        raise _metadata_error(meta, 'relative_file_paths', 'the list is empty: it names no '
+                              'storage file, so the bag has no message to read')
+    version = _check_int(meta, 'version', info.get('version'), 'an integer', 1)
+    if version > BAG_VERSION:
+        raise _metadata_error(meta, 'version', f'{version} is newer than the metadata '
+                              f'versions this tool reads (1 to {BAG_VERSION})')
+    storage = _check_str(meta, 'storage_identifier', info.get('storage_identifier'))
+    if storage not in STORAGES:
+        raise _metadata_error(meta, 'storage_identifier', f'{storage!r} is not a storage '
+                              f'this tool reads ({", ".join(STORAGES)})')
+    start = info.get('starting_time')
+    _check_int(meta, 'starting_time.nanoseconds_since_epoch',
+               start.get('nanoseconds_since_epoch') if isinstance(start, dict) else None,
+               'an integer (ns)')
+    _check_int(meta, 'message_count', info.get('message_count'), 'a message count', 0)
+    for key in ('compression_format', 'compression_mode'):
+        _check_str(meta, key, info.get(key), required=False)
+    _check_topics(meta, info.get('topics_with_message_count'))
     return info
+
+
+def _storage_files(path):
+    """Names of the storage files (``*.mcap``, ``*.db3``) in directory ``path``, sorted."""
+    try:
+        return sorted(f.name for f in Path(path).iterdir()
+                      if f.suffix in ('.mcap', '.db3') and f.is_file())
+    except OSError:
+        return []
+
+
+def _no_metadata_problem(path):
+    """The error text of a directory ``path`` without metadata.yaml: a truncated MCAP file
+    it holds is named as such (:func:`_truncated_mcap_problem`), other storage files with
+    the way to describe them, else it is no bag."""
+    try:
+        problem = _truncated_mcap_problem(path)
+    except OSError:
+        problem = None
+    if problem:
+        return f'bag: cannot open {path}: {problem}'
+    files = _storage_files(path)
+    if files:
+        return (f'bag: {path} has no metadata.yaml (it holds {", ".join(files)}: in a ROS 2 '
+                f'install, ros2 bag reindex {path} writes the metadata.yaml that describes '
+                'them)')
+    return f'bag: {path} has no metadata.yaml (not a rosbag2 directory?)'
 
 
 class BagReader:
     """Read a rosbag2 bag (either storage, metadata version <= 9) with ``rosbags``.
 
-    ``topics`` maps topic name -> :class:`TopicInfo`; :meth:`messages` yields
-    :class:`BagMessage` in bag-time order (ties in storage order); times are int ns. A
-    malformed directory or ``metadata.yaml`` raises a one-line ValueError starting ``bag:``
-    (:func:`read_metadata`'s checks first).
+    ``topics`` maps topic name -> :class:`TopicInfo` (counts as metadata.yaml lists them);
+    :meth:`messages` yields :class:`BagMessage` in bag-time order (ties in storage order);
+    times are int ns. A malformed directory or ``metadata.yaml`` raises a one-line
+    ValueError starting ``bag:`` (:func:`read_metadata`'s checks first), and so do, when
+    messages are read (:meth:`messages`), a metadata.yaml that describes a topic otherwise
+    than the storage file and a storage file found damaged. After a complete pass,
+    :meth:`count_mismatches` names the topics of which fewer (or more) messages were read
+    than metadata.yaml lists.
     """
 
     def __init__(self, path):
@@ -459,13 +582,18 @@ class BagReader:
         path = Path(path)
         if not path.is_dir():
             raise ValueError(f'bag: {path} is not a directory')
-        if (path / 'metadata.yaml').is_file():
-            read_metadata(path)          # a malformed file: the one-line error naming the key
+        #: The checked ``rosbag2_bagfile_information`` of metadata.yaml (:func:`read_metadata`).
+        self.metadata = read_metadata(path)
+        self.files = [Path(f).name for f in self.metadata['relative_file_paths']]
         try:
             self._reader = Reader(path)
         except Exception as exc:  # rosbags raises ReaderError and friends
             raise self._open_error(path, exc) from None
         self.path = path
+        #: {topic: messages read} of the current or last :meth:`messages` pass.
+        self.read_counts = None
+        self._listed = {}
+        self._complete = False
 
     @staticmethod
     def _open_error(path, exc):
@@ -484,6 +612,49 @@ class BagReader:
         except Exception as exc:
             raise self._open_error(self.path, exc) from None
         return self
+
+    def _check_storage_topics(self, conns):
+        """ValueError naming the first topic of ``conns`` (metadata.yaml's) with messages
+        listed that the storage files do not hold under the same type, serialization
+        format, offered QoS and type hash: ``rosbags`` takes a topic's messages only from a
+        storage connection that matches it in all of these, so they would be silently left
+        out."""
+        storages = getattr(self._reader.storage, 'storages', None)
+        if not storages:        # (not a directory reader: nothing to compare)
+            return
+        stored = [c for st in storages for c in st.connections]
+        files = ', '.join(self.files)
+        for conn in conns:
+            if not conn.msgcount:
+                continue
+            same = [c for c in stored if c.topic == conn.topic]
+            if any(c.msgtype == conn.msgtype and c.ext == conn.ext
+                   and (not c.digest or not conn.digest or c.digest == conn.digest)
+                   for c in same):
+                continue
+            if not same:
+                problem = f'{files} has no topic {conn.topic}'
+            else:
+                c = same[0]
+                for what, mine, theirs in (
+                        ('type', conn.msgtype, c.msgtype),
+                        ('serialization format', conn.ext.serialization_format,
+                         c.ext.serialization_format),
+                        ('offered QoS', conn.ext.offered_qos_profiles,
+                         c.ext.offered_qos_profiles),
+                        ('type hash', conn.digest, c.digest)):
+                    if mine != theirs:
+                        break
+                if what == 'offered QoS':
+                    mine, theirs = ('; '.join(map(_qos_text, q)) or 'none'
+                                    for q in (mine, theirs))
+                problem = (f'topic {conn.topic} has {what} {mine} in metadata.yaml but '
+                           f'{theirs} in {files}')
+            raise ValueError(
+                f'bag: cannot read {self.path}: metadata.yaml does not describe its storage '
+                f'file: {problem}, so its {conn.msgcount} messages cannot be read (a '
+                'damaged or edited bag: correct metadata.yaml, or in a ROS 2 install '
+                'move it away and let ros2 bag reindex write it again)')
 
     def close(self):
         """Close the storage file(s)."""
@@ -523,12 +694,86 @@ class BagReader:
         return int(self._reader.message_count)
 
     def messages(self, topics=None):
-        """Yield BagMessage(topic, msgtype, log_time_ns, raw bytes), optionally filtered."""
+        """Yield BagMessage(topic, msgtype, log_time_ns, raw bytes), optionally filtered.
+
+        Counts the messages of each topic in ``read_counts`` (see :meth:`count_mismatches`).
+        A topic that metadata.yaml describes otherwise than the storage file raises a
+        one-line ValueError before any message (:meth:`_check_storage_topics`). A storage
+        file that cannot be read on (rosbags, struct or sqlite errors on a damaged record)
+        or a message whose time is not an integer raises a one-line ValueError naming the
+        bag, the file and how many messages were read (:meth:`_damaged`).
+        """
         conns = [c for c in self._reader.connections if topics is None or c.topic in topics]
+        self.read_counts = {c.topic: 0 for c in conns}
+        self._complete = False
+        self._listed = {}
+        for c in conns:
+            self._listed[c.topic] = self._listed.get(c.topic, 0) + c.msgcount
         if topics is not None and not conns:
+            self._complete = True
             return
-        for conn, t, raw in self._reader.messages(connections=conns):
-            yield BagMessage(conn.topic, conn.msgtype, int(t), bytes(raw))
+        self._check_storage_topics(conns)
+        source = self._reader.messages(connections=conns)
+        read = self.read_counts
+        while True:
+            try:
+                conn, t, raw = next(source)
+            except StopIteration:
+                break
+            except Exception as exc:  # rosbags, struct, sqlite3... on damaged bytes
+                raise self._damaged(f'{_one_line(exc) or type(exc).__name__}') from None
+            if type(t) is not int:
+                raise self._damaged(f'the time of a {conn.topic} message (sqlite3 column '
+                                    f'messages.timestamp) is {_got(t)}, not an integer (ns)')
+            if not isinstance(raw, (bytes, bytearray, memoryview)):
+                raise self._damaged(f'the data of a {conn.topic} message (sqlite3 column '
+                                    f'messages.data) is {_got(raw)}, not bytes')
+            read[conn.topic] += 1
+            yield BagMessage(conn.topic, conn.msgtype, t, bytes(raw))
+        self._complete = True
+
+    def _damaged(self, reason):
+        """The one-line ValueError of a storage file found damaged while reading messages:
+        the bag, its file(s), the messages read so far, ``reason`` and what can be done."""
+        files = ', '.join(self.files)
+        n = sum(self.read_counts.values()) if self.read_counts else 0
+        if all(f.endswith('.mcap') for f in self.files):
+            name = self.files[0] if len(self.files) == 1 else 'FILE'
+            advice = ('copy the records it holds that are intact into a new file with the mcap '
+                      f'command line tool (mcap recover {name} -o recovered.mcap, then replace '
+                      f'{name} by recovered.mcap), or record again')
+        else:
+            advice = ("copy what is intact into a new database with the sqlite3 command line "
+                      "tool's .recover command, or record again")
+        return ValueError(f'bag: cannot read {self.path}: {files} is damaged: reading stopped '
+                          f'after {n} of the {sum(self._listed.values())} messages '
+                          f'metadata.yaml lists ({reason}); {advice}')
+
+    def count_mismatches(self):
+        """[(topic, read, listed)] of the topics of the last complete :meth:`messages` pass
+        of which another number of messages was read than metadata.yaml lists (a damaged
+        storage file or a metadata.yaml that does not describe it); [] before a complete
+        pass."""
+        if not self._complete:
+            return []
+        return [(t, n, self._listed[t]) for t, n in sorted(self.read_counts.items())
+                if n != self._listed[t]]
+
+
+def count_warning(mismatches):
+    """One line naming the topics of ``mismatches`` (:meth:`BagReader.count_mismatches`)
+    with the messages read and listed, or None when there are none."""
+    if not mismatches:
+        return None
+    return ('messages read differ from the counts metadata.yaml lists (a damaged storage '
+            'file, or a metadata.yaml that does not describe it): '
+            + ', '.join(f'{t} {n} read of {listed} listed' for t, n, listed in mismatches))
+
+
+def _qos_text(q):
+    """A rosbags QoS profile as reliability/durability/history depth (an error message)."""
+    return (f'{q.reliability.name.lower()}, {q.durability.name.lower()}, '
+            f'{q.history.name.lower()} {q.depth}')
 
 
 def station_from_topic(topic, leaf='bearing'):

@@ -246,12 +246,13 @@ def format_qos(q):
 
 
 def run_info(args):
-    """``bag info``: files, duration, start, message count, topics with type/count/QoS."""
+    """``bag info``: files, duration, start, message count, topics with type/count/QoS, as
+    metadata.yaml lists them (no message is read: ``bag process`` and ``bag play`` compare
+    the counts with the messages they read)."""
     from .. import bagio
     _check_bag_dir(args.bag)
-    meta = bagio.read_metadata(args.bag)
     with bagio.BagReader(args.bag) as r:
-        topics = r.topics
+        meta, topics = r.metadata, r.topics
         print(f'Files:             {", ".join(meta.get("relative_file_paths", []))}')
         print(f'Storage id:        {meta.get("storage_identifier")}  '
               f'(metadata version {meta.get("version")})')
@@ -288,7 +289,7 @@ def run_process(args):
     """``bag process``: see bag_process.process_bag."""
     from ..bag_process import fusion_params, process_bag
     _check_bag_dir(args.bag)
-    params = fusion_params(args.params_file, args.param, args.estimator)
+    params = fusion_params(args.params_file, args.param, args.estimator, args.namespace)
     if args.out is not None:
         check_out_parent(args.out)
     from . import gisargs
