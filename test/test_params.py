@@ -275,3 +275,13 @@ def test_run_node_callback_error_is_an_internal_error(capsys):
     assert err.startswith('internal error:') and 'configuration' in err
     assert 'Traceback' in err and 'ValueError: boom in a callback' in err
     assert not err.startswith('error:')
+
+
+def test_a_huge_value_is_echoed_short():
+    """A 5 MB estimator string was echoed whole: one 5 MB error line."""
+    from bearing_loc_ros.bag_process import fusion_params
+    from bearing_loc_ros.cli import InputError
+    for value in ('x' * 5_000_000, '[' + ', '.join(['1.0'] * 100000) + ']'):
+        with pytest.raises(InputError) as e:
+            fusion_params(overrides=[f'estimator={value}'])
+        assert len(str(e.value)) < 300 and 'estimator' in str(e.value)

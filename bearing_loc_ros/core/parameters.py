@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import math
 import sys
 
+from .text import short_repr
+
 BOOL = 'bool'
 INTEGER = 'integer'
 DOUBLE = 'double'
@@ -78,14 +80,14 @@ class Param:
         choices; return the value (an int given for a double becomes a float)."""
         types = PY_TYPES[self.type]
         if isinstance(value, bool) and self.type != BOOL or not isinstance(value, types):
-            raise ValueError(f'{self.name}: expected {self.type}, got {value!r}'[:200])
+            raise ValueError(f'{self.name}: expected {self.type}, got {short_repr(value)}')
         try:
             if self.type == DOUBLE:
                 value = float(value)
             if self.type in (DOUBLE_ARRAY, STRING_ARRAY):
                 item = (float, int) if self.type == DOUBLE_ARRAY else (str,)
                 if not all(isinstance(v, item) and not isinstance(v, bool) for v in value):
-                    raise ValueError(f'{self.name}: expected {self.type}, got {value!r}'[:200])
+                    raise ValueError(f'{self.name}: expected {self.type}, got {short_repr(value)}')
                 value = [float(v) for v in value] if self.type == DOUBLE_ARRAY else list(value)
         except OverflowError:
             raise ValueError(f'{self.name}: {str(value)[:40]} is beyond the float range') \
@@ -109,7 +111,8 @@ class Param:
             if self.max is not None and value > self.max:
                 raise ValueError(f'{self.name}: {value} is above the maximum {self.max}')
         if self.choices and value not in self.choices:
-            raise ValueError(f'{self.name}: {value!r} is not one of {list(self.choices)}')
+            raise ValueError(f'{self.name}: {short_repr(value)} is not one of '
+                             f'{list(self.choices)}')
         return value
 
     def range_text(self):

@@ -13,6 +13,7 @@ from .kraken import channel_map_from_params
 from .receiver import (HEADING_REFERENCES, HEADING_SOURCES, LOW_SPEED_MODES, POSITION_SOURCES,
                        receiver_config, SENSES, SigmaModel)
 from .station import ConfigError
+from .text import short_repr
 
 INPUTS = ('', 'kraken_xml_http', 'kraken_csv_http', 'kraken_json_post', 'kraken_csv_file')
 STAMPS = ('receiver', 'receive')
@@ -169,13 +170,7 @@ def _kind_problem(value, default, name):
             isinstance(v, str) if strings else
             not isinstance(v, bool) and isinstance(v, (int, float)) for v in value)
         kind = 'a list of strings' if strings else 'a list of numbers'
-    return None if ok else f'expected {kind}, got {_short(value)}'
-
-
-def _short(value, limit=60):
-    """repr of ``value`` cut to ``limit`` characters (an error line stays one short line)."""
-    text = repr(value)
-    return text if len(text) <= limit else text[:limit - 3] + '...'
+    return None if ok else f'expected {kind}, got {short_repr(value)}'
 
 
 #: Station node parameters read by :func:`receiver_from_params` besides the ``kraken.*``
@@ -193,7 +188,7 @@ def with_defaults(params):
     for name, value in given.items():
         if name == 'kraken':
             raise ValueError(f'kraken: expected a mapping of receiver parameters, got '
-                             f'{_short(value)}')
+                             f'{short_repr(value)}')
         if name.startswith('kraken.') and name not in DEFAULTS:
             raise ValueError(f'{name}: not a receiver parameter')
         default = DEFAULTS.get(name, STATION_PARAMETERS.get(name))
@@ -207,10 +202,10 @@ def with_defaults(params):
         if isinstance(rule, tuple) and len(rule) == 2 and not isinstance(rule[0], str):
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not \
                     rule[0] <= v <= rule[1]:
-                raise ValueError(f'{name}: {_short(v)} must be a number in [{rule[0]}, '
+                raise ValueError(f'{name}: {short_repr(v)} must be a number in [{rule[0]}, '
                                  f'{rule[1]}]')
         elif isinstance(rule, tuple) and v not in rule:
-            raise ValueError(f'{name}: {_short(v)} is not one of {rule}')
+            raise ValueError(f'{name}: {short_repr(v)} is not one of {rule}')
     return p
 
 

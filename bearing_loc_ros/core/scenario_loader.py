@@ -8,7 +8,6 @@ and every key are described in docs/nodes.md, section "Scenario YAML". Re-export
 import math
 import os
 import re
-import reprlib
 
 import numpy as np
 
@@ -19,6 +18,7 @@ from .yaml_file import read_yaml
 from .scenario_model import (DEFAULT_EPOCH, DEFAULT_FRAME, DEFAULT_TRUTH_RATE, Scenario,
                              SIGMA_REPORTS, SigmaGrowth, Station, Target, TARGET_KINDS,
                              Trajectory)
+from .text import short_repr
 
 _NAME_RE = re.compile(r'^[A-Za-z_][A-Za-z0-9_]*$')
 
@@ -85,18 +85,6 @@ class _Src:
         return ValueError(f'{self.source}: {key}: {problem}')
 
 
-_REPR = reprlib.Repr()
-_REPR.maxstring = _REPR.maxother = 60
-_REPR.maxlist = _REPR.maxdict = 6
-_REPR.maxlevel = 2
-
-
-def _short(value):
-    """A short repr of ``value`` for an error line, built without the whole repr (a value of
-    millions of items, from YAML aliases, would make a line of megabytes)."""
-    return _REPR.repr(value)
-
-
 def _mapping(src, value, key, allowed):
     if not isinstance(value, dict):
         raise src.error(key or 'scenario', f'expected a mapping, got {type(value).__name__}')
@@ -117,7 +105,7 @@ def _float(src, d, key, where, default=None, lo=None, hi=None, lo_open=False,
         return default
     v = d[key]
     if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise src.error(f'{where}{key}', f'expected a number, got {_short(v)}')
+        raise src.error(f'{where}{key}', f'expected a number, got {short_repr(v)}')
     try:
         v = float(v)
     except OverflowError:        # an integer beyond the float range
@@ -172,7 +160,7 @@ def _vec(src, value, key, n=3, max_norm=MAX_POSITION, unit=' m'):
     ``max_norm`` (``unit``; default: a position within MAX_POSITION m of the origin)."""
     if (not isinstance(value, (list, tuple)) or len(value) != n
             or any(isinstance(x, bool) or not isinstance(x, (int, float)) for x in value)):
-        raise src.error(key, f'expected a list of {n} numbers, got {_short(value)}')
+        raise src.error(key, f'expected a list of {n} numbers, got {short_repr(value)}')
     try:
         v = np.array(value, dtype=float)
     except OverflowError:        # an integer beyond the float range
@@ -286,10 +274,10 @@ def _station(src, raw, k, defaults, origin):
     sid = d.get('id')
     if not isinstance(sid, str) or not _NAME_RE.match(sid):
         raise src.error(f'{where}id', f'expected a ROS name token ([A-Za-z_][A-Za-z0-9_]*), '
-                        f'got {_short(sid)}')
+                        f'got {short_repr(sid)}')
     dims = d.get('dims', 2)
     if dims not in (1, 2) or isinstance(dims, bool):
-        raise src.error(f'{where}dims', f'must be 1 (azimuth only) or 2 (got {_short(dims)})')
+        raise src.error(f'{where}dims', f'must be 1 (azimuth only) or 2 (got {short_repr(dims)})')
     sigma_az = _angle(src, d, 'sigma_az', where, 0.01, bounds=SIGMA_RANGE)
     sigma_el = (_angle(src, d, 'sigma_el', where, sigma_az, bounds=SIGMA_RANGE) if dims == 2
                 else math.nan)
@@ -300,7 +288,7 @@ def _station(src, raw, k, defaults, origin):
         report = g.get('report', 'nominal')
         if report not in SIGMA_REPORTS:
             raise src.error(f'{gw}.report',
-                            f'must be one of {SIGMA_REPORTS} (got {_short(report)})')
+                            f'must be one of {SIGMA_REPORTS} (got {short_repr(report)})')
         fmin = _float(src, g, 'min_factor', f'{gw}.', 1e-3, lo=0.0, lo_open=True)
         fmax = _float(src, g, 'max_factor', f'{gw}.', math.inf, lo=fmin)
         floor = fmin * max(sigma_az, sigma_el if dims == 2 else 0.0)
@@ -348,10 +336,10 @@ def _namespace(src, value, key):
     if value is None:
         return ''
     if not isinstance(value, str):
-        raise src.error(key, f'expected a string, got {_short(value)}')
+        raise src.error(key, f'expected a string, got {short_repr(value)}')
     ns = value.strip('/')
     if ns and not all(_NAME_RE.match(p) for p in ns.split('/')):
-        raise src.error(key, f'not a valid ROS namespace: {_short(value)}')
+        raise src.error(key, f'not a valid ROS namespace: {short_repr(value)}')
     return ns
 
 
@@ -362,11 +350,11 @@ def _targets(src, raw, k, origin):
     ns = _namespace(src, raw.get('namespace', ''), f'{where}namespace')
     kind = raw.get('kind')
     if kind is not None and kind not in TARGET_KINDS:
-        raise src.error(f'{where}kind', f'must be one of {TARGET_KINDS} (got {_short(kind)})')
+        raise src.error(f'{where}kind', f'must be one of {TARGET_KINDS} (got {short_repr(kind)})')
     count = raw.get('count', 1)
     if isinstance(count, bool) or not isinstance(count, int) or not 1 <= count <= MAX_COUNT:
         raise src.error(f'{where}count',
-                        f'must be an integer in [1, {MAX_COUNT:g}] (got {_short(count)})')
+                        f'must be an integer in [1, {MAX_COUNT:g}] (got {short_repr(count)})')
     if kind == 'random_static' or ('box_min' in raw or 'box_max' in raw):
         if kind not in (None, 'random_static'):
             raise src.error(f'{where}box_min', 'only allowed with kind random_static')
@@ -384,7 +372,7 @@ def _targets(src, raw, k, origin):
         raise src.error(f'{where}count', 'only allowed for random_static targets')
     traj = _motion(src, raw, where, origin)
     if kind is not None and kind != traj.kind:
-        raise src.error(f'{where}kind', f'{_short(kind)} does not match the motion keys given '
+        raise src.error(f'{where}kind', f'{short_repr(kind)} does not match the motion keys given '
                         f'(they describe a {traj.kind} target)')
     return [Target(ns, traj.kind, traj)]
 
@@ -403,13 +391,13 @@ def parse_scenario(data, source='<dict>'):
     description = data.get('description', '')
     for key, v in (('name', name), ('description', description)):
         if not isinstance(v, str):
-            raise src.error(key, f'expected a string, got {_short(v)}')
+            raise src.error(key, f'expected a string, got {short_repr(v)}')
     frame_id = data.get('frame_id', DEFAULT_FRAME)
     try:
         check_frame_id(frame_id if isinstance(frame_id, str) else None)
     except ValueError:                  # the fusion node refuses the same names
         raise src.error('frame_id', f'expected a non-empty name without spaces, got '
-                                    f'{_short(frame_id)}') from None
+                                    f'{short_repr(frame_id)}') from None
     duration = _within(src, 'duration', _float(src, data, 'duration', '', lo=0.0, lo_open=True,
                                                required=True), (0.0, MAX_TIME), ' s')
     epoch = _bounded(src, data, 'epoch', '', DEFAULT_EPOCH, (0.0, MAX_EPOCH), ' s')
@@ -431,7 +419,7 @@ def parse_scenario(data, source='<dict>'):
     seen = set()
     for k, s in enumerate(stations):
         if s.id in seen:
-            raise src.error(f'stations[{k}].id', f'duplicate station id {_short(s.id)}')
+            raise src.error(f'stations[{k}].id', f'duplicate station id {short_repr(s.id)}')
         seen.add(s.id)
         if epoch + s.clock_offset < 0:
             raise src.error(f'stations[{k}].clock_offset',
@@ -444,7 +432,7 @@ def parse_scenario(data, source='<dict>'):
     seen = set()
     for t in targets:
         if t.namespace in seen:
-            raise src.error('targets', f'duplicate target namespace {_short(t.namespace)}')
+            raise src.error('targets', f'duplicate target namespace {short_repr(t.namespace)}')
         seen.add(t.namespace)
     n_truth = truth_rate * duration * len(targets)
     if n_truth > MAX_TRUTH_SAMPLES:
