@@ -114,6 +114,8 @@ class SimulatorNode(Node):
             f'{len(self.sim.targets)} targets, {self.sim.duration:g} s, seed {seed}, '
             f'{len(self.sim.bearings)} bearings, time_scale {self._time_scale:g}, '
             f'start within {self._start_delay:g} s')
+        if self.sim.unobserved():
+            self.get_logger().warning(self.sim.unobserved_note())
 
     # ----------------------------------------------------------------------------------------
     def sim_time_ns(self, wall_ns=None):

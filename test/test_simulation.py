@@ -420,6 +420,11 @@ def test_a_target_on_a_station_or_above_it_is_not_observed(tmp_path):
     seen = {(e.bearing.station, e.namespace) for e in sim.bearings}
     assert not any(s == first for s, _ in seen)
     assert {n for s, n in seen} == {'on', 'above'}       # the other stations see both
+    # ... and the run says so (bag simulate prints it, the simulator node logs it)
+    scheduled = len(sim.stream(first, 'on').t) + len(sim.stream(first, 'above').t)
+    assert sim.unobserved() == {first: scheduled}
+    assert sim.unobserved_note().endswith(f'no azimuth): {first} {scheduled}')
+    assert simulate(load_scenario(os.path.join(SCEN, 'static3.yaml'))).unobserved_note() == ''
 
 
 def test_bad_yaml_syntax_and_missing_file(tmp_path):

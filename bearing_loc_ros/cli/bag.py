@@ -193,7 +193,8 @@ def simulate_bag(scenario, out, duration=None, seed=0, storage='mcap', clock_rat
                 msg = bagio.clock_message(t)
             bag.write(topic, t, msg)
     return {'bearings': len(sim.bearings), 'truth': len(sim.truth), 'clock': n_clock,
-            'start_ns': scenario.epoch_ns, 'end_ns': sim.end_ns, 'duration': sim.duration}
+            'start_ns': scenario.epoch_ns, 'end_ns': sim.end_ns, 'duration': sim.duration,
+            'unobserved': sim.unobserved_note()}
 
 
 def check_out_parent(out):
@@ -226,6 +227,8 @@ def run_simulate(args):
     dt = time.perf_counter() - t0
     print(f'wrote {args.out} ({args.storage}): {s["bearings"]} bearings, {s["truth"]} truth, '
           f'{s["clock"]} clock messages, {s["duration"]:g} s simulated in {dt:.2f} s wall')
+    if s['unobserved']:
+        print(f'note: {s["unobserved"]}')
     return 0
 
 

@@ -179,6 +179,26 @@ class Simulation:
     truth: list = field(default_factory=list)
     end_ns: int = 0
 
+    def unobserved(self):
+        """{station id: scheduled observations not made because the target was on the
+        station or straight above it (horizontal range <= MIN_HORIZONTAL_RANGE: no azimuth)},
+        the stations with any."""
+        out = {}
+        for s in self.streams:
+            d = s.truth[:, :2] - s.station_position[:, :2]
+            n = int(np.count_nonzero(np.hypot(d[:, 0], d[:, 1]) <= MIN_HORIZONTAL_RANGE))
+            if n:
+                out[s.station] = out.get(s.station, 0) + n
+        return out
+
+    def unobserved_note(self):
+        """One sentence naming :meth:`unobserved`'s counts, or '' when there are none."""
+        counts = self.unobserved()
+        if not counts:
+            return ''
+        return ('not observed (target on or straight above the station, no azimuth): '
+                + ', '.join(f'{st} {n}' for st, n in counts.items()))
+
     def stream(self, station_id, namespace=''):
         """The :class:`Stream` of ``station_id`` observing the target ``namespace``."""
         for s in self.streams:
