@@ -234,7 +234,9 @@ class FusionNode(Node):
             self.core.settle()
         if self.core.has_events:
             self._log_events()
-        if self.map_pub is not None and self.core.geometry_version != self._geometry_seen:
+        if self.map_pub is not None and (self.core.geometry_version != self._geometry_seen
+                                         or self.accuracy_map.pending):
+            # pending: stations moved while a recomputation was not due; retried each tick.
             self._geometry_seen = self.core.geometry_version
             self.outputs.publish_accuracy_map(self.core.geometry(), now)
 

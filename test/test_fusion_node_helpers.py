@@ -55,7 +55,9 @@ def test_accuracy_map_recomputations_for_moving_stations_are_spaced():
     geo = {'a': (np.zeros(3), 0.01, 0.01), 'b': (np.array([1000.0, 0, 0]), 0.01, 0.01)}
     assert m.update(geo, 0.0) is not None
     moved = dict(geo, b=(np.array([101000.0, 0, 0]), 0.01, 0.01))
-    assert m.update(moved, 0.5) is None                          # due at >= 1 s
+    assert m.update(moved, 0.5) is None and m.pending            # due at >= 1 s: pending
+    assert m.update(moved, 1.5) is not None and not m.pending    # the same geometry, later
+    m.update(geo, 10.0)
     assert m.update(dict(moved, c=geo['a']), 0.6) is not None    # a new set at once
     due = m._next_move_s
     assert due >= 0.6 + display.MIN_MOVE_INTERVAL_S

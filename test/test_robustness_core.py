@@ -178,6 +178,20 @@ def test_before_ros_time_starts_one_stations_future_stamps_do_not_become_now():
     assert core.time_jumps <= 1                     # at most the very first cycle's
     assert core.dropped['from_future'] >= 19
     assert core.station_stats('s1').accepted == core.station_stats('s3').accepted == 20
+    # a station that falls silent does not hold "now" back for the others: at most the
+    # bearings until it leaves the median are dropped
+    from bearing_loc_ros.core.fusion.stations import RECENT_ARRIVALS_PER_STATION
+    for st_silent in (['s2'], ['s2', 's3']):
+        core = FusionCore(FusionConfig(estimator='mle'), stations=['s1', 's2', 's3'])
+        t = 100 * S
+        for k in range(50):
+            t += S // 5
+            for st in ('s1', 's2', 's3'):
+                if k < 5 or st not in st_silent:
+                    core.add_bearing(good_bearing(st, t), None)
+        s1 = core.station_stats('s1')
+        assert s1.accepted >= 50 - 3 * RECENT_ARRIVALS_PER_STATION, core.dropped
+        assert s1.last_stamp_ns == t                     # and the last ones are accepted
     # alone, a station's stamp is the clock, as before
     one = FusionCore(FusionConfig(estimator='mle'), stations=['s1'])
     assert one.registry.stand_in_now(good_bearing('s1', 5 * day)) == 5 * day

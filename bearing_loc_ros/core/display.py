@@ -239,8 +239,8 @@ class AccuracyMap:
     of live stations changed or, with two or more, one moved more than ``move_threshold``,
     else None. Given the steady time ``now_s`` of the call, a recomputation for moved stations
     waits until max(:data:`MIN_MOVE_INTERVAL_S`, :data:`MOVE_COST_FACTOR` × the last map's
-    compute time) after the last map (a later call computes it); a new station set is
-    computed at once. Cell value
+    compute time) after the last map (``pending`` is then True, and a later call computes
+    it); a new station set is computed at once. Cell value
     = error_to_occupancy(ε) of ε = sqrt(trace P) per cell (core.planning.occupancy_error_map,
     the CRLB or the CTLS first-order error of Wang, Zhang & Wu eqs. (30)-(32)). No live
     station: every cell −1 (unknown) on the last grid. ValueError from the planning core
@@ -254,6 +254,9 @@ class AccuracyMap:
         self.stations = []        # live station names of the last map
         self._key = None          # (station names, positions) of the last map
         self._next_move_s = -np.inf  # steady time from which moved stations recompute it
+        #: True while stations have moved but their recomputation is not due yet: call
+        #: :meth:`update` again (from a later tick) even if the geometry does not change.
+        self.pending = False
 
     def _changed(self, names, positions, now_s):
         if self._key is None:
@@ -261,14 +264,16 @@ class AccuracyMap:
         old_names, old_pos = self._key
         if names != old_names:
             return True
-        if len(names) < 2 or now_s < self._next_move_s:
+        if len(names) < 2:
             # No station, or one: every cell is unobservable whatever its position, so a
             # single moving station (a DF car) does not recompute the map as it drives.
             return False
         thr = self.config.move_threshold
         if thr <= 0.0 and self.grid is not None:
             thr = self.grid.resolution
-        return bool(np.max(np.linalg.norm(positions - old_pos, axis=1)) > thr)
+        moved = bool(np.max(np.linalg.norm(positions - old_pos, axis=1)) > thr)
+        self.pending = moved and now_s < self._next_move_s
+        return moved and not self.pending
 
     def update(self, geometry, now_s=None):
         """(grid, data) of a new map, or None when nothing changed or a recomputation for
@@ -296,6 +301,7 @@ class AccuracyMap:
             return None
         self._key = (names, positions)
         self.grid, self.last, self.stations = grid, om, names
+        self.pending = False
         cost = time.monotonic() - start
         self._next_move_s = now_s + cost + max(MIN_MOVE_INTERVAL_S, MOVE_COST_FACTOR * cost)
         return grid, data

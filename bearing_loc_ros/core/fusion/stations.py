@@ -68,6 +68,9 @@ FUTURE_RECOVERY = 3
 #: A station position may move max_station_speed × the time since its last accepted
 #: bearing plus this many metres, plus 3 × the RMS of its stated position σ (GPS noise).
 POSITION_JUMP_SLACK_M = 10.0
+#: stand_in_now counts a station's stamp while it sent a bearing among the last this many
+#: × (stations) bearings to reach the arrival checks.
+RECENT_ARRIVALS_PER_STATION = 4
 #: Consecutive dropped bearings at one new position (within the same allowance of each
 #: other) after which the station is taken to have moved there (a relocated station).
 RELOCATION_RUN = 3
@@ -103,6 +106,8 @@ class StationStats:
     _future_run: int = 0
     _stray_warning: bool = False  # clock_warning is about one stray stamp, not the clock
     anchor: tuple = None         # ((x, y, z), stamp ns) of the last accepted bearing
+    seen_stamp_ns: int = None    # stamp of its newest bearing to reach the arrival checks
+    seen_at: int = 0             # the registry's arrival count then (stand_in_now)
     _relocation: tuple = None    # ((x, y, z), stamp ns, count) of dropped far positions
 
     def clock_offset_s(self):
@@ -217,6 +222,7 @@ class StationRegistry:
         self.bad_messages = 0
         self.dropped = Counter()
         self.time_jumps = 0
+        self._arrivals = 0               # bearings that reached the arrival checks
         self.geometry_version = 0
         self._on_time_jump = on_time_jump
         self._next_check_ns = None    # earliest now at which a station state may change
@@ -367,14 +373,20 @@ class StationRegistry:
 
     def stand_in_now(self, bearing):
         """A stand-in for the node clock while ROS time has not started (simulated time
-        before the first /clock), ns: the lower median of this bearing's stamp and the newest
-        accepted stamp of every other station. One station's stamp alone (the bearing's own,
-        as before) let a stamp a day ahead become "now", so the next honest bearing looked
-        like the clock jumping back and cleared every buffer, every cycle; the median of the
-        stations' stamps drops it as ``from_future`` instead. With one station it is the
-        bearing's stamp."""
-        stamps = [st.last_stamp_ns for name, st in self._stats.items()
-                  if st.last_stamp_ns is not None and name != bearing.station]
+        before the first /clock), ns: the lower median of this bearing's stamp and the
+        newest stamp that reached the arrival checks from every other station that sent one
+        among the last :data:`RECENT_ARRIVALS_PER_STATION` × (stations) such bearings. One
+        station's stamp alone (the bearing's own, as before) let a stamp a day ahead become
+        "now", so the next honest bearing looked like the clock jumping back and cleared
+        every buffer, every cycle; among the stations' stamps a minority far ahead is
+        outvoted and dropped as ``from_future``. A station that went silent leaves the
+        median after that many bearings of the others, so it cannot hold "now" back. With
+        one station it is the bearing's stamp.
+        """
+        recent = self._arrivals - RECENT_ARRIVALS_PER_STATION * max(len(self._stats), 1)
+        stamps = [st.seen_stamp_ns for name, st in self._stats.items()
+                  if st.seen_stamp_ns is not None and name != bearing.station
+                  and st.seen_at > recent]
         stamps.append(int(bearing.stamp_ns))
         stamps.sort()
         return stamps[(len(stamps) - 1) // 2]
@@ -411,6 +423,8 @@ class StationRegistry:
             return False
         stamp = int(bearing.stamp_ns)
         st.offsets.append(stamp - now)
+        self._arrivals += 1
+        st.seen_stamp_ns, st.seen_at = stamp, self._arrivals
         buf = self._buffers[bearing.station]
         reason = buf.classify(stamp)
         if reason == OUT_OF_ORDER and stamp <= now and buf.newest_stamp_ns > now:
@@ -582,7 +596,7 @@ class StationRegistry:
             buf.clear()
         for st in self._stats.values():
             st.last_stamp_ns = None
-            st.anchor = st._relocation = None
+            st.anchor = st._relocation = st.seen_stamp_ns = None
             st.state = WAITING
             st.since_ns = now
         self.last_epoch_ns = None
