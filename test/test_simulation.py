@@ -425,6 +425,10 @@ def test_a_target_on_a_station_or_above_it_is_not_observed(tmp_path):
     assert sim.unobserved() == {first: scheduled}
     assert sim.unobserved_note().endswith(f'no azimuth): {first} {scheduled}')
     assert simulate(load_scenario(os.path.join(SCEN, 'static3.yaml'))).unobserved_note() == ''
+    # with a survey error the published position is off, the true one still under the target
+    d['stations'][0]['position_sigma'] = 1.0
+    path.write_text(yaml.safe_dump(d))
+    assert simulate(load_scenario(path), seed=1).unobserved() == {first: scheduled}
 
 
 def test_bad_yaml_syntax_and_missing_file(tmp_path):

@@ -131,7 +131,9 @@ class Stream:
     station_position (K, 3) published (surveyed) position m; truth (K, 3) m; range_ (K,) m;
     azimuth_true, elevation_true (K,) rad; azimuth, elevation (K,) rad (elevation NaN for 1D);
     sigma_az_actual, sigma_el_actual (K,) rad (σ used for the noise); sigma_az, sigma_el (K,)
-    rad (σ reported in the message); kept, outlier (K,) bool.
+    rad (σ reported in the message); kept, outlier (K,) bool; no_azimuth (K,) bool: the
+    target on the station or straight above it (not observed, whatever ``kept`` says of
+    dropouts).
     """
 
     station: str
@@ -153,6 +155,7 @@ class Stream:
     sigma_el: np.ndarray
     kept: np.ndarray
     outlier: np.ndarray
+    no_azimuth: np.ndarray = None
 
 
 @dataclass
@@ -185,8 +188,7 @@ class Simulation:
         the stations with any."""
         out = {}
         for s in self.streams:
-            d = s.truth[:, :2] - s.station_position[:, :2]
-            n = int(np.count_nonzero(np.hypot(d[:, 0], d[:, 1]) <= MIN_HORIZONTAL_RANGE))
+            n = int(np.count_nonzero(s.no_azimuth))
             if n:
                 out[s.station] = out.get(s.station, 0) + n
         return out
@@ -305,7 +307,8 @@ def _simulate_stream(scenario, station, i, target, j, duration, seed, survey):
     kept = ~(ndtr(z[:, _C_DROP]) < station.dropout)
     # A target on the station or straight above it has no azimuth: nothing is observed
     # (atan2(0, 0) = 0 would publish "due East" as a precise bearing).
-    kept &= np.hypot(d[:, 0], d[:, 1]) > MIN_HORIZONTAL_RANGE
+    no_azimuth = np.hypot(d[:, 0], d[:, 1]) <= MIN_HORIZONTAL_RANGE
+    kept &= ~no_azimuth
     clock_err = (station.clock_offset + station.clock_drift * t
                  + station.clock_jitter * z[:, _C_CLOCK])
     true_ns = scenario.epoch_ns + t_ns
@@ -314,7 +317,7 @@ def _simulate_stream(scenario, station, i, target, j, duration, seed, survey):
     publish_ns = true_ns + np.round(delay * NS_PER_S).astype(np.int64)
     return Stream(station.id, target.namespace, t, true_ns, stamp_ns, publish_ns, pos, truth,
                   rng_, az0, el0, np.atleast_1d(az), el, saz_act, sel_act, saz_rep, sel_rep,
-                  kept, outlier)
+                  kept, outlier, no_azimuth)
 
 
 def check_duration(scenario, duration=None):
