@@ -353,7 +353,12 @@ class _Server(ThreadingHTTPServer):
                       f'(counted as connections_refused)')
             self.shutdown_request(request)
             return
-        super().process_request(request, client_address)
+        try:
+            super().process_request(request, client_address)
+        except BaseException:       # no thread (e.g. the thread limit): the slot is free
+            with self._open_lock:
+                self._open.pop(request, None)
+            raise
 
     def process_request_thread(self, request, client_address):
         try:

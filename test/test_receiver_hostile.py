@@ -9,6 +9,7 @@ with a generous deadline.
 
 import inspect
 import os
+import select
 import socket
 import struct
 import threading
@@ -264,19 +265,41 @@ def test_post_connections_are_capped_and_a_trickling_client_is_cut(monkeypatch):
             c.close()
         assert wait_for(lambda: not srv._httpd._open)
         with socket.create_connection(('127.0.0.1', srv.port), timeout=5.0) as slow:
-            start = time.monotonic()
+            slow.setblocking(False)
+            sent = 0
             with pytest.raises(OSError):
                 for byte in b'POST / HTTP/1.1\r\nX-Padding: ' + b'x' * 100:
-                    slow.sendall(bytes([byte]))                 # within the read timeout
-                    time.sleep(0.05)
-                    if slow.recv(1, socket.MSG_DONTWAIT | socket.MSG_PEEK) == b'':
+                    slow.sendall(bytes([byte]))           # a byte every 0.05 s: within the
+                    sent += 1                             # 5 s read timeout, never idle
+                    if select.select([slow], [], [], 0.05)[0] and slow.recv(1) == b'':
                         raise ConnectionResetError('closed by the server')
-            assert time.monotonic() - start < 5.0               # cut near the deadline
+            assert sent < 117                             # cut before it was done
         assert wait_for(lambda: srv.snapshot()[2].get('slow_clients') == 1), srv.snapshot()
         assert raw_post(srv.port, b'Content-Length: %d\r\n' % len(GOOD_JSON), GOOD_JSON) == \
             b'HTTP/1.0 200 OK'                                  # still serving
         assert any('connections_refused' in line for line in srv.logged)
         assert any('slow_clients' in line for line in srv.logged)
+    finally:
+        srv.stop()
+
+
+def test_a_connection_whose_thread_cannot_start_frees_its_slot(monkeypatch):
+    """The slot was taken before the thread started: a failed start (the thread limit) kept
+    it for ever, and after max_connections such failures every client was refused."""
+    import socketserver
+    srv = ri.JsonPostServer('127.0.0.1', 0, max_connections=1).start()
+    srv.log = lambda text: None
+    try:
+        def no_thread(self, request, client_address):
+            raise RuntimeError("can't start new thread")
+        with monkeypatch.context() as m:
+            m.setattr(socketserver.ThreadingMixIn, 'process_request', no_thread)
+            with socket.create_connection(('127.0.0.1', srv.port), timeout=5.0) as c:
+                assert c.recv(10) == b''                    # dropped, and counted
+            assert wait_for(lambda: srv.snapshot()[2].get('request_errors') == 1)
+        assert not srv._httpd._open
+        assert raw_post(srv.port, b'Content-Length: %d\r\n' % len(GOOD_JSON), GOOD_JSON) == \
+            b'HTTP/1.0 200 OK'
     finally:
         srv.stop()
 
