@@ -39,6 +39,7 @@ import numpy as np
 
 from .core.conventions import (bearing_covariance6, IDX_AZ_VAR, IDX_EL_VAR,  # noqa: F401
                                NO_ELEVATION_VARIANCE, quaternion_from_azel)
+from .core.text import short_repr
 from .core.yaml_file import read_yaml
 
 #: rosbag2 metadata version written (Jazzy, rosbag2 0.26.x, see module docstring).
@@ -415,17 +416,12 @@ def _metadata_error(meta, key, problem):
     return ValueError(f'bag: {meta}: {METADATA_KEY}.{key}: {problem}')
 
 
-def _got(value):
-    """``value`` as an error message shows it (at most 80 characters)."""
-    return repr(value) if isinstance(value, str) else str(value)[:80]
-
-
 def _check_int(meta, key, value, what='an integer', minimum=None):
     """``value`` when it is an integer (not a bool) >= ``minimum``, else the ValueError naming
     field ``key``."""
     if isinstance(value, bool) or not isinstance(value, int):
         raise _metadata_error(meta, key, 'required key is missing' if value is None
-                              else f'expected {what}, got {_got(value)[:80]}')
+                              else f'expected {what}, got {short_repr(value)}')
     if minimum is not None and value < minimum:
         raise _metadata_error(meta, key, f'expected {what} >= {minimum}, got {value}')
     return value
@@ -438,7 +434,7 @@ def _check_str(meta, key, value, required=True):
         return value
     if not isinstance(value, str):
         raise _metadata_error(meta, key, 'required key is missing' if value is None
-                              else f'expected a string, got {_got(value)}')
+                              else f'expected a string, got {short_repr(value)}')
     return value
 
 
@@ -451,17 +447,17 @@ def _check_topics(meta, topics):
     key = 'topics_with_message_count'
     if not isinstance(topics, list):
         raise _metadata_error(meta, key, 'required key is missing' if topics is None else
-                              f'expected a list of topics, got {_got(topics)}')
+                              f'expected a list of topics, got {short_repr(topics)}')
     for k, entry in enumerate(topics):
         at = f'{key}[{k}]'
         if not isinstance(entry, dict):
-            raise _metadata_error(meta, at, f'expected a mapping, got {_got(entry)}')
+            raise _metadata_error(meta, at, f'expected a mapping, got {short_repr(entry)}')
         _check_int(meta, f'{at}.message_count', entry.get('message_count'),
                    'a message count', 0)
         tm = entry.get('topic_metadata')
         if not isinstance(tm, dict):
             raise _metadata_error(meta, f'{at}.topic_metadata', 'required key is missing'
-                                  if tm is None else f'expected a mapping, got {_got(tm)}')
+                                  if tm is None else f'expected a mapping, got {short_repr(tm)}')
         for name in ('name', 'type', 'serialization_format'):
             _check_str(meta, f'{at}.topic_metadata.{name}', tm.get(name))
         _check_str(meta, f'{at}.topic_metadata.type_description_hash',
@@ -473,7 +469,7 @@ def _check_topics(meta, topics):
                 parse_qos(qos)
             except Exception:   # rosbags raises what indexing the wrong data raises
                 raise _metadata_error(meta, f'{at}.topic_metadata.offered_qos_profiles',
-                                      f'expected a list of QoS profiles, got {_got(qos)}'
+                                      f'expected a list of QoS profiles, got {short_repr(qos)}'
                                       ) from None
 
 
@@ -514,7 +510,7 @@ def read_metadata(path):
     if not isinstance(files, list) or not all(isinstance(x, str) for x in files):
         raise _metadata_error(meta, 'relative_file_paths', 'required key is missing'
                               if files is None else f'expected a list of file names, got '
-                              f'{_got(files)}')
+                              f'{short_repr(files)}')
     if not files:
         raise _metadata_error(meta, 'relative_file_paths', 'the list is empty: it names no '
                               'storage file, so the bag has no message to read')
@@ -724,10 +720,10 @@ class BagReader:
                 raise self._damaged(f'{_one_line(exc) or type(exc).__name__}') from None
             if type(t) is not int:
                 raise self._damaged(f'the time of a {conn.topic} message (sqlite3 column '
-                                    f'messages.timestamp) is {_got(t)}, not an integer (ns)')
+                                    f'messages.timestamp) is {short_repr(t)}, not an integer (ns)')
             if not isinstance(raw, (bytes, bytearray, memoryview)):
                 raise self._damaged(f'the data of a {conn.topic} message (sqlite3 column '
-                                    f'messages.data) is {_got(raw)}, not bytes')
+                                    f'messages.data) is {short_repr(raw)}, not bytes')
             read[conn.topic] += 1
             yield BagMessage(conn.topic, conn.msgtype, t, bytes(raw))
         self._complete = True

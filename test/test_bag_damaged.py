@@ -306,7 +306,7 @@ def test_a_directory_without_metadata_is_named_alike_by_every_verb(bags, tmp_pat
 # ------------------------------------------------------------ --params-file as rclpy reads it
 
 PARAMS_FILES = {
-    # the reviewer's cases, each checked against a live node
+    # files that a live node reads otherwise than the first-entry rule did
     'wildcard_then_node': '/**:\n  ros__parameters:\n    use_sim_time: true\n'
                           'fusion:\n  ros__parameters:\n    estimator: wmle\n'
                           '    trigger: timer\n',
@@ -400,7 +400,7 @@ def test_params_file_rcl_refuses_is_refused(tmp_path, name):
         fusion_file_parameters(path, '')
 
 
-def test_bag_process_runs_the_params_file_of_the_reviewed_cases(bags, tmp_path, capsys):
+def test_bag_process_runs_what_the_node_takes_from_a_params_file(bags, tmp_path, capsys):
     """The settings `bag process --params-file` runs with: what a live node ran."""
     expect = {'wildcard_then_node': ('wmle', 'timer'), 'node_twice': ('wmle', 'timer'),
               'other_node_only': ('mle', 'event'), 'station_first': ('wmle', 'event')}
