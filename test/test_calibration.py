@@ -133,13 +133,13 @@ def test_calibrate_checks_the_transmitter(run, tmp_path, capsys):
 
 
 @pytest.mark.parametrize('edit, message', [
-    ({'position': 5.0}, 'position: expected double_array, got 5.0'),
-    ({'position_covariance': True}, 'position_covariance: expected double_array'),
-    ({'geodetic_origin': 'munich'}, 'geodetic_origin: expected double_array'),
+    ({'position': 5.0}, 'position: expected a list of numbers, got 5.0'),
+    ({'position_covariance': True}, 'position_covariance: expected a list of numbers'),
+    ({'geodetic_origin': 'munich'}, 'geodetic_origin: expected a list of numbers'),
     ({'kraken': 5}, 'kraken: expected a mapping of receiver parameters, got 5'),
     ({'kraken': {'heading_offset_deg': 'north'}},
-     'kraken.heading_offset_deg: expected double'),
-    ({'kraken': {'post_port': 8082.5}}, 'kraken.post_port: expected integer'),
+     'kraken.heading_offset_deg: expected a number'),
+    ({'kraken': {'post_port': 8082.5}}, 'kraken.post_port: expected an integer'),
 ])
 def test_calibrate_names_a_parameter_of_the_wrong_type(run, tmp_path, capsys, edit, message):
     """A scalar where a list belongs made calibrate and bag import end in a TypeError

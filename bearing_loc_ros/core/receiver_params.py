@@ -151,28 +151,61 @@ def nest(params):
     return out
 
 
-#: Station node parameters read by :func:`receiver_from_params` besides the receiver ones.
-STATION_FIELDS = ('frame_id', 'position', 'geodetic_position', 'geodetic_origin',
-                  'position_covariance')
+def _kind_problem(value, default, name):
+    """Why ``value`` cannot be parameter ``name`` of ``default``'s ROS type (a node refuses
+    a value of another type at start-up), or None. An integer is a double's value too."""
+    if isinstance(default, bool):
+        ok = isinstance(value, bool)
+        kind = 'true or false'
+    elif isinstance(default, (int, float)):
+        ok = not isinstance(value, bool) and isinstance(value, (int, float)) and (
+            isinstance(default, float) or isinstance(value, int))
+        kind = 'a number' if isinstance(default, float) else 'an integer'
+    elif isinstance(default, str):
+        ok = isinstance(value, str)
+        kind = 'a string'
+    else:
+        strings = name in STRING_ARRAYS
+        ok = isinstance(value, list) and all(
+            isinstance(v, str) if strings else
+            not isinstance(v, bool) and isinstance(v, (int, float)) for v in value)
+        kind = 'a list of strings' if strings else 'a list of numbers'
+    return None if ok else f'expected {kind}, got {short_repr(value)}'
+
+
+#: Station node parameters read by :func:`receiver_from_params` besides the ``kraken.*``
+#: ones: name -> default (which fixes the type).
+STATION_PARAMETERS = {'frame_id': 'map', 'position': [], 'geodetic_position': [],
+                      'geodetic_origin': [], 'position_covariance': []}
 
 
 def with_defaults(params):
     """Receiver parameter values (flat or nested) with the defaults filled in; ValueError
-    naming an unknown ``kraken.*`` name, or a value the station node refuses at start-up
-    (wrong type such as ``kraken: 5`` or ``position: 5.0``, out of range, not a choice):
-    each is checked by the node's own parameter schema (core.parameters).
-    """
-    from .parameters import param           # (core.parameters builds on this module)
+    naming an unknown ``kraken.*`` name, a value of the wrong type (``kraken: 5``, ``position:
+    5.0``) or a value out of its range/choices."""
     p = dict(DEFAULTS)
-    for name, value in flatten(params).items():
+    given = flatten(params)
+    for name, value in given.items():
         if name == 'kraken':
             raise ValueError(f'kraken: expected a mapping of receiver parameters, got '
                              f'{short_repr(value)}')
         if name.startswith('kraken.') and name not in DEFAULTS:
             raise ValueError(f'{name}: not a receiver parameter')
-        if name in DEFAULTS or (name in STATION_FIELDS and value is not None):
-            value = param('station_node', name).check(value)
+        default = DEFAULTS.get(name, STATION_PARAMETERS.get(name))
+        if default is not None and not (value is None and name in STATION_PARAMETERS):
+            problem = _kind_problem(value, default, name)
+            if problem is not None:
+                raise ValueError(f'{name}: {problem}')
         p[name] = value
+    for name, default, _, rule in PARAMETERS:
+        v = p[name]
+        if isinstance(rule, tuple) and len(rule) == 2 and not isinstance(rule[0], str):
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not \
+                    rule[0] <= v <= rule[1]:
+                raise ValueError(f'{name}: {short_repr(v)} must be a number in [{rule[0]}, '
+                                 f'{rule[1]}]')
+        elif isinstance(rule, tuple) and v not in rule:
+            raise ValueError(f'{name}: {short_repr(v)} is not one of {rule}')
     return p
 
 
