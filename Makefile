@@ -20,6 +20,7 @@ $(STAMP): requirements.txt setup.py package.xml
 	$(PY) -m pip install -q -r requirements.txt 2>&1 | grep -v 'is ignored' ; test $${PIPESTATUS[0]} -eq 0
 	$(PY) -m pip install -q -e . 2>&1 | grep -v 'is ignored' ; test $${PIPESTATUS[0]} -eq 0
 	$(PY) -c 'import rclpy, numpy, scipy, yaml, geometry_msgs.msg'
+	$(PY) -m bearing_loc_ros.core.warmup
 	touch $(STAMP)
 
 test: $(STAMP) browser

@@ -26,7 +26,7 @@ setup(
         ('share/' + PACKAGE + '/config/scenarios', glob('config/scenarios/*.yaml')),
         ('share/' + PACKAGE + '/launch', glob('launch/*.py')),
     ],
-    install_requires=['setuptools', 'numpy', 'scipy', 'pyyaml'],
+    install_requires=['setuptools', 'numpy', 'scipy', 'numba', 'pyyaml'],
     zip_safe=True,
     maintainer='bearing_loc_ros maintainers',
     maintainer_email='maintainers@bearing-loc.invalid',

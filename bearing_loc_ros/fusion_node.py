@@ -35,6 +35,7 @@ from . import fusion_channels
 from .core.display import AccuracyMap, AccuracyMapConfig
 from .core.fusion import FusionConfig, make_core
 from .core.fusion.config import check_station_ids
+from .core.warmup import warm_up
 from .discovery_probe import ProbeProcess
 from .fusion_wiring import BearingInputs, FusionOutputs
 from .ros_common import core_parameter_error, declare_schema, keep_last_qos, log_events, \
@@ -95,6 +96,8 @@ class FusionNode(Node):
             raise core_parameter_error(exc, 'estimator') from None
         self.config = self.core.config
         self.mode = self.core.mode
+        # The one-fix numerics are compiled (or loaded from the cache) now, not on a fix.
+        warm_seconds = warm_up()
         self.discover = p['discover']
         self.qos_reliability = p['qos_reliability']
         self.bearing_qos = keep_last_qos(p['qos_depth'], p['qos_reliability'])
@@ -142,7 +145,8 @@ class FusionNode(Node):
             f'fusion ({self.mode}): estimator {self.config.estimator}, trigger '
             f'{self.config.trigger}, {"interpolated" if self.config.interpolation else "nearest"}'
             f' alignment, stations {self.stations_param or "none"}'
-            f'{" + discovery" if self.discover else ""}, frame {self.frame_id}')
+            f'{" + discovery" if self.discover else ""}, frame {self.frame_id}; one-fix '
+            f'numerics ready in {warm_seconds:.1f} s')
 
     # ------------------------------------------------------------------ run-time parameters
     def _refuse_on_channel_host(self, params):

@@ -13,6 +13,14 @@ os.environ.setdefault('MPLBACKEND', 'Agg')
 sys.path.insert(0, os.path.dirname(__file__))
 
 
+@pytest.fixture(scope='session', autouse=True)
+def compiled_numerics():
+    """The one-fix numerics compiled into numba's cache once, before any test starts a node
+    process (which would otherwise compile them itself, several at a time)."""
+    from bearing_loc_ros.core.warmup import warm_up
+    warm_up()
+
+
 @pytest.fixture(scope='module')
 def ros():
     """An rclpy context of its own for the test module (in-process node tests)."""

@@ -423,20 +423,22 @@ def test_float_bound_along_an_axis_is_the_horizontal_crlb(sigma_z):
     st = np.column_stack([rng.uniform(-20e3, 20e3, (5, 2)), rng.uniform(0.0, 200.0, 5)])
     has = np.array([True, False, True, False, True])
     sa, se = np.full(5, 0.01), np.where(has, 0.02, np.nan)
-    rows = list(zip(st.tolist(), sa.tolist(), se.tolist(), has.tolist()))
     for _ in range(50):
         X = np.array([*rng.uniform(-30e3, 30e3, 2), rng.uniform(500.0, 8e3)])
         v = rng.normal(size=2)
         v /= np.hypot(*v)
         f = np.linalg.norm(st - X, axis=1) / 1000.0
         P = horizontal_crlb(X, st, sa * f, se * f, has, sigma_z)[0, :2, :2]
-        np.testing.assert_allclose(_bound_sigma_along(*X, v.tolist(), rows, 1000.0, sigma_z),
+        np.testing.assert_allclose(_bound_sigma_along(*X, *v, st, sa, se, has, 1000.0, sigma_z),
                                    np.sqrt(v @ P @ v), rtol=1e-12)
     # A station under the point: no finite bound.
-    assert _bound_sigma_along(*st[0, :2], 3000.0, [1.0, 0.0], rows, 1000.0, sigma_z) == np.inf
+    assert _bound_sigma_along(*st[0, :2], 3000.0, 1.0, 0.0, st, sa, se, has, 1000.0,
+                              sigma_z) == np.inf
     # Collinear stations and point, azimuths only: the horizontal block is singular.
-    line = [((0.0, 0.0, 0.0), 0.01, np.nan, False), ((1000.0, 0.0, 0.0), 0.01, np.nan, False)]
-    assert _bound_sigma_along(5000.0, 0.0, 0.0, [1.0, 0.0], line, 1000.0, sigma_z) == np.inf
+    line = np.array([[0.0, 0.0, 0.0], [1000.0, 0.0, 0.0]])
+    assert _bound_sigma_along(5000.0, 0.0, 0.0, 1.0, 0.0, line, np.full(2, 0.01),
+                              np.full(2, np.nan), np.zeros(2, dtype=bool), 1000.0,
+                              sigma_z) == np.inf
 
 
 def test_consistency_marks_gross_horizontal_failures():

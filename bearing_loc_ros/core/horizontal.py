@@ -145,7 +145,7 @@ def locate_horizontal(method, bearings, target_altitude, target_altitude_sigma=0
 
 def _robust(method, bearings, res, p, options):
     """Problem by problem :func:`.horizontal_robust.robust_fix`; FixResult with ``excluded``."""
-    from .horizontal_robust import nonlinearity, robust_fix, screen_one_nu
+    from .horizontal_robust import calm_grown_one, nonlinearity, robust_fix, screen_one_nu
     from .estimator_spec import DEFAULT_REFERENCE_RANGE
     d_ref = (options.get('reference_range', DEFAULT_REFERENCE_RANGE) if method == 'wmle'
              else None)
@@ -166,6 +166,13 @@ def _robust(method, bearings, res, p, options):
             fields = {k: np.array(getattr(res, k)) for k in names}
             return FixResult(method=method, excluded=np.zeros((1, bearings.N, 2), dtype=bool),
                              nonlinearity=np.array([nu]), **fields)
+    if bearings.M == 1 and d_ref is not None:
+        # One wmle fix whose residuals are calm (decided compiled): robust_fix's calm branch.
+        fix = calm_grown_one(bearings, res, p.use_el[0], d_ref, float(p.sz[0]))
+        if fix is not None:
+            return FixResult(method=method, excluded=np.zeros((1, bearings.N, 2), dtype=bool),
+                             nonlinearity=fix.nonlinearity,
+                             **{k: np.array(getattr(fix, k)) for k in names})
     fields = {k: np.array(getattr(res, k)) for k in names}
     fields['status'] = fields['status'].astype(object)
     excluded = np.zeros((bearings.M, bearings.N, 2), dtype=bool)

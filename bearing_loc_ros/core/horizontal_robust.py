@@ -70,8 +70,10 @@ import math
 import numpy as np
 
 from .conventions import azimuth_elevation, wrap_angle
+from .jit import jit, jit_numpy
 from .fix import FixResult, STATUS_DEGENERATE, STATUS_LOW_CONFIDENCE, STATUS_OK
 from .robust import _c2, chi2_upper, CONSISTENCY_PROBABILITY
+from .horizontal_single import inverse2 as _inverse2_py
 from .robust_model import max_nonlinearity, STATUS_REGION_Z, TEST_INVERSION_Z
 
 #: Bearings (evenly spread over the set) whose pairwise intersections are candidates.
@@ -260,95 +262,207 @@ def test_inversion(bs, X, P, kept, use_el, d_ref, sigma_z=0.0, z=TEST_INVERSION_
 def _test_inversions(bs, X, P, kept, use_el, d_ref, sigma_z, specs, iterations=4):
     """:func:`test_inversion` for several (z, outward) ``specs`` at once: (K, 3, 3).
 
-    The K fixed-point iterations run side by side, one bound evaluation of K points per step.
+    Compiled (:func:`_inversions`): per spec, four bound evaluations of the kept stations.
     """
     P = np.asarray(P, dtype=float)
+    X = np.asarray(X, dtype=float)
     K = len(specs)
-    bad = np.full((K, 3, 3), np.inf)
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(X)) and np.any(kept)):
-        return bad
-    pos = bs.positions[0][kept]
-    sa, se = bs.sigma_az[0][kept], bs.sigma_el[0][kept]
-    has_el = use_el[kept]
-    _, V = np.linalg.eigh(P[:2, :2])
-    with np.errstate(divide='ignore', invalid='ignore', over='ignore'):
-        h = X[None, :2] - pos[:, :2]
-        major = V[:, 1] * (-1.0 if V[:, 1] @ (h / np.hypot(h[:, 0], h[:, 1])[:, None]).sum(
-            axis=0) < 0.0 else 1.0)
-        g = (h / (h[:, 0] ** 2 + h[:, 1] ** 2)[:, None]).sum(axis=0)
-        up = g / np.hypot(g[0], g[1])
-        v = np.array([[*(up if o else major), 0.0] for _, o in specs])      # (K, 3)
-        z = np.array([zk for zk, _ in specs], dtype=float)
-        t_max = 10.0 * float(np.max(np.linalg.norm(pos - X[None, :], axis=1)))
-        s0 = np.sqrt(np.maximum(np.einsum('ki,ij,kj->k', v[:, :2], P[:2, :2], v[:, :2]), 0.0))
+        return np.full((K, 3, 3), np.inf)
+    return _inversions(bs.positions[0][kept], bs.sigma_az[0][kept], bs.sigma_el[0][kept],
+                       use_el[kept], X, np.ascontiguousarray(P[:3, :3]),
+                       np.array([z for z, _ in specs], dtype=float),
+                       np.array([o for _, o in specs], dtype=np.bool_), float(d_ref),
+                       float(sigma_z), int(iterations))
+
+
+@jit_numpy
+def _inversions(pos, sa, se, has, X, P, zs, outward, d_ref, sigma_z, iterations):
+    """:func:`_test_inversions` on the kept stations' arrays (numpy's arithmetic: a station
+    under X gives inf or NaN, not an error): pos (n, 3) m, sa, se (n,) σ_ref rad, has (n,)
+    elevations used; X (3,) m, P (3, 3) m² finite; zs, outward (K,). (K, 3, 3), +inf where
+    the widening is not finite."""
+    K = zs.shape[0]
+    out = np.full((K, 3, 3), np.inf)
+    _, V = np.linalg.eigh(np.ascontiguousarray(P[:2, :2]))
+    m0, m1 = V[0, 1], V[1, 1]
+    sx = sy = gx = gy = 0.0
+    far = -np.inf
+    for k in range(pos.shape[0]):
+        h0, h1 = X[0] - pos[k, 0], X[1] - pos[k, 1]
+        hy = math.hypot(h0, h1)
+        sx += h0 / hy
+        sy += h1 / hy
+        q = h0 * h0 + h1 * h1
+        gx += h0 / q
+        gy += h1 / q
+        e0, e1, e2 = pos[k, 0] - X[0], pos[k, 1] - X[1], pos[k, 2] - X[2]
+        r = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        if r > far or math.isnan(r):
+            far = r
+    if m0 * sx + m1 * sy < 0.0:
+        m0, m1 = -m0, -m1
+    gn = math.hypot(gx, gy)
+    u0, u1 = gx / gn, gy / gn
+    t_max = 10.0 * far
+    for kk in range(K):
+        if outward[kk]:
+            v0, v1 = u0, u1
+        else:
+            v0, v1 = m0, m1
+        z = zs[kk]
+        s0 = math.sqrt(max(v0 * (P[0, 0] * v0 + P[0, 1] * v1) + v1 * (P[1, 0] * v0 + P[1, 1] * v1),
+                           0.0))
         t = z * s0
-        rows = list(zip(pos.tolist(), sa.tolist(), se.tolist(), has_el.tolist()))
-        X0, V2 = X.tolist(), v[:, :2].tolist()
-        sz = float(sigma_z)
         for _ in range(iterations):
-            st = [_bound_sigma_along(X0[0] + tk * vk[0], X0[1] + tk * vk[1], X0[2], vk, rows,
-                                     d_ref, sz)
-                  for tk, vk in zip(t.tolist(), V2)]
-            st = np.array(st)
-            t = np.where(np.isfinite(st), np.minimum(z * st, t_max), t_max)
-        add = np.maximum((t / z) ** 2 - s0 * s0, 0.0)
-    out = P[None] + add[:, None, None] * np.einsum('ki,kj->kij', v, v)
-    return np.where(np.isfinite(add)[:, None, None], out, bad)
+            st = _bound_sigma_along(X[0] + t * v0, X[1] + t * v1, X[2], v0, v1, pos, sa, se,
+                                    has, d_ref, sigma_z)
+            t = min(z * st, t_max) if math.isfinite(st) else t_max
+        add = (t / z) ** 2 - s0 * s0
+        add = add if add > 0.0 or math.isnan(add) else 0.0
+        if math.isfinite(add):
+            v = np.array([v0, v1, 0.0])
+            for i in range(3):
+                for j in range(3):
+                    out[kk, i, j] = P[i, j] + add * (v[i] * v[j])
+    return out
 
 
-def _bound_sigma_along(x, y, z, v, rows, d_ref, sigma_z):
+@jit_numpy
+def _bound_sigma_along(x, y, z, v0, v1, pos, sa, se, has, d_ref, sigma_z):
     """sqrt(vᵀ P_xy v), m, of the horizontal bound at (x, y, z) with σ grown by d / d_ref.
 
-    :func:`.horizontal_crlb.horizontal_crlb` of one point on Python floats (the Fisher
-    information of the angles, Zong & Cui 2015 eq. (7), the z prior by the Schur complement
-    and the 2 × 2 inverse with its rank test, :func:`.horizontal_single.inverse2`), for the
-    fixed-point steps of :func:`_test_inversions`: a bound evaluation per step costs a few
-    µs per station instead of the array calls' fixed overhead. ``v`` (2,) unit vector;
-    ``rows`` per kept station ((px, py, pz), σ_θ,ref, σ_ψ,ref (NaN without elevation),
-    elevation used). +inf where the bound is not finite (singular horizontal block, a
-    station under the point).
+    :func:`.horizontal_crlb.horizontal_crlb` of one point (the Fisher information of the
+    angles, Zong & Cui 2015 eq. (7), the z prior by the Schur complement and the 2 × 2
+    inverse with its rank test, :func:`.horizontal_single.inverse2`), for the fixed-point
+    steps of :func:`_test_inversions`. (v0, v1) unit vector; per kept station ``pos`` (n, 3)
+    m, σ_θ,ref ``sa``, σ_ψ,ref ``se`` (NaN without elevation), ``has`` elevation used.
+    +inf where the bound is not finite (singular horizontal block, a station under the
+    point: with numpy's error model the division by zero leaves the information not finite,
+    which the rank test of the inverse refuses).
     """
-    from .horizontal_single import inverse2
-    sqrt = math.sqrt
-    x, y, z = float(x), float(y), float(z)     # (float arithmetic raises where numpy warns)
     a00 = a01 = a02 = a11 = a12 = a22 = 0.0         # Σ w_θ g_θ g_θᵀ
     e00 = e01 = e02 = e11 = e12 = e22 = 0.0         # Σ w_ψ g_ψ g_ψᵀ
-    try:
-        for (px, py, pz), sa, se, has in rows:
-            dx, dy, dz = x - px, y - py, z - pz
-            f = sqrt(dx * dx + dy * dy + dz * dz) / d_ref
-            rho2 = dx * dx + dy * dy
-            rho = sqrt(rho2)
-            r2 = rho2 + dz * dz
-            w = 1.0 / (sa * f) ** 2
-            g0, g1 = -dy / rho2, dx / rho2
-            a00 += w * g0 * g0
-            a01 += w * g0 * g1
-            a11 += w * g1 * g1
-            sel = se * f
-            if has and math.isfinite(sel):
-                w = 1.0 / sel ** 2
-                h0, h1, h2 = -dx * dz / (rho * r2), -dy * dz / (rho * r2), rho / r2
-                e00 += w * h0 * h0
-                e01 += w * h0 * h1
-                e02 += w * h0 * h2
-                e11 += w * h1 * h1
-                e12 += w * h1 * h2
-                e22 += w * h2 * h2
-        j00, j01, j02 = a00 + e00, a01 + e01, a02 + e02
-        j11, j12, j22 = a11 + e11, a12 + e12, a22 + e22
-        if sigma_z == 0.0:
-            s, q0, q1 = j22 + 1.0, 0.0, 0.0
-        else:
-            s, q0, q1 = j22 + 1.0 / sigma_z ** 2, j02, j12
-        inv = inverse2(j00 - q0 * q0 / s, j01 - q0 * q1 / s, j11 - q1 * q1 / s)
-        if inv is None:
-            return math.inf
-        p00, p01, p11 = inv
-        v0, v1 = v
-        return sqrt(max(v0 * p00 * v0 + v0 * p01 * v1 + v1 * p01 * v0 + v1 * p11 * v1, 0.0))
-    except (ZeroDivisionError, OverflowError, ValueError):
+    for k in range(pos.shape[0]):
+        dx, dy, dz = x - pos[k, 0], y - pos[k, 1], z - pos[k, 2]
+        f = math.sqrt(dx * dx + dy * dy + dz * dz) / d_ref
+        rho2 = dx * dx + dy * dy
+        rho = math.sqrt(rho2)
+        r2 = rho2 + dz * dz
+        w = 1.0 / (sa[k] * f) ** 2
+        g0, g1 = -dy / rho2, dx / rho2
+        a00 += w * g0 * g0
+        a01 += w * g0 * g1
+        a11 += w * g1 * g1
+        sel = se[k] * f
+        if has[k] and math.isfinite(sel):
+            w = 1.0 / sel ** 2
+            h0, h1, h2 = -dx * dz / (rho * r2), -dy * dz / (rho * r2), rho / r2
+            e00 += w * h0 * h0
+            e01 += w * h0 * h1
+            e02 += w * h0 * h2
+            e11 += w * h1 * h1
+            e12 += w * h1 * h2
+            e22 += w * h2 * h2
+    j00, j01, j02 = a00 + e00, a01 + e01, a02 + e02
+    j11, j12, j22 = a11 + e11, a12 + e12, a22 + e22
+    if sigma_z == 0.0:
+        s, q0, q1 = j22 + 1.0, 0.0, 0.0
+    else:
+        s, q0, q1 = j22 + 1.0 / sigma_z ** 2, j02, j12
+    ok, p00, p01, p11 = _inverse2(j00 - q0 * q0 / s, j01 - q0 * q1 / s, j11 - q1 * q1 / s)
+    if not ok:
         return math.inf
+    return math.sqrt(max(v0 * p00 * v0 + v0 * p01 * v1 + v1 * p01 * v0 + v1 * p11 * v1,
+                         0.0))
+
+
+#: :func:`.horizontal_single.inverse2`, compiled.
+_inverse2_jit = jit(_inverse2_py)
+
+
+@jit
+def _inverse2(a, b, d):
+    """:func:`.horizontal_single.inverse2`: (invertible, i00, i01, i11)."""
+    inv = _inverse2_jit(a, b, d)
+    if inv is None:
+        return False, 0.0, 0.0, 0.0
+    i00, i01, i11 = inv
+    return True, i00, i01, i11
+
+
+def calm_grown_one(bs, result, use_el, d_ref, sigma_z):
+    """The calm branch of :func:`robust_fix` for one ``wmle`` fix, compiled: the FixResult
+    it returns, or None where that branch does not decide (the fix is not ``ok`` or not
+    finite, a residual or the χ² is not calm, or a statistic lies within
+    :data:`SCREEN_MARGIN` of its threshold, where the array residuals may differ in the last
+    bits): then :func:`robust_fix` runs.
+
+    Calm: every d_j² ≤ c² and Σ d_j² ≤ the χ²_dof quantile of CONSISTENCY_PROBABILITY
+    (dof = used angles − 2), σ grown by d/d_ref at the fix; then the covariance is widened
+    and ν taken as :func:`_grown_assessment` does (``ok`` when ν ≤ max_nonlinearity),
+    nothing excluded. ``bs`` one problem, ``use_el`` (N,) bool, ``d_ref`` and ``sigma_z`` m.
+    """
+    if str(result.status[0]) != STATUS_OK:
+        return None
+    x = np.asarray(result.position[0], dtype=float)
+    P = np.ascontiguousarray(result.covariance[0, :3, :3], dtype=float)
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
+        return None
+    n_angles = bs.N + int(np.count_nonzero(use_el))
+    calm, cov, nu = _calm_grown(bs.positions[0], bs.azimuth[0], bs.elevation[0],
+                                bs.sigma_az[0], bs.sigma_el[0], use_el, x, P, float(d_ref),
+                                float(sigma_z), _c2(),
+                                float(chi2_upper(max(n_angles - 2, 1))), SCREEN_MARGIN)
+    if not calm:
+        return None
+    c = np.array(result.covariance, dtype=float)
+    c[0, :3, :3] = cov
+    fix = FixResult(result.position, c, result.iterations, result.converged, result.status,
+                    result.method)
+    return _with_nu(fix, nu, nu <= max_nonlinearity(True))
+
+
+@jit_numpy
+def _calm_grown(pos, az, el, sa, se, use_el, X, P, d_ref, sigma_z, c2, upper, margin):
+    """(calm and decided, widened covariance (3, 3), ν) of :func:`calm_grown_one`."""
+    total = 0.0
+    for k in range(pos.shape[0]):
+        dx, dy, dz = X[0] - pos[k, 0], X[1] - pos[k, 1], X[2] - pos[k, 2]
+        f = math.sqrt(dx * dx + dy * dy + dz * dz) / d_ref
+        e = az[k] - math.atan2(dy, dx)
+        e -= 2.0 * math.pi * math.ceil((e - math.pi) / (2.0 * math.pi))
+        d2 = (e / (sa[k] * f)) ** 2
+        if use_el[k]:
+            d2 += ((el[k] - math.atan2(dz, math.hypot(dx, dy))) / (se[k] * f)) ** 2
+        if not (math.isfinite(d2) and d2 <= c2) or abs(d2 - c2) <= margin * c2:
+            return False, P, math.nan
+        total += d2
+    if not total <= upper or abs(total - upper) <= margin * upper:
+        return False, P, math.nan
+    n = pos.shape[0]
+    cov3 = _inversions(pos, sa, se, use_el, X, P,
+                       np.array([TEST_INVERSION_Z, STATUS_REGION_Z, STATUS_REGION_Z]),
+                       np.array([False, False, True]), d_ref, sigma_z, 4)
+    nu = -math.inf
+    for i in (1, 2):
+        a, b, c = cov3[i, 0, 0], cov3[i, 0, 1], cov3[i, 1, 1]
+        lam = 0.5 * (a + c) + math.sqrt(0.25 * ((a - c) * (a - c)) + b * b)
+        rho = math.inf
+        for k in range(n):
+            r = math.hypot(X[0] - pos[k, 0], X[1] - pos[k, 1])
+            rho = r if r < rho else rho
+        v = math.sqrt(lam) / rho
+        v = v if math.isfinite(v) and lam >= 0.0 else math.nan
+        if math.isnan(v) or math.isnan(nu):
+            nu = math.nan          # (numpy's max: NaN wins)
+        elif v > nu:
+            nu = v
+    for i in range(3):
+        for j in range(3):
+            if not math.isfinite(cov3[0, i, j]):
+                return True, cov3[0], math.nan
+    return True, cov3[0], nu
 
 
 def _grown_assessment(bs, X, P, kept, use_el, d_ref, sigma_z):

@@ -149,7 +149,6 @@ from .solvers import spd_inverse3
 from .fix import STATUS_OK as _STATUS_OK
 # Re-exported: the model and the consensus are part of this module's interface.
 from .robust_consensus import consensus_fit, second_optimum  # noqa: F401
-from .robust_single import consistent_one as _consistent_one, Fallback as _Fallback
 from .robust_model import (chi2_band, chi2_upper, CONSISTENCY_PROBABILITY,  # noqa: F401
                            Data, DECISIVE_PROBABILITY, fisher, horizontal_ranges,
                            MAX_NONLINEARITY,
@@ -444,9 +443,12 @@ def consistency_status(result, bearings, probability=CONSISTENCY_PROBABILITY):
         x, C = result.position[0].tolist(), result.covariance[0].tolist()
         good = False
         if all(map(math.isfinite, x + C[0] + C[1] + C[2])):
+            # (imported here: the compiled one-problem module loads numba, which a process
+            # that never solves one problem need not pay for)
+            from .robust_single import consistent_one, Fallback
             try:
-                good, delta = _consistent_one(bearings, x, C, probability)
-            except _Fallback:
+                good, delta = consistent_one(bearings, x, C, probability)
+            except Fallback:
                 good = None         # the batch path below decides
         if good:
             d = np.array([delta])
@@ -641,19 +643,17 @@ def _confident_one(result, bearings, d_ref):
                          excluded=np.zeros((1, N, 2), dtype=bool),
                          nonlinearity=np.full(1, np.nan))
     try:
-        X, P, ok, nu, wa, we = refine(bearings, x if x_finite else [math.nan] * 3, d_ref)
+        pos, cov, ok, nu, excluded, finite = refine(bearings,
+                                                    x if x_finite else [math.nan] * 3, d_ref)
     except Fallback:
         return None
-    excluded = np.zeros((1, N, 2), dtype=bool)
-    if all(map(math.isfinite, X)) and all(map(math.isfinite, P[0] + P[1] + P[2])):
+    if finite:
         status = STATUS_OK if ok else STATUS_LOW_CONFIDENCE
-        excluded[0, :, 0] = np.array(wa) == 0
-        excluded[0, :, 1] = bearings.has_elevation[0] & (np.array(we) == 0)
-        pos, cov = np.array([X], dtype=float), np.array([P], dtype=float)
     else:
         # No finite refit: the estimator's own finite fix is kept, as low_confidence,
         # without exclusions (else no usable fix).
         ok, nu = False, math.nan
+        excluded = np.zeros((1, N, 2), dtype=bool)
         if usable:
             status = STATUS_LOW_CONFIDENCE
             pos = np.array(result.position, dtype=float)

@@ -34,10 +34,12 @@ zero, a rank test or major axis too close to call, a non-finite Fisher informati
 azimuth θ CCW from East, elevation ψ above the horizontal.
 """
 
+from functools import lru_cache
 from math import acos, atan2, ceil, cos, inf, isfinite, log, nan, pi, sin, sqrt
 
 import numpy as np
 
+from .jit import jit
 from .robust_consensus import _station_masks, ACCEPT_TOL, STEP_TOL
 from .robust_model import (_upper_cached, CONSISTENCY_PROBABILITY, DECISIVE_PROBABILITY,
                            MAX_REGION_NONLINEARITY, max_nonlinearity, MULTIMODE_PROBABILITY,
@@ -49,9 +51,7 @@ _RCOND = 1e-12
 _CLEAR = 1e-5
 #: tr(A) tr(adj A) / det(A) bound below which a cofactor inverse is used (κ(A) ≤ this).
 _TRACE_CLEAR = 1e5
-#: Smallest N whose consensus candidates are solved and scored as arrays.
-_ARRAY_CANDIDATES = 5
-_INF3 = ((inf,) * 3,) * 3
+_INF6 = (inf,) * 6
 _NAN3 = (nan, nan, nan)
 
 
@@ -64,126 +64,137 @@ def _upper(dof, probability=CONSISTENCY_PROBABILITY):
     return _upper_cached(int(dof), probability)
 
 
-class Problem:
-    """One problem's stations as float tuples (σ are σ_ref for range growth; robust_model.Data).
+@lru_cache(maxsize=64)
+def _tables(n):
+    """(consensus subset masks (K, n) of 0/1, χ² quantiles of CONSISTENCY_PROBABILITY by
+    dof 0 … 2n (+inf below 1)) of n stations, built once per n."""
+    masks = np.ascontiguousarray(_station_masks(n), dtype=float)
+    upper = np.array([_upper(k) for k in range(2 * n + 1)], dtype=float)
+    masks.flags.writeable = False
+    upper.flags.writeable = False
+    return masks, upper
 
-    ``rows``: per station (px, py, pz, θ, ψ, 1/σ_θ, 1/σ_ψ), ψ and 1/σ_ψ 0 without elevation.
-    """
 
-    def __init__(self, bearings, d_ref):
-        pos = bearings.positions[0].tolist()
-        el = bearings.elevation[0].tolist()
-        self.has = [isfinite(e) for e in el]
-        self.hasf = [1.0 if h else 0.0 for h in self.has]
-        self.rows = [(p[0], p[1], p[2], a, e if h else 0.0, 1.0 / sa, 1.0 / se if h else 0.0)
-                     for p, a, e, sa, se, h in zip(pos, bearings.azimuth[0].tolist(), el,
-                                                   bearings.sigma_az[0].tolist(),
-                                                   bearings.sigma_el[0].tolist(), self.has)]
-        if not all(isfinite(r[5]) and isfinite(r[6]) for r in self.rows):
-            raise Fallback('σ too small for floats')
-        self.d_ref = None if d_ref is None else float(d_ref)
-        self.n = len(self.rows)
-        self.n_has = sum(self.has)
-        self._arrays = None
+@jit
+def _upper_of(upper, dof):
+    """upper[dof], +inf for dof < 1 (robust_model.chi2_upper)."""
+    return upper[dof] if dof >= 1 else inf
 
-    def arrays(self):
-        """(positions (3, N), θ, ψ, 1/σ_θ, 1/σ_ψ, has elevation) as arrays (N,), built once."""
-        if self._arrays is None:
-            px, py, pz, az, el, ia, ie = zip(*self.rows)
-            self._arrays = (np.array([px, py, pz]), np.array(az), np.array(el), np.array(ia),
-                            np.array(ie), np.array(self.has))
-        return self._arrays
+
+@jit
+def _max0(x):
+    """Python's max(x, 0.0) (NaN stays NaN)."""
+    return 0.0 if 0.0 > x else x
+
+
+@jit
+def _wrapped(e):
+    """e wrapped to (−π, π]; a non-finite e (Python's ceil raises) is a :class:`Fallback`."""
+    if not isfinite(e):
+        raise Fallback('non-finite angle residual')
+    return e - _TWO_PI * ceil((e - pi) / _TWO_PI)
 
 
 # --- 3 × 3 symmetric matrices (packed a00, a01, a02, a11, a12, a22) -------------------------
 
-def _eig_extremes(A):
-    """(λ_min, λ_mid, λ_max) of a finite symmetric 3 × 3 matrix (Smith 1961)."""
-    a, b, c = A[0][0], A[1][1], A[2][2]
-    d, e, f = A[0][1], A[1][2], A[0][2]
+@jit
+def _eig_extremes(a00, a01, a02, a11, a12, a22):
+    """(λ_min, λ_mid, λ_max) of a finite symmetric 3 × 3 matrix, packed (Smith 1961)."""
+    a, b, c = a00, a11, a22
+    d, e, f = a01, a12, a02
     q = (a + b + c) / 3.0
     aa, bb, cc = a - q, b - q, c - q
     r = sqrt((aa * aa + bb * bb + cc * cc + 2.0 * (d * d + e * e + f * f)) / 6.0)
     if not r > 0.0:
         return q, q, q
-    det = (aa * (bb * cc - e * e) - d * (d * cc - e * f) + f * (d * e - bb * f)) / r ** 3
+    det = (aa * (bb * cc - e * e) - d * (d * cc - e * f) + f * (d * e - bb * f)) / r ** 3.0
     phi = acos(min(1.0, max(-1.0, 0.5 * det))) / 3.0
     hi = q + 2.0 * r * cos(phi)
     lo = q + 2.0 * r * cos(phi + _TWO_PI / 3.0)
     return lo, 3.0 * q - hi - lo, hi
 
 
-def _finite3(A):
-    return all(map(isfinite, A[0] + A[1] + A[2]))
+@jit
+def _finite6(a00, a01, a02, a11, a12, a22):
+    return (isfinite(a00) and isfinite(a01) and isfinite(a02) and isfinite(a11)
+            and isfinite(a12) and isfinite(a22))
 
 
-def _clear(A):
+@jit
+def _clear(a00, a01, a02, a11, a12, a22):
     """True when A (finite) is certainly well conditioned: λ_min > 1e-5 λ_max > 0.
 
     The closed-form λ_min is off by at most about sqrt(ε) λ_max (robust_consensus._psd_inverse),
     so then κ < 1e5: crlb.safe_inverse's rank test passes, and Gaussian elimination agrees
     with LAPACK's inverse to about κ ε.
     """
-    lo, _, hi = _eig_extremes(A)
+    lo, _, hi = _eig_extremes(a00, a01, a02, a11, a12, a22)
     return lo > _CLEAR * abs(hi) and hi > 0.0
 
 
-def _rank_ok(A):
+@jit
+def _full(a00, a01, a02, a11, a12, a22):
+    A = np.empty((3, 3))
+    A[0, 0], A[0, 1], A[0, 2] = a00, a01, a02
+    A[1, 0], A[1, 1], A[1, 2] = a01, a11, a12
+    A[2, 0], A[2, 1], A[2, 2] = a02, a12, a22
+    return A
+
+
+@jit
+def _rank_ok(a00, a01, a02, a11, a12, a22):
     """crlb.safe_inverse's test: λ_min > 1e-12 |λ_max| and λ_max > 0 (False if not finite).
 
     In closed form where the answer is clear, else by LAPACK as safe_inverse decides it.
     """
-    if not _finite3(A):
+    if not _finite6(a00, a01, a02, a11, a12, a22):
         return False
-    if _clear(A):
+    if _clear(a00, a01, a02, a11, a12, a22):
         return True
-    w = np.linalg.eigvalsh(np.array(A, dtype=float))
-    return bool(w[0] > _RCOND * abs(w[-1]) and w[-1] > 0)
+    w = np.linalg.eigvalsh(_full(a00, a01, a02, a11, a12, a22))
+    return w[0] > _RCOND * abs(w[-1]) and w[-1] > 0
 
 
-def _lu_solve(A, B):
-    """Solve A X = B (3 × 3; B a sequence of right-hand sides): Gaussian elimination with
-    partial pivoting (the first largest pivot), unrolled. ZeroDivisionError if singular."""
-    (a00, a01, a02), (a10, a11, a12), (a20, a21, a22) = A
-    p = [0, 1, 2]
+@jit
+def _lu_solve(a00, a01, a02, a11, a12, a22, b0, b1, b2):
+    """Solve A x = b (A symmetric, packed): Gaussian elimination with partial pivoting (the
+    first largest pivot), unrolled, as LAPACK's getrf orders it. (singular, x0, x1, x2):
+    ``singular`` True (x zero) where a pivot is exactly zero."""
+    a10, a20, a21 = a01, a02, a12
+    p0, p1, p2 = 0, 1, 2
     if abs(a10) > abs(a00) and abs(a10) >= abs(a20):
         a00, a01, a02, a10, a11, a12 = a10, a11, a12, a00, a01, a02
-        p[0], p[1] = 1, 0
+        p0, p1 = 1, 0
     elif abs(a20) > abs(a00) and abs(a20) > abs(a10):
         a00, a01, a02, a20, a21, a22 = a20, a21, a22, a00, a01, a02
-        p[0], p[2] = 2, 0
+        p0, p2 = 2, 0
     if a00 == 0.0:
-        raise ZeroDivisionError
+        return True, 0.0, 0.0, 0.0
     l10, l20 = a10 / a00, a20 / a00
     a11, a12 = a11 - l10 * a01, a12 - l10 * a02
     a21, a22 = a21 - l20 * a01, a22 - l20 * a02
     if abs(a21) > abs(a11):
         a11, a12, a21, a22 = a21, a22, a11, a12
         l10, l20 = l20, l10
-        p[1], p[2] = p[2], p[1]
+        p1, p2 = p2, p1
     if a11 == 0.0:
-        raise ZeroDivisionError
+        return True, 0.0, 0.0, 0.0
     l21 = a21 / a11
     a22 = a22 - l21 * a12
     if a22 == 0.0:
-        raise ZeroDivisionError
-    out = []
-    for b in B:
-        y0 = b[p[0]]
-        y1 = b[p[1]] - l10 * y0
-        y2 = b[p[2]] - l20 * y0 - l21 * y1
-        x2 = y2 / a22
-        x1 = (y1 - a12 * x2) / a11
-        out.append(((y0 - a01 * x1 - a02 * x2) / a00, x1, x2))
-    return out
+        return True, 0.0, 0.0, 0.0
+    b = (b0, b1, b2)
+    y0 = b[p0]
+    y1 = b[p1] - l10 * y0
+    y2 = b[p2] - l20 * y0 - l21 * y1
+    x2 = y2 / a22
+    x1 = (y1 - a12 * x2) / a11
+    return False, (y0 - a01 * x1 - a02 * x2) / a00, x1, x2
 
 
-def _full(a00, a01, a02, a11, a12, a22):
-    return [[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]]
-
-
+@jit
 def _cofactors(a00, a01, a02, a11, a12, a22):
-    """(adj A packed, det A, clear) of a symmetric A (floats, or arrays of K matrices).
+    """(adj A packed, det A, clear) of a symmetric A.
 
     clear: A positive definite with tr(A) tr(adj A) ≤ 1e5 det(A). That product bounds κ(A),
     so crlb.safe_inverse's rank test passes and the cofactors agree with LAPACK's inverse to
@@ -196,79 +207,74 @@ def _cofactors(a00, a01, a02, a11, a12, a22):
     c12 = a01 * a02 - a00 * a12
     c22 = a00 * a11 - a01 * a01
     det = a00 * c00 + a01 * c01 + a02 * c02
-    clear = ((a00 > 0.0) & (c22 > 0.0) & (det > 0.0) & (det < inf)
-             & ((a00 + a11 + a22) * (c00 + c11 + c22) <= _TRACE_CLEAR * det))
+    clear = (a00 > 0.0 and c22 > 0.0 and det > 0.0 and det < inf
+             and (a00 + a11 + a22) * (c00 + c11 + c22) <= _TRACE_CLEAR * det)
     return (c00, c01, c02, c11, c12, c22), det, clear
 
 
-def _cofactor_inverse(a00, a01, a02, a11, a12, a22):
-    """A⁻¹ packed by cofactors where :func:`_cofactors` finds it clear, else None."""
-    c, det, clear = _cofactors(a00, a01, a02, a11, a12, a22)
-    if clear:
-        i = 1.0 / det
-        return c[0] * i, c[1] * i, c[2] * i, c[3] * i, c[4] * i, c[5] * i
-    return None
-
-
+@jit
 def _safe_inverse_packed(a00, a01, a02, a11, a12, a22):
-    """crlb.safe_inverse of one symmetric matrix: packed inverse, or None (+inf: it fails).
+    """crlb.safe_inverse of one symmetric matrix: (invertible, packed inverse); not
+    invertible (+inf: it fails) with the inverse +inf.
 
     :class:`Fallback` for an ill-conditioned matrix that passes the rank test (its inverse
     is the batch path's only to about κ ε).
     """
-    out = _cofactor_inverse(a00, a01, a02, a11, a12, a22)
-    if out is not None:
-        return out
-    A = _full(a00, a01, a02, a11, a12, a22)
-    if not _finite3(A):
-        return None
-    if not _clear(A):
-        if _rank_ok(A):
+    c, det, clear = _cofactors(a00, a01, a02, a11, a12, a22)
+    if clear:
+        i = 1.0 / det
+        return True, (c[0] * i, c[1] * i, c[2] * i, c[3] * i, c[4] * i, c[5] * i)
+    if not _finite6(a00, a01, a02, a11, a12, a22):
+        return False, _INF6
+    if not _clear(a00, a01, a02, a11, a12, a22):
+        if _rank_ok(a00, a01, a02, a11, a12, a22):
             raise Fallback('ill-conditioned information')
-        return None
-    c = _lu_solve(A, ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)))
-    # (LU's inverse is symmetric only to rounding: the lower triangle as LAPACK's is unused)
-    return c[0][0], c[1][0], c[2][0], c[1][1], c[2][1], c[2][2]
+        return False, _INF6
+    # Columns of the inverse; its lower triangle is kept (LU's inverse is symmetric only to
+    # rounding, and the batch path reads the lower triangle as LAPACK returns it).
+    s0, c00, c10, c20 = _lu_solve(a00, a01, a02, a11, a12, a22, 1.0, 0.0, 0.0)
+    s1, _, c11, c21 = _lu_solve(a00, a01, a02, a11, a12, a22, 0.0, 1.0, 0.0)
+    s2, _, _, c22 = _lu_solve(a00, a01, a02, a11, a12, a22, 0.0, 0.0, 1.0)
+    if s0 or s1 or s2:
+        raise Fallback('singular information')
+    return True, (c00, c10, c20, c11, c21, c22)
 
 
-def _safe_inverse(A):
-    """crlb.safe_inverse of one 3 × 3 symmetric matrix (nested lists; +inf when it fails)."""
-    P = _safe_inverse_packed(A[0][0], A[0][1], A[0][2], A[1][1], A[1][2], A[2][2])
-    return _INF3 if P is None else _full(*P)
-
-
+@jit
 def _quad_packed(v0, v1, v2, P):
     p00, p01, p02, p11, p12, p22 = P
     return (v0 * (p00 * v0 + p01 * v1 + p02 * v2) + v1 * (p01 * v0 + p11 * v1 + p12 * v2)
             + v2 * (p02 * v0 + p12 * v1 + p22 * v2))
 
 
-def _quad(v, P, w):
-    return sum(v[i] * P[i][j] * w[j] for i in range(3) for j in range(3))
-
-
+@jit
 def _solve_packed(a00, a01, a02, a11, a12, a22, b0, b1, b2):
     """A x = b for symmetric A: cofactors where clear (:func:`_cofactors`), else Gaussian
-    elimination with partial pivoting (ZeroDivisionError if singular)."""
-    (c00, c01, c02, c11, c12, c22), det, clear = _cofactors(a00, a01, a02, a11, a12, a22)
+    elimination with partial pivoting. (singular, x0, x1, x2)."""
+    c, det, clear = _cofactors(a00, a01, a02, a11, a12, a22)
     if clear:
-        return ((c00 * b0 + c01 * b1 + c02 * b2) / det, (c01 * b0 + c11 * b1 + c12 * b2) / det,
-                (c02 * b0 + c12 * b1 + c22 * b2) / det)
-    return _lu_solve(_full(a00, a01, a02, a11, a12, a22), ((b0, b1, b2),))[0]
+        c00, c01, c02, c11, c12, c22 = c
+        return (False, (c00 * b0 + c01 * b1 + c02 * b2) / det,
+                (c01 * b0 + c11 * b1 + c12 * b2) / det, (c02 * b0 + c12 * b1 + c22 * b2) / det)
+    return _lu_solve(a00, a01, a02, a11, a12, a22, b0, b1, b2)
 
 
-# --- the likelihood on floats ----------------------------------------------------------------
+# --- the likelihood ---------------------------------------------------------------------------
 
-def _terms(pb, X):
-    """Per station at X: (ra, re, a0, a1, h0, h1, h2, dx, dy, dz, d).
+@jit
+def _terms(rows, grown, d_ref, x0, x1, x2):
+    """Per station at X (N, 11): ra, re, a0, a1, h0, h1, h2, dx, dy, dz, d.
 
     ra, re the whitened residuals, (a0, a1, 0) and (h0, h1, h2) the whitened gradients
     ga, ge, 1/m, (dx, dy, dz) = X − station and d its range, m: robust_model.Data.evaluate's
-    quantities (σ grown with range when ``pb.d_ref`` is set), one station at a time.
+    quantities (σ grown with range when ``grown``), one station at a time. ``rows`` per
+    station (px, py, pz, θ, ψ, 1/σ_θ, 1/σ_ψ), ψ and 1/σ_ψ 0 without elevation.
     """
-    x0, x1, x2 = X
-    d_ref = pb.d_ref
-    for px, py, pz, az, el, ia, ie in pb.rows:
+    n = rows.shape[0]
+    T = np.empty((n, 11))
+    for k in range(n):
+        px, py, pz, az, el, ia, ie = (rows[k, 0], rows[k, 1], rows[k, 2], rows[k, 3],
+                                      rows[k, 4], rows[k, 5], rows[k, 6])
         dx = x0 - px
         dy = x1 - py
         dz = x2 - pz
@@ -276,30 +282,42 @@ def _terms(pb, X):
         r2 = rho2 + dz * dz
         rho = sqrt(rho2)
         d = sqrt(r2)
-        e_az = az - atan2(dy, dx)
-        e_az -= _TWO_PI * ceil((e_az - pi) / _TWO_PI)
+        e_az = _wrapped(az - atan2(dy, dx))
         e_el = el - atan2(dz, rho)
-        if d_ref is not None:
+        if grown:
             f = d_ref / d
             ia *= f
             ie *= f
         s = ia / rho2
         t = dz / (rho * r2)
-        yield (ia * e_az, ie * e_el, -(dy * s), dx * s, -(dx * t) * ie, -(dy * t) * ie,
-               (rho / r2) * ie, dx, dy, dz, d)
+        T[k, 0] = ia * e_az
+        T[k, 1] = ie * e_el
+        T[k, 2] = -(dy * s)
+        T[k, 3] = dx * s
+        T[k, 4] = -(dx * t) * ie
+        T[k, 5] = -(dy * t) * ie
+        T[k, 6] = (rho / r2) * ie
+        T[k, 7] = dx
+        T[k, 8] = dy
+        T[k, 9] = dz
+        T[k, 10] = d
+    return T
 
 
-def _state(pb, X, wa, we):
+@jit
+def _state(rows, grown, d_ref, x0, x1, x2, wa, we):
     """(L, F packed, ½∇L, Σ d²) at X: robust_consensus._refit's cost, information and gradient.
 
     L = Σ w (r² + log σ²); F = Σ w g gᵀ (+ Σ 2 (wa + we) u uᵀ / d² with range growth);
     ½∇L = −Σ w r g (+ Σ (wa (1 − ra²) + we (1 − re²)) u / d with range growth). One pass over
-    the stations (:func:`_terms`): the refit's inner loop, so Σ w g gᵀ is accumulated here
-    with the rest rather than by a second pass of :func:`_fisher_at`.
+    the stations (:func:`_terms`).
     """
-    d_ref = pb.d_ref
+    T = _terms(rows, grown, d_ref, x0, x1, x2)
     cost = f00 = f01 = f02 = f11 = f12 = f22 = g0 = g1 = g2 = sd2 = 0.0
-    for (ra, re, a0, a1, h0, h1, h2, dx, dy, dz, d), w1, w2 in zip(_terms(pb, X), wa, we):
+    for k in range(T.shape[0]):
+        ra, re, a0, a1, h0, h1, h2 = T[k, 0], T[k, 1], T[k, 2], T[k, 3], T[k, 4], T[k, 5], T[k, 6]
+        dx, dy, dz, d = T[k, 7], T[k, 8], T[k, 9], T[k, 10]
+        w1, w2 = wa[k], we[k]
         sd2 += d * d
         wra = w1 * ra
         wre = w2 * re
@@ -312,15 +330,15 @@ def _state(pb, X, wa, we):
         f11 += w1 * a1 * a1 + w2 * h1 * h1
         f12 += w2 * h1 * h2
         f22 += w2 * h2 * h2
-        if d_ref is not None:
+        if grown:
             log_s2 = 2.0 * log(d / d_ref)
             cost += w1 * (ra * ra + log_s2) + w2 * (re * re + log_s2)
-            k = (w1 * (1.0 - ra * ra) + w2 * (1.0 - re * re)) / d
+            k_ = (w1 * (1.0 - ra * ra) + w2 * (1.0 - re * re)) / d
             v = 2.0 * (w1 + w2) / (d * d)
             u0, u1, u2 = dx / d, dy / d, dz / d
-            g0 += k * u0
-            g1 += k * u1
-            g2 += k * u2
+            g0 += k_ * u0
+            g1 += k_ * u1
+            g2 += k_ * u2
             f00 += v * u0 * u0
             f01 += v * u0 * u1
             f02 += v * u0 * u2
@@ -329,77 +347,102 @@ def _state(pb, X, wa, we):
             f22 += v * u2 * u2
         else:
             cost += w1 * (ra * ra) + w2 * (re * re)
-    return (cost if isfinite(cost) else inf, (f00, f01, f02, f11, f12, f22), (g0, g1, g2), sd2)
+    if not isfinite(cost):
+        cost = inf
+    return cost, (f00, f01, f02, f11, f12, f22), (g0, g1, g2), sd2
 
 
-def _residuals(pb, X):
-    """Per station (ra, re, log σ²) at X (robust_model.Data.evaluate without gradients)."""
-    x0, x1, x2 = X
-    d_ref = pb.d_ref
-    out = []
-    for px, py, pz, az, el, ia, ie in pb.rows:
+@jit
+def _residuals(rows, grown, d_ref, x0, x1, x2):
+    """Per station (N, 3): ra, re, log σ² at X (robust_model.Data.evaluate without gradients)."""
+    n = rows.shape[0]
+    out = np.empty((n, 3))
+    for k in range(n):
+        px, py, pz, az, el, ia, ie = (rows[k, 0], rows[k, 1], rows[k, 2], rows[k, 3],
+                                      rows[k, 4], rows[k, 5], rows[k, 6])
         dx = x0 - px
         dy = x1 - py
         dz = x2 - pz
         rho2 = dx * dx + dy * dy
-        e_az = az - atan2(dy, dx)
-        e_az -= _TWO_PI * ceil((e_az - pi) / _TWO_PI)
+        e_az = _wrapped(az - atan2(dy, dx))
         e_el = el - atan2(dz, sqrt(rho2))
-        if d_ref is not None:
+        if grown:
             d = sqrt(rho2 + dz * dz)
             f = d_ref / d
-            out.append(((ia * f) * e_az, (ie * f) * e_el, 2.0 * log(d / d_ref)))
+            out[k, 0] = (ia * f) * e_az
+            out[k, 1] = (ie * f) * e_el
+            out[k, 2] = 2.0 * log(d / d_ref)
         else:
-            out.append((ia * e_az, ie * e_el, 0.0))
+            out[k, 0] = ia * e_az
+            out[k, 1] = ie * e_el
+            out[k, 2] = 0.0
     return out
 
 
-def _cost(pb, X, wa, we):
+@jit
+def _cost(rows, grown, d_ref, X, wa, we):
     """robust_consensus._cost of one problem: L(X) = Σ w (r² + log σ²), +inf if not finite."""
+    R = _residuals(rows, grown, d_ref, X[0], X[1], X[2])
     c = 0.0
-    for (ra, re, log_s2), w1, w2 in zip(_residuals(pb, X), wa, we):
-        c += w1 * (ra * ra + log_s2) + w2 * (re * re + log_s2)
+    for k in range(R.shape[0]):
+        ra, re, log_s2 = R[k, 0], R[k, 1], R[k, 2]
+        c += wa[k] * (ra * ra + log_s2) + we[k] * (re * re + log_s2)
     return c if isfinite(c) else inf
 
 
-def _inliers(pb, X, c2):
-    wa, we = [], []
-    for (ra, re, _), h in zip(_residuals(pb, X), pb.has):
-        wa.append(1.0 if ra * ra <= c2 else 0.0)
-        we.append(1.0 if h and re * re <= c2 else 0.0)
+@jit
+def _inliers(rows, has, grown, d_ref, X, c2):
+    R = _residuals(rows, grown, d_ref, X[0], X[1], X[2])
+    n = R.shape[0]
+    wa = np.empty(n)
+    we = np.empty(n)
+    for k in range(n):
+        ra, re = R[k, 0], R[k, 1]
+        wa[k] = 1.0 if ra * ra <= c2 else 0.0
+        we[k] = 1.0 if has[k] and re * re <= c2 else 0.0
     return wa, we
 
 
+@jit
 def _solvable(wa, we):
-    st = sum(1 for a, e in zip(wa, we) if a + e > 0)
-    return st >= 2 and sum(we) >= 1 and sum(wa) + sum(we) >= 3
+    st = 0
+    sa = se = 0.0
+    for k in range(wa.shape[0]):
+        if wa[k] + we[k] > 0:
+            st += 1
+        sa += wa[k]
+        se += we[k]
+    return st >= 2 and se >= 1 and sa + se >= 3
 
 
-def _refit(pb, X0, wa, we, iterations=REFIT_ITERATIONS):
-    """robust_consensus._refit for one problem (Levenberg-Marquardt on the full likelihood)."""
-    X = tuple(X0)
+@jit
+def _finite3(X):
+    return isfinite(X[0]) and isfinite(X[1]) and isfinite(X[2])
+
+
+@jit
+def _refit(rows, grown, d_ref, X0, wa, we):
+    """robust_consensus._refit for one problem (Levenberg-Marquardt on the full likelihood,
+    at most REFIT_ITERATIONS steps)."""
+    X = X0
     lam = 0.0
-    cost, F, g, sd2 = _state(pb, X, wa, we)
-    n = pb.n
-    for _ in range(iterations):
-        if not all(map(isfinite, F)):
-            raise Fallback('non-finite information')
+    cost, F, g, sd2 = _state(rows, grown, d_ref, X[0], X[1], X[2], wa, we)
+    n = rows.shape[0]
+    for _ in range(REFIT_ITERATIONS):
         f00, f01, f02, f11, f12, f22 = F
-        try:
-            s0, s1, s2 = _solve_packed(f00 + lam * f00, f01, f02, f11 + lam * f11, f12,
-                                       f22 + lam * f22, -g[0], -g[1], -g[2])
-        except (ZeroDivisionError, OverflowError):
-            s0 = s1 = s2 = 0.0
-        s0 = s0 if isfinite(s0) else 0.0
-        s1 = s1 if isfinite(s1) else 0.0
-        s2 = s2 if isfinite(s2) else 0.0
+        if not _finite6(f00, f01, f02, f11, f12, f22):
+            raise Fallback('non-finite information')
+        singular, s0, s1, s2 = _solve_packed(f00 + lam * f00, f01, f02, f11 + lam * f11, f12,
+                                             f22 + lam * f22, -g[0], -g[1], -g[2])
+        s0 = s0 if isfinite(s0) and not singular else 0.0
+        s1 = s1 if isfinite(s1) and not singular else 0.0
+        s2 = s2 if isfinite(s2) and not singular else 0.0
         Xt = (X[0] + s0, X[1] + s1, X[2] + s2)
-        st = _state(pb, Xt, wa, we)
-        ct = st[0]
+        ct, Ft, gt, sd2t = _state(rows, grown, d_ref, Xt[0], Xt[1], Xt[2], wa, we)
         if ct < inf and ct <= cost + ACCEPT_TOL * (1.0 + abs(cost)):   # (ct +inf: not finite)
             X = Xt
-            cost, F, g, sd2 = st
-            lam = 0.1 * lam * (lam > 1e-6)
+            cost, F, g, sd2 = ct, Ft, gt, sd2t
+            lam = 0.1 * lam if lam > 1e-6 else 0.0
         else:
             lam = max(10.0 * lam, 1e-3)
         if sqrt(s0 * s0 + s1 * s1 + s2 * s2) <= STEP_TOL * sqrt(sd2 / n) or lam > 1e10:
@@ -409,53 +452,70 @@ def _refit(pb, X0, wa, we, iterations=REFIT_ITERATIONS):
 
 # --- step 2: consensus candidates ----------------------------------------------------------
 
-def _station_equations(pb):
-    """Per station the packed pseudo-linear normal equations (a00 … a22, b0, b1, b2)
+@jit
+def _station_equations(rows, hasf):
+    """Per station the packed pseudo-linear normal equations (N, 9): a00 … a22, b0, b1, b2
     (Wang, Zhang & Wu eq. (4); robust_consensus._ls_candidates)."""
-    out = []
-    for (px, py, pz, az, el, _, _), h in zip(pb.rows, pb.hasf):
+    n = rows.shape[0]
+    E = np.empty((n, 9))
+    for k in range(n):
+        px, py, pz, az, el = rows[k, 0], rows[k, 1], rows[k, 2], rows[k, 3], rows[k, 4]
+        h = hasf[k]
         s, c = sin(az), cos(az)
         sp, cp = sin(el), cos(el)
         q0, q1, q2 = h * c * sp, h * s * sp, -h * cp
         y1 = s * px + (-c) * py + 0.0 * pz
         y2 = q0 * px + q1 * py + q2 * pz
-        out.append((s * s + q0 * q0, s * (-c) + q0 * q1, s * 0.0 + q0 * q2,
-                    c * c + q1 * q1, (-c) * 0.0 + q1 * q2, 0.0 + q2 * q2,
-                    s * y1 + q0 * y2, (-c) * y1 + q1 * y2, 0.0 * y1 + q2 * y2))
-    return out
+        E[k, 0] = s * s + q0 * q0
+        E[k, 1] = s * (-c) + q0 * q1
+        E[k, 2] = s * 0.0 + q0 * q2
+        E[k, 3] = c * c + q1 * q1
+        E[k, 4] = (-c) * 0.0 + q1 * q2
+        E[k, 5] = 0.0 + q2 * q2
+        E[k, 6] = s * y1 + q0 * y2
+        E[k, 7] = (-c) * y1 + q1 * y2
+        E[k, 8] = 0.0 * y1 + q2 * y2
+    return E
 
 
+@jit
 def _solve_candidate(a00, a01, a02, a11, a12, a22, b0, b1, b2):
     """The ls fix of one station subset: safe_inverse(A) b as the batch path decides it."""
-    P = _cofactor_inverse(a00, a01, a02, a11, a12, a22)
-    if P is not None:
-        p00, p01, p02, p11, p12, p22 = P
+    c, det, clear = _cofactors(a00, a01, a02, a11, a12, a22)
+    if clear:
+        i = 1.0 / det
+        p00, p01, p02, p11, p12, p22 = c[0] * i, c[1] * i, c[2] * i, c[3] * i, c[4] * i, c[5] * i
         return (p00 * b0 + p01 * b1 + p02 * b2, p01 * b0 + p11 * b1 + p12 * b2,
                 p02 * b0 + p12 * b1 + p22 * b2)
-    A = _full(a00, a01, a02, a11, a12, a22)
-    if not _finite3(A):
+    if not _finite6(a00, a01, a02, a11, a12, a22):
         return _NAN3
-    if _clear(A):
-        return _lu_solve(A, ((b0, b1, b2),))[0]
-    if _rank_ok(A):
+    if _clear(a00, a01, a02, a11, a12, a22):
+        singular, x0, x1, x2 = _lu_solve(a00, a01, a02, a11, a12, a22, b0, b1, b2)
+        if singular:
+            raise Fallback('singular candidate equations')
+        return x0, x1, x2
+    if _rank_ok(a00, a01, a02, a11, a12, a22):
         # Ill-conditioned but invertible: LAPACK's inverse, as the batch path.
-        return tuple((np.linalg.inv(np.array(A)) @ np.array([b0, b1, b2])).tolist())
+        x = np.linalg.inv(_full(a00, a01, a02, a11, a12, a22)) @ np.array([b0, b1, b2])
+        return x[0], x[1], x[2]
     return _NAN3
 
 
-def _score(pb, X, c2):
-    """robust_consensus._score of one candidate (+inf if not finite)."""
+@jit
+def _score(rows, has, grown, d_ref, X, c2):
+    """robust_consensus._score of one candidate: the truncated cost with the log σ² of the
+    inliers (+inf if not finite)."""
     x0, x1, x2 = X
-    d_ref = pb.d_ref
     s = 0.0
-    for (px, py, pz, az, el, ia, ie), h in zip(pb.rows, pb.has):
+    for k in range(rows.shape[0]):
+        px, py, pz, az, el, ia, ie = (rows[k, 0], rows[k, 1], rows[k, 2], rows[k, 3],
+                                      rows[k, 4], rows[k, 5], rows[k, 6])
         dx = x0 - px
         dy = x1 - py
         dz = x2 - pz
         rho2 = dx * dx + dy * dy
-        e_az = az - atan2(dy, dx)
-        e_az -= _TWO_PI * ceil((e_az - pi) / _TWO_PI)
-        if d_ref is not None:
+        e_az = _wrapped(az - atan2(dy, dx))
+        if grown:
             d = sqrt(rho2 + dz * dz)
             f = d_ref / d
             ia *= f
@@ -466,142 +526,117 @@ def _score(pb, X, c2):
         qa = ia * e_az
         qa *= qa
         s += qa + log_s2 if qa <= c2 else c2
-        if h:
+        if has[k]:
             qe = ie * (el - atan2(dz, sqrt(rho2)))
             qe *= qe
             s += qe + log_s2 if qe <= c2 else c2
     return s if isfinite(s) else inf
 
 
-def _best_candidate_floats(pb, x_ml, c2):
-    eqs = _station_equations(pb)
-    cand = [x_ml]
-    for mask in _station_masks(pb.n).tolist():
-        a = [0.0] * 9
-        for k, e in zip(mask, eqs):
-            if k:
-                a = [x + y for x, y in zip(a, e)]
-        cand.append(_solve_candidate(*a))
-    best, best_s = 0, inf
-    for k, C in enumerate(cand):
-        if all(map(isfinite, C)):
-            s = _score(pb, C, c2)
-            if s < best_s:
-                best, best_s = k, s
-    return cand[best], cand[1]
-
-
-def _best_candidate_arrays(pb, x_ml, c2):
-    n = pb.n
-    masks = _station_masks(n)
-    S = masks @ np.array(_station_equations(pb))               # (K, 9)
-    a00, a01, a02, a11, a12, a22, b0, b1, b2 = S.T
-    with np.errstate(all='ignore'):
-        (c00, c01, c02, c11, c12, c22), det, clear = _cofactors(a00, a01, a02, a11, a12, a22)
-        i = 1.0 / det
-        cand = np.empty((len(det) + 1, 3))
-        cand[0] = x_ml
-        cand[1:, 0] = (c00 * i) * b0 + (c01 * i) * b1 + (c02 * i) * b2
-        cand[1:, 1] = (c01 * i) * b0 + (c11 * i) * b1 + (c12 * i) * b2
-        cand[1:, 2] = (c02 * i) * b0 + (c12 * i) * b1 + (c22 * i) * b2
-        if not clear.all():
-            for k in np.flatnonzero(~clear).tolist():
-                cand[k + 1] = _solve_candidate(*S[k].tolist())
-        ok = np.isfinite(cand).all(axis=1)
-        X = np.where(ok[:, None], cand, 0.0)
-        pos, az, el, ia, ie, has = pb.arrays()
-        dx = X[:, 0:1] - pos[0]
-        dy = X[:, 1:2] - pos[1]
-        dz = X[:, 2:3] - pos[2]
-        rho2 = dx * dx + dy * dy
-        e_az = az - np.arctan2(dy, dx)
-        e_az -= _TWO_PI * np.ceil((e_az - pi) / _TWO_PI)
-        e_el = el - np.arctan2(dz, np.sqrt(rho2))
-        if pb.d_ref is not None:
-            d = np.sqrt(rho2 + dz * dz)
-            f = pb.d_ref / d
-            qa = (ia * f) * e_az
-            qe = (ie * f) * e_el
-            log_s2 = 2.0 * np.log(d / pb.d_ref)
-        else:
-            qa = ia * e_az
-            qe = ie * e_el
-            log_s2 = 0.0
-        qa *= qa
-        qe *= qe
-        qe = np.where(has, qe, 0.0)
-        n_in = (qa <= c2) + (has & (qe <= c2)).astype(float)
-        s = (np.minimum(qa, c2) + np.minimum(qe, c2) + log_s2 * n_in).sum(axis=-1)
-        s = np.where(np.isfinite(s) & ok, s, np.inf)
-    best = int(np.argmin(s))
-    return tuple(cand[best].tolist()), tuple(cand[1].tolist())
-
-
-def _best_candidate(pb, X_ml, c2):
+@jit
+def _best_candidate(rows, has, hasf, grown, d_ref, X_ml, c2, masks):
     """Step 2: (the best-scoring candidate, the all-station ls fix).
 
     Candidates: the estimator's fix, the ls fix of all stations and of the subsets of
     robust_consensus._station_masks (leaving out one station and, for N ≥ 5, every pair; pairs
-    of spread stations for large N); the first lowest MSAC
-    score wins, as the batch path's argmin. On floats for N < 5, as arrays from N = 5 on.
+    of spread stations for large N), each subset's normal equations summed in station order;
+    the first lowest MSAC score wins, as the batch path's argmin.
     """
-    x_ml = X_ml if all(map(isfinite, X_ml)) else _NAN3
-    if pb.n >= _ARRAY_CANDIDATES:
-        return _best_candidate_arrays(pb, x_ml, c2)
-    return _best_candidate_floats(pb, x_ml, c2)
+    E = _station_equations(rows, hasf)
+    K, n = masks.shape
+    cand = np.empty((K + 1, 3))
+    if _finite3(X_ml):
+        cand[0, 0], cand[0, 1], cand[0, 2] = X_ml
+    else:
+        cand[0, 0] = cand[0, 1] = cand[0, 2] = nan
+    a = np.empty(9)
+    for k in range(K):
+        a[:] = 0.0
+        for j in range(n):
+            if masks[k, j] != 0.0:
+                for i in range(9):
+                    a[i] = a[i] + E[j, i]
+        cand[k + 1, 0], cand[k + 1, 1], cand[k + 1, 2] = _solve_candidate(
+            a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7], a[8])
+    best, best_s = 0, inf
+    for k in range(K + 1):
+        C = (cand[k, 0], cand[k, 1], cand[k, 2])
+        if _finite3(C):
+            s = _score(rows, has, grown, d_ref, C, c2)
+            if s < best_s:
+                best, best_s = k, s
+    return (cand[best, 0], cand[best, 1], cand[best, 2]), (cand[1, 0], cand[1, 1], cand[1, 2])
 
 
 # --- step 3: refit -------------------------------------------------------------------------
 
-def consensus_fit(pb, X_ml, c2):
+@jit
+def _consensus_fit(rows, has, hasf, grown, d_ref, X_ml, c2, masks, upper):
     """robust_consensus.consensus_fit for one problem: (X, wa, we, the all-station ls fix,
-    the rejected fit of all the angles or None)."""
-    n = pb.n
-    X, X_ls = _best_candidate(pb, X_ml, c2)
-    X = tuple(x if isfinite(x) else 0.0 for x in X)
-    wa, we = _inliers(pb, X, c2)
+    whether a rejected fit of all the angles exists, that fit)."""
+    n = rows.shape[0]
+    X, X_ls = _best_candidate(rows, has, hasf, grown, d_ref, X_ml, c2, masks)
+    X = (X[0] if isfinite(X[0]) else 0.0, X[1] if isfinite(X[1]) else 0.0,
+         X[2] if isfinite(X[2]) else 0.0)
+    wa, we = _inliers(rows, has, grown, d_ref, X, c2)
     for _ in range(REFIT_ROUNDS):
         if _solvable(wa, we):
             a, e = wa, we
         else:
-            a, e = [1.0] * n, list(pb.hasf)
-        Xa = _refit(pb, X, a, e)
-        na, ne = _inliers(pb, Xa, c2)
+            a, e = np.ones(n), hasf.copy()
+        Xa = _refit(rows, grown, d_ref, X, a, e)
+        na, ne = _inliers(rows, has, grown, d_ref, Xa, c2)
         if not _solvable(na, ne):
             na, ne = a, e
-        same = na == a and ne == e
+        same = np.array_equal(na, a) and np.array_equal(ne, e)
         X, wa, we = Xa, na, ne
         if same:
             break
-    X, wa, we, X_all = _prefer_all_bearings(pb, X, wa, we, X_ml, X_ls)
-    return X, wa, we, X_ls, X_all
+    return _prefer_all_bearings(rows, has, hasf, grown, d_ref, X, wa, we, X_ml, X_ls, upper)
 
 
-def _prefer_all_bearings(pb, X, wa, we, X_ml, X_ls):
-    if all(a == 1.0 for a in wa) and all(e == 1.0 or not h for e, h in zip(we, pb.has)):
-        return X, wa, we, None
-    ones, she = [1.0] * pb.n, pb.hasf
-    best, cost = None, inf
+@jit
+def _prefer_all_bearings(rows, has, hasf, grown, d_ref, X, wa, we, X_ml, X_ls, upper):
+    n = rows.shape[0]
+    all_kept = True
+    for k in range(n):
+        if not (wa[k] == 1.0 and (we[k] == 1.0 or not has[k])):
+            all_kept = False
+    if all_kept:
+        return X, wa, we, X_ls, False, X
+    ones, she = np.ones(n), hasf.copy()
+    best, cost = X, inf
+    first = True
     for start in (X_ml, X_ls):
-        if all(map(isfinite, start)):
-            Xs = _refit(pb, start, ones, she)
-            cs = _cost(pb, Xs, ones, she)
+        if _finite3(start):
+            Xs = _refit(rows, grown, d_ref, start, ones, she)
+            cs = _cost(rows, grown, d_ref, Xs, ones, she)
         else:
-            Xs, cs = _refit(pb, X, ones, she), inf
-        if best is None or cs < cost:
+            Xs, cs = _refit(rows, grown, d_ref, X, ones, she), inf
+        if first or cs < cost:
             best, cost = Xs, cs
-    chi2 = sum(ra * ra + h * re * re for (ra, re, _), h in zip(_residuals(pb, best), she))
-    if isfinite(cost) and chi2 <= _upper(pb.n + pb.n_has - 3):
-        return best, [1.0] * pb.n, list(she), None
-    return X, wa, we, (best if isfinite(cost) else None)
+            first = False
+    R = _residuals(rows, grown, d_ref, best[0], best[1], best[2])
+    chi2 = 0.0
+    n_has = 0
+    for k in range(n):
+        chi2 += R[k, 0] * R[k, 0] + she[k] * R[k, 1] * R[k, 1]
+        n_has += 1 if has[k] else 0
+    if isfinite(cost) and chi2 <= _upper_of(upper, n + n_has - 3):
+        return best, ones, she, X_ls, False, X
+    return X, wa, we, X_ls, isfinite(cost), best
 
 
 # --- step 4: assessment --------------------------------------------------------------------
 
-def _fisher_at(pb, X, wa, we):
+@jit
+def _fisher_at(rows, grown, d_ref, X, wa, we):
     """Σ w g gᵀ packed at X, 1/m² (robust_model.fisher of Data.evaluate's gradients)."""
+    T = _terms(rows, grown, d_ref, X[0], X[1], X[2])
     f00 = f01 = f02 = f11 = f12 = f22 = 0.0
-    for (_, _, a0, a1, h0, h1, h2, *_), w1, w2 in zip(_terms(pb, X), wa, we):
+    for k in range(T.shape[0]):
+        a0, a1, h0, h1, h2 = T[k, 2], T[k, 3], T[k, 4], T[k, 5], T[k, 6]
+        w1, w2 = wa[k], we[k]
         f00 += w1 * a0 * a0 + w2 * h0 * h0
         f01 += w1 * a0 * a1 + w2 * h0 * h1
         f02 += w2 * h0 * h2
@@ -611,115 +646,150 @@ def _fisher_at(pb, X, wa, we):
     return f00, f01, f02, f11, f12, f22
 
 
-def _test_inversion(pb, X, wa, we, P, u_out, t_max, z=TEST_INVERSION_Z, iterations=4):
-    """robust_model.test_inversion_covariance for one problem (P finite, packed).
+@jit
+def _test_inversion(rows, grown, d_ref, X, wa, we, P, u_out, t_max, z):
+    """robust_model.test_inversion_covariance for one problem (P finite, packed):
+    (finite, the widened P packed).
 
     ``u_out`` Σ of the unit lines of sight of the stations with a kept angle (orients the
-    major axis away from them), ``t_max`` 10 × the largest finite station range, m.
+    major axis away from them), ``t_max`` 10 × the largest finite station range, m; four
+    fixed-point steps.
     """
-    M = _full(*P)
-    lo, mid, hi = _eig_extremes(M)
+    p00, p01, p02, p11, p12, p22 = P
+    lo, mid, hi = _eig_extremes(p00, p01, p02, p11, p12, p22)
     if not hi - mid > 1e-4 * abs(hi):
         raise Fallback('major axis too close to call')
     # Eigenvector of λ_max: the largest cross product of two rows of P − λ_max I.
-    R = [[M[i][j] - (hi if i == j else 0.0) for j in range(3)] for i in range(3)]
-    best = None
+    R = _full(p00 - hi, p01, p02, p11 - hi, p12, p22 - hi)
+    nc, c0, c1, c2 = -1.0, 0.0, 0.0, 0.0
     for i, j in ((0, 1), (0, 2), (1, 2)):
-        a, b = R[i], R[j]
-        c = (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-        nc = c[0] * c[0] + c[1] * c[1] + c[2] * c[2]
-        if best is None or nc > best[0]:
-            best = (nc, c)
-    nc, c = best
+        d0 = R[i, 1] * R[j, 2] - R[i, 2] * R[j, 1]
+        d1 = R[i, 2] * R[j, 0] - R[i, 0] * R[j, 2]
+        d2 = R[i, 0] * R[j, 1] - R[i, 1] * R[j, 0]
+        nd = d0 * d0 + d1 * d1 + d2 * d2
+        if nc < 0.0 or nd > nc:
+            nc, c0, c1, c2 = nd, d0, d1, d2
     if not nc > 0.0:
         raise Fallback('no major axis')
     nc = sqrt(nc)
-    v0, v1, v2 = c[0] / nc, c[1] / nc, c[2] / nc
+    v0, v1, v2 = c0 / nc, c1 / nc, c2 / nc
     dot = v0 * u_out[0] + v1 * u_out[1] + v2 * u_out[2]
     if dot == 0.0:
         raise Fallback('major axis orientation')
     if dot < 0.0:
         v0, v1, v2 = -v0, -v1, -v2
-    s0 = sqrt(max(_quad_packed(v0, v1, v2, P), 0.0))
+    s0 = sqrt(_max0(_quad_packed(v0, v1, v2, P)))
     t = z * s0
-    for _ in range(iterations):
-        Pt = _safe_inverse_packed(*_fisher_at(pb, (X[0] + t * v0, X[1] + t * v1,
-                                                   X[2] + t * v2), wa, we))
-        st = sqrt(max(_quad_packed(v0, v1, v2, Pt), 0.0)) if Pt is not None else inf
-        t = min(z * st, t_max) if isfinite(st) else t_max
-    add = max((t / z) ** 2 - s0 * s0, 0.0)
+    for _ in range(4):
+        f00, f01, f02, f11, f12, f22 = _fisher_at(
+            rows, grown, d_ref, (X[0] + t * v0, X[1] + t * v1, X[2] + t * v2), wa, we)
+        inv, Pt = _safe_inverse_packed(f00, f01, f02, f11, f12, f22)
+        st = sqrt(_max0(_quad_packed(v0, v1, v2, Pt))) if inv else inf
+        if isfinite(st):
+            zs = z * st
+            t = t_max if t_max < zs else zs
+        else:
+            t = t_max
+    add = _max0((t / z) ** 2.0 - s0 * s0)
     if not isfinite(add):
-        return None
-    v = (v0, v1, v2)
-    p00, p01, p02, p11, p12, p22 = P
-    return (p00 + add * v[0] * v[0], p01 + add * v[0] * v[1], p02 + add * v[0] * v[2],
-            p11 + add * v[1] * v[1], p12 + add * v[1] * v[2], p22 + add * v[2] * v[2])
+        return False, _INF6
+    return True, (p00 + add * v0 * v0, p01 + add * v0 * v1, p02 + add * v0 * v2,
+                  p11 + add * v1 * v1, p12 + add * v1 * v2, p22 + add * v2 * v2)
 
 
-def assess(pb, X, wa, we, X_ls):
-    """robust.assess for one problem: (P (nested lists), ok, ν, every exclusion decisive)."""
-    grown = pb.d_ref is not None
-    max_nu = max_nonlinearity(grown)
+@jit
+def _assess(rows, has, grown, d_ref, X, wa, we, X_ls, upper, max_nu, cd, q):
+    """robust.assess for one problem: (finite, P packed, ok, ν, every exclusion decisive)."""
+    n = rows.shape[0]
+    T = _terms(rows, grown, d_ref, X[0], X[1], X[2])
     chi2 = o0 = o1 = o2 = 0.0
     rho_min, dmax = inf, 0.0
-    excluded = []               # (r, gradient) of the excluded angles
-    terms = zip(_terms(pb, X), wa, we, pb.has)
-    for (ra, re, a0, a1, h0, h1, h2, dx, dy, dz, d), w1, w2, h in terms:
+    excluded = np.empty((2 * n, 4))         # (r, gradient) of the excluded angles
+    n_ex = 0
+    n_has = 0
+    for k in range(n):
+        ra, re, a0, a1, h0, h1, h2 = T[k, 0], T[k, 1], T[k, 2], T[k, 3], T[k, 4], T[k, 5], T[k, 6]
+        dx, dy, dz, d = T[k, 7], T[k, 8], T[k, 9], T[k, 10]
+        w1, w2, h = wa[k], we[k], has[k]
+        n_has += 1 if h else 0
         chi2 += w1 * ra * ra + w2 * re * re
         if w1 + w2 > 0:
             o0 += dx / d
             o1 += dy / d
             o2 += dz / d
-            rho_min = min(rho_min, sqrt(dx * dx + dy * dy))
+            rk = sqrt(dx * dx + dy * dy)
+            rho_min = rk if rk < rho_min else rho_min
         if isfinite(d):
-            dmax = max(dmax, d)
+            dmax = d if d > dmax else dmax
         if w1 == 0:
-            excluded.append((ra, a0, a1, 0.0))
+            excluded[n_ex, 0], excluded[n_ex, 1], excluded[n_ex, 2] = ra, a0, a1
+            excluded[n_ex, 3] = 0.0
+            n_ex += 1
         if w2 == 0 and h:
-            excluded.append((re, h0, h1, h2))
-    P = _safe_inverse_packed(*_fisher_at(pb, X, wa, we))
-    finite = P is not None and all(map(isfinite, P))
-    n_kept = int(sum(wa) + sum(we))
-    n_all = pb.n + pb.n_has
-    Pf = P if finite else (0.0,) * 6
-    cd = outlier_c2(DECISIVE_PROBABILITY)
-    marginal = any(not r * r / (1.0 + _quad_packed(g0, g1, g2, Pf)) > cd
-                   for r, g0, g1, g2 in excluded)
-    Ps = P
+            excluded[n_ex, 0], excluded[n_ex, 1], excluded[n_ex, 2] = re, h0, h1
+            excluded[n_ex, 3] = h2
+            n_ex += 1
+    f00, f01, f02, f11, f12, f22 = _fisher_at(rows, grown, d_ref, X, wa, we)
+    finite, P = _safe_inverse_packed(f00, f01, f02, f11, f12, f22)
+    finite = finite and _finite6(P[0], P[1], P[2], P[3], P[4], P[5])
+    n_kept = int(wa.sum() + we.sum())
+    n_all = n + n_has
+    Pf = P if finite else (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+    marginal = False
+    for k in range(n_ex):
+        r, g0, g1, g2 = excluded[k, 0], excluded[k, 1], excluded[k, 2], excluded[k, 3]
+        if not r * r / (1.0 + _quad_packed(g0, g1, g2, Pf)) > cd:
+            marginal = True
+    Ps_finite, Ps = finite, P
     if grown:
         P0, u_out = P, (o0, o1, o2)
-        P = _test_inversion(pb, X, wa, we, P0, u_out, 10.0 * dmax) if finite else None
-        finite = P is not None
-        Ps = (_test_inversion(pb, X, wa, we, P0, u_out, 10.0 * dmax, z=STATUS_REGION_Z)
-              if finite else None)
+        if finite:
+            finite, P = _test_inversion(rows, grown, d_ref, X, wa, we, P0, u_out, 10.0 * dmax,
+                                        TEST_INVERSION_Z)
+        if finite:
+            Ps_finite, Ps = _test_inversion(rows, grown, d_ref, X, wa, we, P0, u_out,
+                                            10.0 * dmax, STATUS_REGION_Z)
+        else:
+            Ps_finite = False
     nu = nan
-    if finite and Ps is not None:
-        nu = sqrt(max(_eig_extremes(_full(*Ps))[2], 0.0)) / rho_min
+    if finite and Ps_finite:
+        nu = sqrt(_max0(_eig_extremes(Ps[0], Ps[1], Ps[2], Ps[3], Ps[4], Ps[5])[2])) / rho_min
         nu = nu if isfinite(nu) else nan
-    ok = (chi2 <= _upper(max(n_kept - 3, 1)) and nu <= max_nu
+    dof = n_kept - 3 if n_kept - 3 > 1 else 1
+    ok = (chi2 <= _upper_of(upper, dof) and nu <= max_nu
           and n_all - n_kept <= (n_all - 3) // 2 and not marginal and finite)
     if ok:
-        ok = not _second_optimum(pb, X, wa, we, P, X_ls)
-    return (_full(*P) if finite else [list(r) for r in _INF3]), ok, nu, not marginal
+        ok = not _second_optimum(rows, grown, d_ref, X, wa, we, P, X_ls, q)
+    return finite, (P if finite else _INF6), ok, nu, not marginal
 
 
-def _second_optimum(pb, X, wa, we, P, ls):
+@jit
+def _second_optimum(rows, grown, d_ref, X, wa, we, P, ls, q):
     """robust_consensus.second_optimum for one problem (X, P finite; P packed)."""
-    if not all(map(isfinite, ls)):
+    if not _finite3(ls):
         return False
-    q = _upper(3, MULTIMODE_PROBABILITY)
-    Pi = _safe_inverse_packed(*P)
-    Pi = (inf,) * 6 if Pi is None else Pi
-
-    def dist2(Y):
-        return _quad_packed(Y[0] - X[0], Y[1] - X[1], Y[2] - X[2], Pi)
-
-    if not dist2(ls) > q:
+    _, Pi = _safe_inverse_packed(P[0], P[1], P[2], P[3], P[4], P[5])
+    if not _quad_packed(ls[0] - X[0], ls[1] - X[1], ls[2] - X[2], Pi) > q:
         return False
-    X2 = _refit(pb, ls, wa, we)
-    far = dist2(X2) > q
-    close = _cost(pb, X2, wa, we) - _cost(pb, X, wa, we) < q
+    X2 = _refit(rows, grown, d_ref, ls, wa, we)
+    far = _quad_packed(X2[0] - X[0], X2[1] - X[1], X2[2] - X[2], Pi) > q
+    close = _cost(rows, grown, d_ref, X2, wa, we) - _cost(rows, grown, d_ref, X, wa, we) < q
     return far and close
+
+
+@jit
+def _refine(rows, has, hasf, grown, d_ref, X_ml, c2, masks, upper, max_nu, cd, q):
+    """Steps 2-4 of one problem: (X, finite, P packed, ok, ν, wa, we)."""
+    X, wa, we, X_ls, has_all, X_all = _consensus_fit(rows, has, hasf, grown, d_ref, X_ml, c2,
+                                                     masks, upper)
+    finite, P, ok, nu, decisive = _assess(rows, has, grown, d_ref, X, wa, we, X_ls, upper,
+                                          max_nu, cd, q)
+    if not decisive and has_all and _finite3(X_all):
+        # robust.confident_result: back to the fit of all the angles.
+        X, wa, we = X_all, np.ones(rows.shape[0]), hasf.copy()
+        finite, P, ok, nu, _ = _assess(rows, has, grown, d_ref, X, wa, we, X_ls, upper,
+                                       max_nu, cd, q)
+    return X, finite, P, ok, nu, wa, we
 
 
 def consistent_one(bearings, x, P, probability):
@@ -773,10 +843,10 @@ def consistent_one(bearings, x, P, probability):
                 rows.append((ra, a0, a1, 0.0, 0.0, 0.0, 0.0))
             if rho < rho_min:
                 rho_min = rho
-        Fi = _safe_inverse_packed(f00, f01, f02, f11, f12, f22)
+        inv_f, Fi = _safe_inverse_packed(f00, f01, f02, f11, f12, f22)
         Pp = (P[0][0], P[0][1], P[0][2], P[1][1], P[1][2], P[2][2])
-        Pi = _safe_inverse_packed(*Pp)
-        if Fi is None or Pi is None:
+        inv_p, Pi = _safe_inverse_packed(*Pp)
+        if not (inv_f and inv_p):
             return False, None
         i00, i01, i02, i11, i12, i22 = Fi
         d0 = i00 * b0 + i01 * b1 + i02 * b2
@@ -788,7 +858,7 @@ def consistent_one(bearings, x, P, probability):
             la = ra - (a0 * d0 + a1 * d1)
             le = re - (h0 * d0 + h1 * d1 + h2 * d2)
             worst = max(worst, la * la, le * le)
-        nu = sqrt(max(_eig_extremes(_full(*Pp))[2], 0.0)) / rho_min
+        nu = sqrt(max(_eig_extremes(*Pp)[2], 0.0)) / rho_min
     except (ZeroDivisionError, ValueError, OverflowError) as exc:
         raise Fallback(str(exc)) from exc
     return (chi2_min <= _upper(max(len(rows) + n_el - 3, 1), probability)
@@ -796,21 +866,65 @@ def consistent_one(bearings, x, P, probability):
             and worst <= outlier_c2() and nu <= MAX_REGION_NONLINEARITY), (d0, d1, d2)
 
 
+@jit
+def _rows(pos, az, el, sa, se):
+    """(rows (N, 7): px, py, pz, θ, ψ, 1/σ_θ, 1/σ_ψ with ψ and 1/σ_ψ 0 without elevation;
+    has elevation (N,) bool; the same as 0/1) of one problem's arrays (ψ NaN: azimuth only).
+    :class:`Fallback` where a 1/σ is not finite."""
+    n = az.shape[0]
+    rows = np.empty((n, 7))
+    has = np.empty(n, dtype=np.bool_)
+    hasf = np.empty(n)
+    for k in range(n):
+        h = isfinite(el[k])
+        rows[k, 0], rows[k, 1], rows[k, 2] = pos[k, 0], pos[k, 1], pos[k, 2]
+        rows[k, 3] = az[k]
+        rows[k, 4] = el[k] if h else 0.0
+        if not (sa[k] != 0.0 and (se[k] != 0.0 or not h)):
+            raise Fallback('σ too small for floats')
+        rows[k, 5] = 1.0 / sa[k]
+        rows[k, 6] = 1.0 / se[k] if h else 0.0
+        if not (isfinite(rows[k, 5]) and isfinite(rows[k, 6])):
+            raise Fallback('σ too small for floats')
+        has[k] = h
+        hasf[k] = 1.0 if h else 0.0
+    return rows, has, hasf
+
+
+@jit
+def _refine_arrays(pos, az, el, sa, se, grown, d_ref, X_ml, c2, masks, upper, max_nu, cd, q):
+    """:func:`_refine` of one problem's arrays (:func:`_rows`), as FixResult arrays:
+    (position (1, 3), covariance (1, 3, 3), ok, ν, excluded (1, N, 2) bool, finite)."""
+    rows, has, hasf = _rows(pos, az, el, sa, se)
+    X, finite, P, ok, nu, wa, we = _refine(rows, has, hasf, grown, d_ref, X_ml, c2, masks,
+                                           upper, max_nu, cd, q)
+    n = rows.shape[0]
+    position = np.empty((1, 3))
+    position[0, 0], position[0, 1], position[0, 2] = X
+    covariance = np.empty((1, 3, 3))
+    covariance[0] = _full(P[0], P[1], P[2], P[3], P[4], P[5])
+    excluded = np.zeros((1, n, 2), dtype=np.bool_)
+    for k in range(n):
+        excluded[0, k, 0] = wa[k] == 0.0
+        excluded[0, k, 1] = has[k] and we[k] == 0.0
+    return position, covariance, ok, nu, excluded, finite and _finite3(X)
+
+
 def refine(bearings, X_ml, d_ref=None):
-    """Steps 2-4 for one problem: (X (3,), P (3, 3), ok, ν, wa, we) as Python floats/lists.
+    """Steps 2-4 for one problem: (position (1, 3) m, covariance (1, 3, 3) m², ok, ν,
+    excluded (1, N, 2) bool (azimuth, elevation), finite: position and covariance finite).
 
     ``bearings`` a one-problem BearingSet, ``X_ml`` the estimator's fix (3,) m (NaN allowed),
     ``d_ref`` m for range-grown σ. Raises :class:`Fallback` where the batch path must run.
     """
-    c2 = outlier_c2()
+    grown = d_ref is not None
+    masks, upper = _tables(bearings.N)
     try:
-        pb = Problem(bearings, d_ref)
-        X, wa, we, X_ls, X_all = consensus_fit(pb, tuple(X_ml), c2)
-        P, ok, nu, decisive = assess(pb, X, wa, we, X_ls)
-        if not decisive and X_all is not None and all(map(isfinite, X_all)):
-            # robust.confident_result: back to the fit of all the angles.
-            X, wa, we = X_all, [1.0] * pb.n, list(pb.hasf)
-            P, ok, nu, _ = assess(pb, X, wa, we, X_ls)
+        return _refine_arrays(
+            bearings.positions[0], bearings.azimuth[0], bearings.elevation[0],
+            bearings.sigma_az[0], bearings.sigma_el[0], grown, float(d_ref) if grown else 1.0,
+            tuple(float(x) for x in X_ml), outlier_c2(), masks, upper,
+            max_nonlinearity(grown), outlier_c2(DECISIVE_PROBABILITY),
+            _upper(3, MULTIMODE_PROBABILITY))
     except (ZeroDivisionError, ValueError, OverflowError) as exc:
         raise Fallback(str(exc)) from exc
-    return X, P, ok, nu, wa, we

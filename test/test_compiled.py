@@ -1,0 +1,93 @@
+"""The compiled one-fix numerics (core/jit.py, numba) compute what their Python source does.
+
+The same problems are solved in this process (compiled) and in a child process with
+NUMBA_DISABLE_JIT=1, where numba leaves every decorated function as the Python it was
+written in: the statuses, exclusions and fallbacks must be the same, and the numbers equal
+to rounding (the compiled code performs the same IEEE operations in the same order, without
+fast-math; libm's functions are the same in both).
+"""
+import json
+import math
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+from bearing_loc_ros.core.bearings import BearingSet
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def problems():
+    """One-problem BearingSets: 3-8 stations (every third azimuth-only), σ 5 and 40 mrad,
+    a quarter of them with one azimuth 0.6 rad off; with the target's altitude."""
+    rng = np.random.default_rng(2024)
+    out = []
+    for n in (3, 4, 5, 6, 8):
+        for sigma in (0.005, 0.04):
+            for k in range(8):
+                st = np.column_stack([rng.uniform(-8e3, 8e3, (n, 2)), rng.uniform(0, 200, n)])
+                tgt = np.array([*rng.uniform(-5e3, 5e3, 2), rng.uniform(300, 3000)])
+                d = tgt - st
+                az = np.arctan2(d[:, 1], d[:, 0]) + rng.normal(0, sigma, n)
+                el = np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])) + rng.normal(0, sigma, n)
+                el[1::3] = np.nan
+                if k % 4 == 0:
+                    az[0] += 0.6
+                out.append((BearingSet.from_arrays(st, az, el, sigma, sigma), float(tgt[2])))
+    return out
+
+
+def solve_all():
+    """Per problem: 3D robust steps (constant and range-grown σ) and horizontal robust wmle."""
+    from bearing_loc_ros.core import robust_single
+    from bearing_loc_ros.core.estimators import locate
+    from bearing_loc_ros.core.horizontal import locate_horizontal
+    rows = []
+    for bs, z in problems():
+        for d_ref in (None, 1000.0):
+            x = locate('wmle' if d_ref else 'mle', bs, robust=False).position[0].tolist()
+            try:
+                pos, cov, ok, nu, excluded, finite = robust_single.refine(bs, x, d_ref)
+                rows.append(['3d', pos.tolist(), cov.tolist(), bool(ok), float(nu),
+                             excluded.tolist(), bool(finite)])
+            except robust_single.Fallback as exc:
+                rows.append(['fallback', str(exc)])
+        h = locate_horizontal('wmle', bs, z, 10.0, robust=True)
+        rows.append(['h', h.position.tolist(), h.covariance.tolist(), str(h.status[0]),
+                     float(h.nonlinearity[0]), h.excluded.tolist()])
+    return rows
+
+
+def test_compiled_numerics_equal_their_python_source(tmp_path):
+    out = tmp_path / 'python.json'
+    env = dict(os.environ, NUMBA_DISABLE_JIT='1')
+    code = (f'import json, sys; sys.path.insert(0, {HERE!r}); import test_compiled; '
+            f'json.dump(test_compiled.solve_all(), open({str(out)!r}, "w"))')
+    subprocess.run([sys.executable, '-c', code], env=env, check=True, timeout=600)
+    python = json.loads(out.read_text())
+    compiled = json.loads(json.dumps(solve_all()))
+    assert len(python) == len(compiled) == 240
+    kinds = [r[0] for r in compiled]
+    assert kinds.count('3d') > 100 and kinds.count('h') == 80      # the compiled paths ran
+    worst = 0.0
+    for p, c in zip(python, compiled):
+        assert p[0] == c[0]
+        if p[0] == 'fallback':
+            assert p == c
+            continue
+        if p[0] == '3d':
+            assert p[3:4] + p[5:] == c[3:4] + c[5:]            # ok, exclusions, finite
+            nus = (p[4], c[4])
+        else:
+            assert p[3] == c[3] and p[5] == c[5]                # status, exclusions
+            nus = (p[4], c[4])
+        a = np.array(p[1] + sum(p[2], []), dtype=float)
+        b = np.array(c[1] + sum(c[2], []), dtype=float)
+        fin = np.isfinite(a)
+        assert np.array_equal(fin, np.isfinite(b))
+        scale = np.abs(a[fin]).max() if fin.any() else 1.0
+        worst = max(worst, float(np.abs(a[fin] - b[fin]).max(initial=0.0)) / scale)
+        assert (math.isnan(nus[0]) and math.isnan(nus[1])) or math.isclose(*nus, rel_tol=1e-12)
+    assert worst <= 1e-12
