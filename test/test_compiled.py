@@ -40,7 +40,8 @@ def problems():
 
 
 def solve_all():
-    """Per problem: 3D robust steps (constant and range-grown σ) and horizontal robust wmle."""
+    """Per problem: 3D robust steps (constant and range-grown σ), horizontal robust wmle and
+    the ctls_am iteration."""
     from bearing_loc_ros.core import robust_single
     from bearing_loc_ros.core.estimators import locate
     from bearing_loc_ros.core.horizontal import locate_horizontal
@@ -57,6 +58,9 @@ def solve_all():
         h = locate_horizontal('wmle', bs, z, 10.0, robust=True)
         rows.append(['h', h.position.tolist(), h.covariance.tolist(), str(h.status[0]),
                      float(h.nonlinearity[0]), h.excluded.tolist()])
+        c = locate('ctls_am', bs, consistency=False)
+        rows.append(['ctls', c.position.tolist(), c.covariance.tolist(), str(c.status[0]),
+                     int(c.iterations[0])])
     return rows
 
 
@@ -68,9 +72,9 @@ def test_compiled_numerics_equal_their_python_source(tmp_path):
     subprocess.run([sys.executable, '-c', code], env=env, check=True, timeout=600)
     python = json.loads(out.read_text())
     compiled = json.loads(json.dumps(solve_all()))
-    assert len(python) == len(compiled) == 240
+    assert len(python) == len(compiled) == 320
     kinds = [r[0] for r in compiled]
-    assert kinds.count('3d') > 100 and kinds.count('h') == 80      # the compiled paths ran
+    assert kinds.count('3d') > 100 and kinds.count('h') == kinds.count('ctls') == 80
     worst = 0.0
     for p, c in zip(python, compiled):
         assert p[0] == c[0]
@@ -80,9 +84,12 @@ def test_compiled_numerics_equal_their_python_source(tmp_path):
         if p[0] == '3d':
             assert p[3:4] + p[5:] == c[3:4] + c[5:]            # ok, exclusions, finite
             nus = (p[4], c[4])
-        else:
+        elif p[0] == 'h':
             assert p[3] == c[3] and p[5] == c[5]                # status, exclusions
             nus = (p[4], c[4])
+        else:
+            assert p[3:] == c[3:]                               # status, iterations
+            nus = (0.0, 0.0)
         a = np.array(p[1] + sum(p[2], []), dtype=float)
         b = np.array(c[1] + sum(c[2], []), dtype=float)
         fin = np.isfinite(a)

@@ -42,7 +42,6 @@ import numpy as np
 from .bearings import BearingSet
 from .conventions import azimuth_elevation
 from .crlb import safe_inverse
-from .ctls_single import solve_one
 from .estimator_spec import (BEARING_SIGMA, CONSISTENCY, declare, ITERATIVE_OPTIONS,
                              MULTISTATION, STEP_DECAY)
 from .fix import iterative_result
@@ -335,6 +334,9 @@ def _solve(spec, bearings, weighting, options, centre=None):
         opts = spec.parse(options, 1)
         if opts.get('initial') is not None:
             opts['initial'] = opts['initial'] - centre
+        # (imported here: the compiled one-problem path loads numba, which a process that
+        # never solves one problem need not pay for)
+        from .ctls_single import solve_one
         res = solve_one(name, bearings, opts)
         if res is not None:
             return res

@@ -30,6 +30,7 @@ import math
 import numpy as np
 
 from .fix import FixResult, iterative_result, STATUS_DIVERGED, STATUS_MAX_ITERATIONS, STATUS_OK
+from .jit import jit
 from .single_floats import inverse3, normal_equations, solve3
 from .solvers import CHI2_STEP_TOL, COST_RTOL
 
@@ -98,12 +99,16 @@ def _station(p, th, ps, s_az, s_el, has_el):
 # with G⁻¹'s zero off-diagonal entries, F_3's zero first row and F_2's zero first column are
 # left out (they add exact zeros in constrained_tls._CTLSProblem).
 
-def cost(stations, X):
-    """f(X) of Wang, Zhang & Wu eq. (11) (constrained_tls._CTLSProblem.cost)."""
+@jit
+def cost(table, X):
+    """f(X) of Wang, Zhang & Wu eq. (11) (constrained_tls._CTLSProblem.cost); ``table`` the
+    stations' rows of :func:`_station` as an array (N, 27) (:func:`_table`)."""
     x, y, z = X
     f = 0.0
-    for (_, _, _, has_el, F0a, F0c, F0d, F1a, F1c, F1d, F2d, F3a, F3c, F3d, h00, h01, h10,
-         h11, h12, y0, y1, g0, _, _, g3, _, _) in stations:
+    for k in range(table.shape[0]):
+        (has_el, F0a, F0c, F0d, F1a, F1c, F1d, F2d, F3a, F3c, F3d, h00, h01, h10, h11, h12, y0,
+         y1, g0) = _row(table, k)[3:22]
+        g3 = table[k, 24]
         a = x * F0a + y * F1a - F3a                         # H_X = Σ a_j F_j − F_4
         c = x * F0c + y * F1c - F3c
         d = x * F0d + y * F1d + z * F2d - F3d
@@ -118,20 +123,24 @@ def cost(stations, X):
     return f
 
 
-def derivatives(stations, X):
-    """f, T_n (3), H_n and its Gauss-Newton part (3 × 3 nested lists), appendix A.
+@jit
+def derivatives(table, X):
+    """f, T_n (3), H_n and its Gauss-Newton part (3 × 3 nested tuples), appendix A.
 
     Per station (see constrained_tls._CTLSProblem.derivatives): U = S⁻¹r, B3 column j =
     F_jᵀU, B1 = H_X G⁻¹ B3, K = (H_X G⁻¹)ᵀU, B2 column j = F_j K, D = H − B1 − B2,
     T += 2 Uᵀ(H − B1), H_gn += 2 DᵀS⁻¹D, H_n = H_gn − 2 Σ B3ᵀG⁻¹B3. Also returns the rms
-    distance of X from the stations (m), the scale of the step test.
+    distance of X from the stations (m), the scale of the step test. ``table`` as for
+    :func:`cost`.
     """
     x, y, z = X
     f = t0 = t1 = t2 = s2 = 0.0
     g00 = g01 = g02 = g11 = g12 = g22 = 0.0
     c00 = c01 = c02 = c11 = c12 = c22 = 0.0
-    for (px, py, pz, has_el, F0a, F0c, F0d, F1a, F1c, F1d, F2d, F3a, F3c, F3d, h00, h01, h10,
-         h11, h12, y0, y1, g0, _, _, g3, _, _) in stations:
+    for k in range(table.shape[0]):
+        (px, py, pz, has_el, F0a, F0c, F0d, F1a, F1c, F1d, F2d, F3a, F3c, F3d, h00, h01, h10,
+         h11, h12, y0, y1, g0) = _row(table, k)[:22]
+        g3 = table[k, 24]
         a = x * F0a + y * F1a - F3a
         c = x * F0c + y * F1c - F3c
         d = x * F0d + y * F1d + z * F2d - F3d
@@ -189,10 +198,24 @@ def derivatives(stations, X):
         2.0 * g22
     c00, c01, c02, c11, c12, c22 = 2.0 * c00, 2.0 * c01, 2.0 * c02, 2.0 * c11, 2.0 * c12, \
         2.0 * c22
-    Hg = [[g00, g01, g02], [g01, g11, g12], [g02, g12, g22]]
-    Hn = [[g00 - c00, g01 - c01, g02 - c02], [g01 - c01, g11 - c11, g12 - c12],
-          [g02 - c02, g12 - c12, g22 - c22]]
-    return f, [2.0 * t0, 2.0 * t1, 2.0 * t2], Hn, Hg, math.sqrt(s2 / len(stations))
+    Hg = ((g00, g01, g02), (g01, g11, g12), (g02, g12, g22))
+    Hn = ((g00 - c00, g01 - c01, g02 - c02), (g01 - c01, g11 - c11, g12 - c12),
+          (g02 - c02, g12 - c12, g22 - c22))
+    return f, (2.0 * t0, 2.0 * t1, 2.0 * t2), Hn, Hg, math.sqrt(s2 / table.shape[0])
+
+
+@jit
+def _row(table, k):
+    """Row k of the station table as a tuple of 27 floats (has_el 1.0 or 0.0)."""
+    r = table[k]
+    return (r[0], r[1], r[2], r[3], r[4], r[5], r[6], r[7], r[8], r[9], r[10], r[11], r[12],
+            r[13], r[14], r[15], r[16], r[17], r[18], r[19], r[20], r[21], r[22], r[23], r[24],
+            r[25], r[26])
+
+
+def _table(stations):
+    """The rows of :func:`_station` as a float array (N, 27), for the compiled loops."""
+    return np.array(stations, dtype=float)
 
 
 def _stations(bearings):
@@ -277,12 +300,12 @@ def solve_one(name, bearings, opts):
         X = _ls_start(stations) if x0 is None else tuple(x0[0].tolist())
         if X is None:
             return None
-        return _iterate(name, stations, X, opts)
+        return _iterate(name, stations, _table(stations), X, opts)
     except (ArithmeticError, ValueError):       # division by zero, overflow, NaN in math
         return None
 
 
-def _iterate(name, stations, X, opts):
+def _iterate(name, stations, table, X, opts):
     """The Newton iteration of constrained_tls.constrained_tls for one problem."""
     n_meas = sum(2 if st[3] else 1 for st in stations)
     rel_tol = max(CHI2_STEP_TOL / max(n_meas - 3, 1), COST_RTOL)
@@ -293,7 +316,7 @@ def _iterate(name, stations, X, opts):
     done = False
     D = None
     for n in range(opts['max_iterations']):
-        f, T, Hn, Hgn, scale = D if D is not None else derivatives(stations, X)
+        f, T, Hn, Hgn, scale = D if D is not None else derivatives(table, X)
         D = None
         pd = False
         h0, h1, h2 = Hn                                  # symmetric: 6 distinct entries
@@ -321,10 +344,10 @@ def _iterate(name, stations, X, opts):
                 if k == 0 and not small:
                     # The full step is usually accepted: its derivatives (whose f is the
                     # cost, bit for bit) serve the next iteration instead of a second pass.
-                    Dt = derivatives(stations, Xt)
+                    Dt = derivatives(table, Xt)
                     ft = Dt[0]
                 else:
-                    Dt, ft = None, cost(stations, Xt)
+                    Dt, ft = None, cost(table, Xt)
                 if isfinite(ft) and ft <= f:
                     X, accepted, D = Xt, True, Dt
                     break

@@ -18,8 +18,8 @@ def warm_up():
 
     Four stations (one azimuth-only) around a target 3 km away, σ = 20 mrad with a 0.5 rad
     error on one azimuth (the robust steps then exclude it): ``wmle`` with ``robust`` (the
-    3D steps 2-4), ``ctls_am`` (its consistency check), and the horizontal ``wmle`` with
-    ``robust`` on calm bearings (the compiled calm branch and test inversion).
+    3D steps 2-4), ``ctls_am`` (its iteration and consistency check), and the horizontal
+    ``wmle`` with ``robust`` on calm bearings (the compiled calm branch and test inversion).
     """
     from .bearings import BearingSet, simulate_bearings
     from .estimators import locate
