@@ -1,4 +1,4 @@
-"""Steps 2-4 of the :mod:`.robust` docstring for one problem, on Python floats.
+"""Steps 2-4 of the :mod:`.robust` docstring for one problem, on floats, compiled.
 
 The one-fix path of :func:`.robust.confident_result` (the fusion node and ``bearing_loc
 locate`` solve one problem per call; every range-grown ``wmle`` fix goes through these
@@ -11,14 +11,15 @@ the log σ² term, Levenberg-Marquardt on the full negative log-likelihood of th
 the assessment (Fisher covariance, decisive exclusions, test-inversion widening for
 range-grown σ, nonlinearity ν, second optimum).
 
-Each Levenberg-Marquardt iterate is evaluated in one pass over the stations (cost, Fisher
-information and gradient together). The candidates of N ≥ 5 stations (up to N(N + 1)/2 + 2 of
-them) are solved and scored as arrays: the station subsets' normal equations are one
-product of the subset masks with the stations' packed equations, solved by cofactors.
-3 × 3 inverses and solves are cofactor formulas where tr(A) tr(adj A) ≤ 1e5 det(A) (then
-κ(A) ≤ 1e5: crlb.safe_inverse's rank test certainly passes and the result agrees with
-LAPACK's to about κ ε); other matrices are decided as crlb.safe_inverse decides them, by
-eigenvalues of the characteristic cubic (Smith 1961) where clear, else by LAPACK. Statuses,
+The code is scalar float arithmetic, compiled by numba (:mod:`.jit`: the IEEE operations of
+the source, no fast-math). Each Levenberg-Marquardt iterate is evaluated in one pass over
+the stations (cost, Fisher information and gradient together). Each consensus candidate
+(up to N(N + 1)/2 + 2 of them) sums its stations' packed normal equations in station order
+and is solved by cofactors. 3 × 3 inverses and solves are cofactor formulas where
+tr(A) tr(adj A) ≤ 1e5 det(A) (then κ(A) ≤ 1e5: crlb.safe_inverse's rank test certainly
+passes and the result agrees with LAPACK's to about κ ε); other matrices are decided as
+crlb.safe_inverse decides them, by eigenvalues of the characteristic cubic (Smith 1961)
+where clear, else by LAPACK. Statuses,
 exclusions and convergence flags are the batch path's; both refits accept a step within
 the rounding of the cost (robust_consensus.ACCEPT_TOL) and so iterate to the same optimum
 (measured against the batch path on the same input, 13,720 random problems of 3-10
@@ -28,8 +29,10 @@ far from an ellipse; on the seed scenarios ≤ 5e-16 and ≤ 1.5e-9,
 bench/one_fix_agreement.py; tested at 1e-9), covariances within 3e-8 of their largest
 entry.
 
-Where the floats cannot follow the batch path to rounding (a division by zero, a log of
-zero, a rank test or major axis too close to call, a non-finite Fisher information),
+A decision the closed forms cannot make (an ill-conditioned rank test, an ill-conditioned
+candidate system) is made by numpy's LAPACK, called from the compiled code as the batch
+path calls it. Where the floats cannot follow the batch path to rounding (a division by
+zero, a major axis too close to call, a non-finite Fisher information or angle residual),
 :class:`Fallback` is raised and the caller runs the batch path. Units: m, rad; ENU,
 azimuth θ CCW from East, elevation ψ above the horizontal.
 """
@@ -37,6 +40,7 @@ azimuth θ CCW from East, elevation ψ above the horizontal.
 from functools import lru_cache
 from math import acos, atan2, ceil, cos, inf, isfinite, log, nan, pi, sin, sqrt
 
+from numba import objmode
 import numpy as np
 
 from .jit import jit
@@ -151,8 +155,17 @@ def _rank_ok(a00, a01, a02, a11, a12, a22):
         return False
     if _clear(a00, a01, a02, a11, a12, a22):
         return True
-    w = np.linalg.eigvalsh(_full(a00, a01, a02, a11, a12, a22))
-    return w[0] > _RCOND * abs(w[-1]) and w[-1] > 0
+    A = _full(a00, a01, a02, a11, a12, a22)
+    with objmode(ok='boolean'):
+        ok = _numpy_rank_ok(A)
+    return ok
+
+
+def _numpy_rank_ok(A):
+    """:func:`_rank_ok` by numpy's LAPACK, as the batch path (run as Python from compiled
+    code: the LAPACK numba links orders its operations otherwise)."""
+    w = np.linalg.eigvalsh(A)
+    return bool(w[0] > _RCOND * abs(w[-1]) and w[-1] > 0)
 
 
 @jit
@@ -495,9 +508,12 @@ def _solve_candidate(a00, a01, a02, a11, a12, a22, b0, b1, b2):
             raise Fallback('singular candidate equations')
         return x0, x1, x2
     if _rank_ok(a00, a01, a02, a11, a12, a22):
-        # Ill-conditioned but invertible: LAPACK's inverse, as the batch path.
-        x = np.linalg.inv(_full(a00, a01, a02, a11, a12, a22)) @ np.array([b0, b1, b2])
-        return x[0], x[1], x[2]
+        # Ill-conditioned but invertible: numpy's LAPACK inverse, as the batch path (an
+        # ill-conditioned system amplifies any other order of operations).
+        A = _full(a00, a01, a02, a11, a12, a22)
+        with objmode(x0='float64', x1='float64', x2='float64'):
+            x0, x1, x2 = (np.linalg.inv(A) @ np.array([b0, b1, b2])).tolist()
+        return x0, x1, x2
     return _NAN3
 
 
