@@ -667,8 +667,9 @@ class KrakenInput:
     ``rejections`` a list of (reason, detail). Steps per reading: parse errors are rejected
     with their reason; ``receiver_id`` (when set) must equal the reading's station id
     (``other_station``); the frequency picks the channel (``no_channel`` when in no band);
-    the stamp is the receiver's ``TIME`` (``stamp='receiver'``) or the node clock on
-    receipt (``'receive'``); :class:`~bearing_loc_ros.core.kraken.TimeFilter` refuses
+    the stamp is the receiver's ``TIME`` (``stamp='receiver'``; a ``TIME`` before 2000 is an
+    unset receiver clock, ``unset_clock``) or the node clock on receipt (``'receive'``);
+    :class:`~bearing_loc_ros.core.kraken.TimeFilter` refuses
     duplicate and out-of-order stamps per (station, channel) — a polled document seen
     again is counted as ``unchanged``, not rejected — and, with ``stamp='receiver'`` and
     ``now_ns`` given, ``TIME`` more than
@@ -739,6 +740,12 @@ class KrakenInput:
             raise KrakenError('no_channel', f'{rec.frequency_hz / 1e6:.6f} MHz is in no '
                                             'configured channel band', 'frequency')
         own = self.stamp == 'receiver'
+        if own and rec.stamp_ns < kraken.MIN_RECEIVER_TIME_NS:
+            # Before the stream's time checks: the stamps that follow once the clock is set
+            # are then neither old nor a reset.
+            raise KrakenError('unset_clock', f'TIME {rec.stamp_ns / 1e9:.3f} s is before '
+                                             '2000-01-01: the receiver clock is not set',
+                              'TIME')
         self.times.check((rec.station_id, channel), rec.stamp_ns, now_ns if own else None)
         stamp = rec.stamp_ns if own else int(now_ns)
         if stamp <= 0:

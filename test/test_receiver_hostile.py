@@ -486,6 +486,26 @@ def test_receiver_stamps_in_the_future_are_rejected_and_do_not_poison_the_stream
     assert ki.times.resets == 0
 
 
+def test_a_receiver_clock_reset_to_1970_is_refused_not_published():
+    # A receiver board without a real-time clock reboots: its TIME restarts near 1970 until
+    # GPS or NTP sets it. Those bearings would carry a 1970 stamp (the fusion drops them as
+    # too old); they are refused, and the stream carries on once the clock is set again.
+    cfg = receiver_config('rx', position=[0.0, 0.0, 0.0])
+    now = (T0_MS + 5000) * 10 ** 6
+    times = (T0_MS, 12_000, 13_000, T0_MS + 2000, T0_MS + 3000)
+    recs = [kraken.parse_json(GOOD_JSON.replace(b'1700000002500', str(ms).encode()))
+            for ms in times]
+    ki = ri.KrakenInput(_Queue(recs), cfg, stamp='receiver')
+    bearings, rejected = ki.poll(now)
+    assert [b.stamp_ns // 10 ** 6 for _, b in bearings] == [T0_MS, T0_MS + 2000, T0_MS + 3000]
+    assert [r for r, _ in rejected] == ['unset_clock'] * 2
+    assert 'before 2000-01-01' in rejected[0][1] and ki.times.resets == 0
+    # Stamped on receipt, the receiver's clock does not matter (its jump back is a reset).
+    ki = ri.KrakenInput(_Queue(recs), cfg, stamp='receive')
+    bearings, rejected = ki.poll(now)
+    assert len(bearings) == 5 and rejected == [] and ki.times.resets == 1
+
+
 def test_max_age_with_receive_stamps_is_refused():
     cfg = receiver_config('rx', position=[0.0, 0.0, 0.0])
     with pytest.raises(ValueError, match='^max_age: '):

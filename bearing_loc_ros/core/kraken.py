@@ -33,8 +33,9 @@ Rejection reasons: ``malformed_xml``, ``malformed_csv``, ``malformed_json``,
 ``missing_field``, ``bad_number`` (not a number), ``not_finite`` (NaN/inf),
 ``out_of_range``, ``too_large`` (document over the size limit); :class:`TimeFilter` adds
 ``duplicate_time``, ``old_time`` (earlier than the last accepted), ``stale_time``
-(older than the allowed age) and ``future_time`` (ahead of the node clock); the error's
-``field`` names the offending field.
+(older than the allowed age) and ``future_time`` (ahead of the node clock), and the station
+``unset_clock`` (:data:`MIN_RECEIVER_TIME_NS`); the error's ``field`` names the offending
+field.
 
 One module (about 500 lines) on purpose: the three format parsers share the field checks
 and the record type, and the time filter and channel map apply to their records.
@@ -68,6 +69,10 @@ JSON_MHZ_BELOW = 1.0e5
 #: the station's :class:`TimeFilter`, ns: the receiver's clock is wrong (a reading cannot
 #: come from the future), and accepting it would make every later reading look old.
 MAX_FUTURE_NS = 10 * 1_000_000_000
+#: A receiver ``TIME`` before 2000-01-01T00:00:00Z (unix ns) is an unset clock (a board
+#: without a real-time clock that booted before its GPS or NTP time came): such a reading is
+#: refused (``unset_clock``) where the bearing would carry it as its stamp.
+MIN_RECEIVER_TIME_NS = 946_684_800 * 1_000_000_000
 CSV_FIXED_FIELDS = 17
 SPECTRUM_LEN = 360
 FORMATS = ('xml', 'csv', 'json')
