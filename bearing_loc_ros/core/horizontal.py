@@ -169,12 +169,12 @@ def _robust(method, bearings, res, p, options):
     if bearings.M == 1 and d_ref is not None:
         # One wmle fix whose residuals are calm (decided compiled): robust_fix's calm branch.
         fix = calm_grown_one(bearings, res, p.use_el[0], d_ref, float(p.sz[0]))
-        if fix is not None:
+        if fix is not None and np.isnan(fix.nonlinearity[0]):
             fields = {k: np.array(getattr(fix, k)) for k in names}
-            excluded = np.zeros((1, bearings.N, 2), dtype=bool)
-            nu = fix.nonlinearity
-            return FixResult(method=method, excluded=excluded, nonlinearity=(
-                nu_of(fields, excluded) if np.isnan(nu[0]) else nu), **fields)
+            fix = FixResult(method=method, excluded=fix.excluded,
+                            nonlinearity=nu_of(fields, fix.excluded), **fields)
+        if fix is not None:
+            return fix
     fields = {k: np.array(getattr(res, k)) for k in names}
     fields['status'] = fields['status'].astype(object)
     excluded = np.zeros((bearings.M, bearings.N, 2), dtype=bool)

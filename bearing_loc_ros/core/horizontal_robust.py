@@ -74,7 +74,8 @@ from .jit import jit, jit_numpy
 from .fix import FixResult, STATUS_DEGENERATE, STATUS_LOW_CONFIDENCE, STATUS_OK
 from .robust import _c2, chi2_upper, CONSISTENCY_PROBABILITY
 from .horizontal_single import inverse2 as _inverse2_py
-from .robust_model import max_nonlinearity, STATUS_REGION_Z, TEST_INVERSION_Z
+from .robust_model import (_upper_cached, max_nonlinearity, STATUS_REGION_Z,
+                           TEST_INVERSION_Z)
 
 #: Bearings (evenly spread over the set) whose pairwise intersections are candidates.
 MAX_PAIR_BEARINGS = 16
@@ -405,27 +406,36 @@ def calm_grown_one(bs, result, use_el, d_ref, sigma_z):
     """
     if str(result.status[0]) != STATUS_OK:
         return None
-    x = np.asarray(result.position[0], dtype=float)
-    P = np.ascontiguousarray(result.covariance[0, :3, :3], dtype=float)
-    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(P))):
-        return None
     n_angles = bs.N + int(np.count_nonzero(use_el))
     calm, cov, nu = _calm_grown(bs.positions[0], bs.azimuth[0], bs.elevation[0],
-                                bs.sigma_az[0], bs.sigma_el[0], use_el, x, P, float(d_ref),
-                                float(sigma_z), _c2(),
-                                float(chi2_upper(max(n_angles - 2, 1))), SCREEN_MARGIN)
+                                bs.sigma_az[0], bs.sigma_el[0], use_el, result.position[0],
+                                np.ascontiguousarray(result.covariance[0, :3, :3]),
+                                float(d_ref), float(sigma_z), _c2(),
+                                _upper_cached(max(n_angles - 2, 1), CONSISTENCY_PROBABILITY),
+                                SCREEN_MARGIN)
     if not calm:
         return None
     c = np.array(result.covariance, dtype=float)
     c[0, :3, :3] = cov
-    fix = FixResult(result.position, c, result.iterations, result.converged, result.status,
-                    result.method)
-    return _with_nu(fix, nu, nu <= max_nonlinearity(True))
+    ok = nu <= max_nonlinearity(True)
+    # robust_fix's result: _with_nu(_assessed(...), ν, ok), built at once
+    return FixResult(result.position, c, result.iterations,
+                     result.converged if ok else np.zeros(1, dtype=bool),
+                     result.status if ok else np.array([STATUS_LOW_CONFIDENCE]), result.method,
+                     excluded=np.zeros((1, bs.N, 2), dtype=bool),
+                     nonlinearity=np.array([nu], dtype=float))
 
 
 @jit_numpy
 def _calm_grown(pos, az, el, sa, se, use_el, X, P, d_ref, sigma_z, c2, upper, margin):
-    """(calm and decided, widened covariance (3, 3), ν) of :func:`calm_grown_one`."""
+    """(calm and decided, widened covariance (3, 3), ν) of :func:`calm_grown_one`; not
+    decided where X or P is not finite."""
+    for i in range(3):
+        if not math.isfinite(X[i]):
+            return False, P, math.nan
+        for j in range(3):
+            if not math.isfinite(P[i, j]):
+                return False, P, math.nan
     total = 0.0
     for k in range(pos.shape[0]):
         dx, dy, dz = X[0] - pos[k, 0], X[1] - pos[k, 1], X[2] - pos[k, 2]
