@@ -62,6 +62,10 @@ with nothing excluded. Measured on the Wang, Zhang & Wu (2006) stations with azi
 receivers (config/scenarios/seed000_azimuth_only.yaml, 10,000 trials per σ): docs/
 estimators.md, "Horizontal fixes at low SNR".
 
+The bound evaluations of the test inversion (:func:`_bound_sigma_along`, :func:`_inversions`)
+and the calm branch of one ``wmle`` fix (:func:`calm_grown_one`) are compiled
+(:mod:`.jit`); the rest is numpy.
+
 Units: m, rad; ENU, azimuth θ CCW from East, elevation ψ above the horizontal.
 """
 
