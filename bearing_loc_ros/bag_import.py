@@ -50,7 +50,10 @@ def station_bearings(station, path, params):
     if not os.path.isfile(path):
         raise InputError(f'station: {path} is not a file')
     source = CsvFileTail(path, from_start=True, queue_size=10 ** 9)
-    ki = KrakenInput(source, cfg, channels, stamp='receiver', receiver_id=p['kraken.receiver_id'])
+    # A log keeps the times it was recorded with, even from a receiver whose clock was not
+    # set (bag play replays them as /clock): no unset_clock check here.
+    ki = KrakenInput(source, cfg, channels, stamp='receiver', receiver_id=p['kraken.receiver_id'],
+                     min_time_ns=0)
     out, rejected = [], Counter()
     while True:
         n_before = ki.counts['readings']
@@ -92,7 +95,10 @@ def import_logs(logs, out, params_data=None, storage='mcap', clock_rate=10.0):
             per_topic[topic] += 1
             events.append((b.stamp_ns, 0, k, j, topic, b))
     if not events:
-        raise InputError('station: no valid reading in any log')
+        why = '; '.join(f'{station}: ' + ', '.join(f'{n} {r}' for r, n in sorted(rej.items()))
+                        for station, rej in sorted(rejected.items()) if rej)
+        raise InputError('station: no valid reading in any log'
+                         + (f' (rejected: {why})' if why else ''))
     start, end = min(e[0] for e in events), max(e[0] for e in events)
     if clock_rate > 0:
         period = max(1, int(round(NS_PER_S / clock_rate)))

@@ -667,8 +667,9 @@ class KrakenInput:
     ``rejections`` a list of (reason, detail). Steps per reading: parse errors are rejected
     with their reason; ``receiver_id`` (when set) must equal the reading's station id
     (``other_station``); the frequency picks the channel (``no_channel`` when in no band);
-    the stamp is the receiver's ``TIME`` (``stamp='receiver'``; a ``TIME`` before 2000 is an
-    unset receiver clock, ``unset_clock``) or the node clock on receipt (``'receive'``);
+    the stamp is the receiver's ``TIME`` (``stamp='receiver'``; a ``TIME`` before
+    ``min_time_ns``, by default 2000-01-01, is an unset receiver clock, ``unset_clock``; 0
+    turns the check off, as for a recorded log) or the node clock on receipt (``'receive'``);
     :class:`~bearing_loc_ros.core.kraken.TimeFilter` refuses
     duplicate and out-of-order stamps per (station, channel) — a polled document seen
     again is counted as ``unchanged``, not rejected — and, with ``stamp='receiver'`` and
@@ -682,7 +683,7 @@ class KrakenInput:
     """
 
     def __init__(self, source, config, channels=None, stamp='receiver', max_age_s=0.0,
-                 receiver_id='', reset_s=60.0):
+                 receiver_id='', reset_s=60.0, min_time_ns=kraken.MIN_RECEIVER_TIME_NS):
         if stamp not in STAMPS:
             raise ValueError(f'stamp: {stamp!r} is not one of {STAMPS}')
         if stamp == 'receive' and max_age_s > 0.0:
@@ -694,6 +695,8 @@ class KrakenInput:
         self.receiver_id = receiver_id
         self.times = kraken.TimeFilter(int(max_age_s * 1e9), int(reset_s * 1e9),
                                        kraken.MAX_FUTURE_NS)
+        self.min_time_ns = int(min_time_ns)
+        self._unset = {}            # (station, channel) -> the last TIME refused as unset
         self.counts = Counter()
         self.published = Counter()
         self._reported_state = None
@@ -740,9 +743,14 @@ class KrakenInput:
             raise KrakenError('no_channel', f'{rec.frequency_hz / 1e6:.6f} MHz is in no '
                                             'configured channel band', 'frequency')
         own = self.stamp == 'receiver'
-        if own and rec.stamp_ns < kraken.MIN_RECEIVER_TIME_NS:
+        if own and rec.stamp_ns < self.min_time_ns:
             # Before the stream's time checks: the stamps that follow once the clock is set
-            # are then neither old nor a reset.
+            # are then neither old nor a reset. The same frame polled again is a duplicate
+            # (counted as unchanged for a polled source), not another refusal.
+            key = (rec.station_id, channel)
+            if self._unset.get(key) == rec.stamp_ns:
+                raise KrakenError('duplicate_time', f'{rec.stamp_ns} ns seen already', 'TIME')
+            self._unset[key] = rec.stamp_ns
             raise KrakenError('unset_clock', f'TIME {rec.stamp_ns / 1e9:.3f} s is before '
                                              '2000-01-01: the receiver clock is not set',
                               'TIME')

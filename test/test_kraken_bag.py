@@ -41,12 +41,12 @@ def params():
     return out
 
 
-def write_logs(d, rng):
+def write_logs(d, rng, t0_ms=T0_MS):
     logs = {}
     for s, (pos, heading) in STATIONS.items():
         lines = []
         for k in range(FRAMES):
-            ms = T0_MS + 1000 * k + int(rng.integers(0, 40))   # stations not in lockstep
+            ms = t0_ms + 1000 * k + int(rng.integers(0, 40))   # stations not in lockstep
             for ch, (tx, freq) in TX.items():
                 beta = math.degrees(true_compass(pos[:2], tx[:2])) + rng.normal(0, SIGMA_DEG)
                 doa = (heading - beta) % 360.0
@@ -64,6 +64,28 @@ def imported(tmp_path_factory):
     logs = write_logs(d, np.random.default_rng(7))
     summary = import_logs(logs, d / 'bag', params(), clock_rate=10.0)
     return d, logs, summary
+
+
+def test_a_log_from_a_receiver_whose_clock_was_not_set_imports(tmp_path):
+    # A live station refuses TIME before 2000 (unset_clock); a log keeps its recorded times.
+    logs = write_logs(tmp_path, np.random.default_rng(7), t0_ms=3_600_000)
+    summary = import_logs(logs, tmp_path / 'bag', params(), clock_rate=10.0)
+    assert all(n == FRAMES for n in summary['per_topic'].values())
+    assert summary['rejected'] == {st: {'malformed_csv': 1} for st in STATIONS}
+    with bagio.BagReader(tmp_path / 'bag') as r:
+        msgs = list(r.messages(['/uhf/north/bearing']))
+    stamps = [bagio.stamp_ns(bagio.deserialize(m.raw, m.msgtype)) for m in msgs]
+    assert len(stamps) == FRAMES and 3_600_000 <= min(stamps) // 10 ** 6 < 3_700_000
+
+
+def test_no_valid_reading_names_the_rejections(tmp_path):
+    bad = {s: tmp_path / f'{s}.csv' for s in STATIONS}
+    for path in bad.values():
+        path.write_text('garbled\nnot, a, reading\n')
+    with pytest.raises(ValueError, match=r'no valid reading in any log \(rejected: east: 2 '
+                                         r'malformed_csv; north: 2 malformed_csv; west: 2 '
+                                         r'malformed_csv\)'):
+        import_logs(bad, tmp_path / 'bag', params())
 
 
 def test_import_topics_and_counts(imported):

@@ -500,6 +500,11 @@ def test_a_receiver_clock_reset_to_1970_is_refused_not_published():
     assert [b.stamp_ns // 10 ** 6 for _, b in bearings] == [T0_MS, T0_MS + 2000, T0_MS + 3000]
     assert [r for r, _ in rejected] == ['unset_clock'] * 2
     assert 'before 2000-01-01' in rejected[0][1] and ki.times.resets == 0
+    # The same unset frame polled again is a duplicate (a poller counts it as unchanged),
+    # not one more refusal.
+    ki = ri.KrakenInput(_Queue(recs[1:2] * 3), cfg, stamp='receiver')
+    _, rejected = ki.poll(now)
+    assert [r for r, _ in rejected] == ['unset_clock', 'duplicate_time', 'duplicate_time']
     # Stamped on receipt, the receiver's clock does not matter (its jump back is a reset).
     ki = ri.KrakenInput(_Queue(recs), cfg, stamp='receive')
     bearings, rejected = ki.poll(now)
@@ -520,7 +525,7 @@ SOURCE_KEYS = ('requests', 'timeout', 'unreachable', 'http_status', 'http_error'
                'connections_refused', 'slow_clients',
                'lines', 'missing', 'reopened', 'truncated', 'replay_jumps', 'queue_overflow')
 REASONS = ('future_time', 'stale_time', 'truncated_body', 'no_clock', 'too_large',
-           'malformed_csv', 'bad_number')
+           'malformed_csv', 'bad_number', 'unset_clock')
 
 
 def test_every_counter_and_reason_of_the_inputs_is_documented():

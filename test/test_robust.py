@@ -327,6 +327,48 @@ def test_robust_wmle_one_fix_float_path_gives_the_batch_result(sigma, outliers):
     assert floats >= 0.9 * b.M                  # the float path, not its fallback, is tested
 
 
+def test_ill_conditioned_information_is_inverted_as_on_the_batch_path(monkeypatch):
+    # Far targets and nearly collinear stations (σ 0.3-100 mrad, 15 % outliers) give Fisher
+    # information that the closed forms cannot certify (κ possibly above 1e5): up to κ = 1e7
+    # the compiled one-fix path inverts it with numpy's LAPACK, as the batch path does
+    # (robust_single.MAX_CONDITION), instead of handing the fix to the batch path. The same
+    # statuses, exclusions and fixes as the problem solved in a batch of two.
+    from bearing_loc_ros.core import robust_single
+    used = []
+    real = robust_single._numpy_safe_inverse
+
+    def counting(A):
+        out = real(A)
+        used.append(out[1])
+        return out
+    monkeypatch.setattr(robust_single, '_numpy_safe_inverse', counting)
+    rng = np.random.default_rng(5)
+    for k in range(60):
+        n = int(rng.integers(3, 11))
+        base = 10 ** rng.uniform(2, 3.5)
+        if k % 2:
+            t = rng.uniform(-base, base, n)
+            xy = np.column_stack([t, 0.3 * t + rng.normal(0, base * 1e-3, n)])
+        else:
+            xy = rng.uniform(-base, base, (n, 2))
+        pos = np.column_stack([xy, rng.uniform(0, 30, n)])
+        r, ang = base * 10 ** rng.uniform(0.5, 3), rng.uniform(0, 2 * math.pi)
+        d = np.array([r * math.cos(ang), r * math.sin(ang), rng.uniform(0, 0.2) * r]) - pos
+        s = 10 ** rng.uniform(-3.5, -1)
+        az = np.arctan2(d[:, 1], d[:, 0]) + rng.normal(0, s, n)
+        el = np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1])) + rng.normal(0, s, n)
+        out = rng.random(n) < 0.15
+        az[out] += rng.uniform(0.3, 1.5, out.sum()) * rng.choice([-1, 1], out.sum())
+        el[1::3] = np.nan
+        one = BearingSet.from_arrays(pos, az, el, s, s)
+        two = BearingSet(*(np.concatenate([a, a]) for a in (
+            one.positions, one.azimuth, one.elevation, one.sigma_az, one.sigma_el)))
+        for name, opts in (('wmle', {'robust': True}), ('mle', {})):
+            assert_one_fix_equals_batch(locate(name, one, **opts), locate(name, two, **opts),
+                                        0, pos)
+    assert sum(used) >= 20          # the LAPACK inverse ran (κ in (1e5, 1e7])
+
+
 def test_robust_one_fix_fallback_is_the_batch_path(monkeypatch):
     # Where the floats cannot follow the batch path (robust_single.Fallback), the one-fix
     # call runs the vectorised steps: the batch result.
