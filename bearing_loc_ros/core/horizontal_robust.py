@@ -73,7 +73,7 @@ import math
 
 import numpy as np
 
-from .conventions import azimuth_elevation, wrap_angle
+from .conventions import azimuth_elevation, wrap_angle, wrap_angle_scalar
 from .jit import jit, jit_numpy
 from .fix import FixResult, STATUS_DEGENERATE, STATUS_LOW_CONFIDENCE, STATUS_OK
 from .robust import _c2, chi2_upper, CONSISTENCY_PROBABILITY
@@ -382,6 +382,10 @@ def _bound_sigma_along(x, y, z, v0, v1, pos, sa, se, has, d_ref, sigma_z):
                          0.0))
 
 
+#: :func:`.conventions.wrap_angle_scalar` (residuals2's wrap_angle on one angle), compiled.
+_wrap_angle = jit(wrap_angle_scalar)
+
+
 #: :func:`.horizontal_single.inverse2`, compiled.
 _inverse2_jit = jit(_inverse2_py)
 
@@ -444,8 +448,7 @@ def _calm_grown(pos, az, el, sa, se, use_el, X, P, d_ref, sigma_z, c2, upper, ma
     for k in range(pos.shape[0]):
         dx, dy, dz = X[0] - pos[k, 0], X[1] - pos[k, 1], X[2] - pos[k, 2]
         f = math.sqrt(dx * dx + dy * dy + dz * dz) / d_ref
-        e = az[k] - math.atan2(dy, dx)
-        e -= 2.0 * math.pi * math.ceil((e - math.pi) / (2.0 * math.pi))
+        e = _wrap_angle(az[k] - math.atan2(dy, dx))
         d2 = (e / (sa[k] * f)) ** 2
         if use_el[k]:
             d2 += ((el[k] - math.atan2(dz, math.hypot(dx, dy))) / (se[k] * f)) ** 2
