@@ -537,6 +537,28 @@ def test_an_exclusion_that_does_not_hold_up_keeps_every_angle():
         assert e @ np.linalg.solve(paper.covariance[0], e) < 1e-6
 
 
+def test_a_refit_of_all_angles_that_runs_out_in_range_is_not_kept():
+    # Zong & Cui (2015) stations, σ_ref 4° in azimuth (0.5° in elevation): at the target's
+    # 7 km range σ_az is 28°. The consensus excludes four azimuths; of the two refits of all
+    # the angles, the one from the ls fix (on the baseline) leapt out to ~660 km and was
+    # still on its way back when its iterations ended, 613 km out, at a slightly lower L
+    # than the fit near the stations, with a χ² of 0.01 (σ(d) there covers any residual),
+    # which passed the one-sided test. That run-away must not become the fix.
+    st = [[x, 0.0, 0.0] for x in (-3000.0, -1800.0, -600.0, 600.0, 1800.0, 3000.0)]
+    az = [1.60033800895946, 0.7013971710063017, 1.3818240234112038, 1.125059953616121,
+          0.5667370426002434, 2.7768640412100893]
+    el = [-0.06115676527375999, -0.0023071349490102824, 0.010833181589108887,
+          0.05905812628858506, -0.009618005948192669, 0.001306786674582075]
+    sa, se = math.radians(4.0), math.radians(0.5)
+    one = BearingSet.from_arrays(st, az, el, sa, se)
+    two = BearingSet.from_arrays([st, st], [az, az], [el, el], sa, se)
+    got = [locate('wmle', b, robust=True, reference_range=1000.0) for b in (one, two)]
+    for res in got:
+        assert res.status[0] == 'low_confidence'
+        assert np.linalg.norm(res.position[0]) < 10e3      # the stations span ±3 km
+    assert np.abs(got[0].position[0] - got[1].position[0]).max() < 1e-6
+
+
 def test_second_optimum_check_is_silent_at_moderate_snr():
     # Six stations, constant σ 2°: the likelihood has one optimum over the region, so the
     # check (level 1e-4 per fix) flags none of 300 fixes (expected count ≤ 0.03).

@@ -32,6 +32,8 @@ Zong & Cui 2015 eqs. (3)-(11) (``mle``, ``wmle``):
    :data:`REFIT_ROUNDS`). A bearing is called an outlier only when no fit of all the
    bearings passes the residual χ² test (:func:`.robust_consensus._prefer_all_bearings`): at
    low SNR a subset can fit a wrong point near the stations, where range-grown σ are small.
+   With range-grown σ a fit of all the bearings whose χ² is below the lower quantile of its
+   band has run out in range (σ(d) there covers any residual) and does not count.
    Excluded bearings are reported per angle.
 4. **Assess** (every fix that went through steps 2-3). The covariance is the inverse
    Fisher information over the inliers at the estimate; for range-grown σ it is widened

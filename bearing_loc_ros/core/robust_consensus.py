@@ -12,7 +12,7 @@ from itertools import combinations
 import numpy as np
 
 from .crlb import safe_inverse
-from .robust_model import (chi2_upper, fisher, MULTIMODE_PROBABILITY, outlier_c2,
+from .robust_model import (chi2_band, chi2_upper, fisher, MULTIMODE_PROBABILITY, outlier_c2,
                            REFIT_ITERATIONS, REFIT_ROUNDS)
 
 
@@ -294,7 +294,9 @@ def _prefer_all_bearings(data, X, wa, we, X_ml, X_ls):
     A bearing is called an outlier only when no fit of *all* the bearings passes the
     residual χ² test: for the problems with an excluded angle, the full likelihood of all
     angles is refitted from the estimator's fix and from the all-station ``ls`` fix, the
-    better one kept; if its χ² ≤ the χ²_dof quantile of
+    better one kept (with range-grown σ, not a refit whose χ² is below the lower quantile of
+    the two-sided band :func:`.robust_model.chi2_band`: it has run out in range, where σ(d)
+    covers any residual); if its χ² ≤ the χ²_dof quantile of
     :data:`.robust_model.CONSISTENCY_PROBABILITY` it replaces the fit with exclusions. (At
     low SNR a subset can fit a wrong point closer to the stations, where range-grown σ are
     small, and exclude the good bearings that contradict it.) Returns (X, wa, we, X_all),
@@ -321,6 +323,14 @@ def _prefer_all_bearings(data, X, wa, we, X_ml, X_ls):
     Xs = _refit(both, np.where(good[:, None], starts, np.concatenate([X[idx], X[idx]])),
                 ones2, she2)
     cs = np.where(good, _cost(both, Xs, ones2, she2), np.inf)
+    if data.d_ref is not None:
+        # A refit that ran out in range, where σ(d) covers any residual, is no fit of the
+        # angles: its χ² lies below the band (its iterations can end on the way out, at a
+        # lower L than the fit near the stations).
+        ra2, re2, *_ = both.evaluate(Xs, gradients=False)
+        dof2 = both.az.shape[1] + both.has_el.sum(axis=-1) - 3
+        cs = np.where((ra2 * ra2 + she2 * re2 * re2).sum(axis=-1) < chi2_band(dof2)[0],
+                      np.inf, cs)
     better = cs[n:] < cs[:n]
     best = np.where(better[:, None], Xs[n:], Xs[:n])
     cost = np.where(better, cs[n:], cs[:n])

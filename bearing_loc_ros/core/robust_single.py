@@ -46,7 +46,7 @@ import numpy as np
 
 from .jit import jit
 from .robust_consensus import _station_masks, ACCEPT_TOL, STEP_TOL
-from .robust_model import (_upper_cached, CONSISTENCY_PROBABILITY, DECISIVE_PROBABILITY,
+from .robust_model import (_upper_cached, chi2_band, CONSISTENCY_PROBABILITY, DECISIVE_PROBABILITY,
                            MAX_REGION_NONLINEARITY, max_nonlinearity, MULTIMODE_PROBABILITY,
                            outlier_c2, REFIT_ITERATIONS, REFIT_ROUNDS, STATUS_REGION_Z,
                            TEST_INVERSION_Z)
@@ -72,12 +72,14 @@ def _upper(dof, probability=CONSISTENCY_PROBABILITY):
 @lru_cache(maxsize=64)
 def _tables(n):
     """(consensus subset masks (K, n) of 0/1, χ² quantiles of CONSISTENCY_PROBABILITY by
-    dof 0 … 2n (+inf below 1)) of n stations, built once per n."""
+    dof 0 … 2n (+inf below 1), the lower quantiles of its two-sided band by dof (0 below 1))
+    of n stations, built once per n."""
     masks = np.ascontiguousarray(_station_masks(n), dtype=float)
     upper = np.array([_upper(k) for k in range(2 * n + 1)], dtype=float)
-    masks.flags.writeable = False
-    upper.flags.writeable = False
-    return masks, upper
+    lower = np.asarray(chi2_band(np.arange(2 * n + 1))[0], dtype=float)
+    for table in (masks, upper, lower):
+        table.flags.writeable = False
+    return masks, upper, lower
 
 
 @jit
@@ -612,7 +614,7 @@ def _best_candidate(rows, has, hasf, grown, d_ref, X_ml, c2, masks):
 # --- step 3: refit -------------------------------------------------------------------------
 
 @jit
-def _consensus_fit(rows, has, hasf, grown, d_ref, X_ml, c2, masks, upper):
+def _consensus_fit(rows, has, hasf, grown, d_ref, X_ml, c2, masks, upper, lower):
     """robust_consensus.consensus_fit for one problem: (X, wa, we, the all-station ls fix,
     whether a rejected fit of all the angles exists, that fit)."""
     n = rows.shape[0]
@@ -633,37 +635,48 @@ def _consensus_fit(rows, has, hasf, grown, d_ref, X_ml, c2, masks, upper):
         X, wa, we = Xa, na, ne
         if same:
             break
-    return _prefer_all_bearings(rows, has, hasf, grown, d_ref, X, wa, we, X_ml, X_ls, upper)
+    return _prefer_all_bearings(rows, has, hasf, grown, d_ref, X, wa, we, X_ml, X_ls, upper,
+                                lower)
 
 
 @jit
-def _prefer_all_bearings(rows, has, hasf, grown, d_ref, X, wa, we, X_ml, X_ls, upper):
+def _chi2_all(rows, grown, d_ref, X, she):
+    """Residual χ² of every angle at X (robust_consensus._prefer_all_bearings)."""
+    R = _residuals(rows, grown, d_ref, X[0], X[1], X[2])
+    chi2 = 0.0
+    for k in range(rows.shape[0]):
+        chi2 += R[k, 0] * R[k, 0] + she[k] * R[k, 1] * R[k, 1]
+    return chi2
+
+
+@jit
+def _prefer_all_bearings(rows, has, hasf, grown, d_ref, X, wa, we, X_ml, X_ls, upper,
+                         lower):
     n = rows.shape[0]
     all_kept = True
+    n_has = 0
     for k in range(n):
         if not (wa[k] == 1.0 and (we[k] == 1.0 or not has[k])):
             all_kept = False
+        n_has += 1 if has[k] else 0
     if all_kept:
         return X, wa, we, X_ls, False, X
     ones, she = np.ones(n), hasf.copy()
+    dof = n + n_has - 3
     best, cost = X, inf
     first = True
     for start in (X_ml, X_ls):
         if _finite3(start):
             Xs = _refit(rows, grown, d_ref, start, ones, she)
             cs = _cost(rows, grown, d_ref, Xs, ones, she)
+            if grown and dof >= 1 and _chi2_all(rows, grown, d_ref, Xs, she) < lower[dof]:
+                cs = inf                    # ran out in range
         else:
             Xs, cs = _refit(rows, grown, d_ref, X, ones, she), inf
         if first or cs < cost:
             best, cost = Xs, cs
             first = False
-    R = _residuals(rows, grown, d_ref, best[0], best[1], best[2])
-    chi2 = 0.0
-    n_has = 0
-    for k in range(n):
-        chi2 += R[k, 0] * R[k, 0] + she[k] * R[k, 1] * R[k, 1]
-        n_has += 1 if has[k] else 0
-    if isfinite(cost) and chi2 <= _upper_of(upper, n + n_has - 3):
+    if isfinite(cost) and _chi2_all(rows, grown, d_ref, best, she) <= _upper_of(upper, dof):
         return best, ones, she, X_ls, False, X
     return X, wa, we, X_ls, isfinite(cost), best
 
@@ -819,10 +832,10 @@ def _second_optimum(rows, grown, d_ref, X, wa, we, P, ls, q):
 
 
 @jit
-def _refine(rows, has, hasf, grown, d_ref, X_ml, c2, masks, upper, max_nu, cd, q):
+def _refine(rows, has, hasf, grown, d_ref, X_ml, c2, masks, upper, lower, max_nu, cd, q):
     """Steps 2-4 of one problem: (X, finite, P packed, ok, ν, wa, we)."""
     X, wa, we, X_ls, has_all, X_all = _consensus_fit(rows, has, hasf, grown, d_ref, X_ml, c2,
-                                                     masks, upper)
+                                                     masks, upper, lower)
     finite, P, ok, nu, decisive = _assess(rows, has, grown, d_ref, X, wa, we, X_ls, upper,
                                           max_nu, cd, q)
     if not decisive and has_all and _finite3(X_all):
@@ -933,12 +946,13 @@ def _rows(pos, az, el, sa, se):
 
 
 @jit
-def _refine_arrays(pos, az, el, sa, se, grown, d_ref, X_ml, c2, masks, upper, max_nu, cd, q):
+def _refine_arrays(pos, az, el, sa, se, grown, d_ref, X_ml, c2, masks, upper, lower, max_nu,
+                   cd, q):
     """:func:`_refine` of one problem's arrays (:func:`_rows`), as FixResult arrays:
     (position (1, 3), covariance (1, 3, 3), ok, ν, excluded (1, N, 2) bool, finite)."""
     rows, has, hasf = _rows(pos, az, el, sa, se)
     X, finite, P, ok, nu, wa, we = _refine(rows, has, hasf, grown, d_ref, X_ml, c2, masks,
-                                           upper, max_nu, cd, q)
+                                           upper, lower, max_nu, cd, q)
     n = rows.shape[0]
     position = np.empty((1, 3))
     position[0, 0], position[0, 1], position[0, 2] = X
@@ -959,12 +973,12 @@ def refine(bearings, X_ml, d_ref=None):
     ``d_ref`` m for range-grown σ. Raises :class:`Fallback` where the batch path must run.
     """
     grown = d_ref is not None
-    masks, upper = _tables(bearings.N)
+    masks, upper, lower = _tables(bearings.N)
     try:
         return _refine_arrays(
             bearings.positions[0], bearings.azimuth[0], bearings.elevation[0],
             bearings.sigma_az[0], bearings.sigma_el[0], grown, float(d_ref) if grown else 1.0,
-            tuple(float(x) for x in X_ml), outlier_c2(), masks, upper,
+            tuple(float(x) for x in X_ml), outlier_c2(), masks, upper, lower,
             max_nonlinearity(grown), outlier_c2(DECISIVE_PROBABILITY),
             _upper(3, MULTIMODE_PROBABILITY))
     except (ZeroDivisionError, ValueError, OverflowError) as exc:
