@@ -35,7 +35,7 @@ from . import fusion_channels
 from .core.display import AccuracyMap, AccuracyMapConfig
 from .core.fusion import FusionConfig, make_core
 from .core.fusion.config import check_station_ids
-from .core.warmup import warm_up
+from .core.warmup import cache_note, warm_up
 from .discovery_probe import ProbeProcess
 from .fusion_wiring import BearingInputs, FusionOutputs
 from .ros_common import core_parameter_error, declare_schema, keep_last_qos, log_events, \
@@ -146,7 +146,7 @@ class FusionNode(Node):
             f'{self.config.trigger}, {"interpolated" if self.config.interpolation else "nearest"}'
             f' alignment, stations {self.stations_param or "none"}'
             f'{" + discovery" if self.discover else ""}, frame {self.frame_id}; one-fix '
-            f'numerics ready in {warm_seconds:.1f} s')
+            f'numerics ready in {warm_seconds:.1f} s{cache_note()}')
 
     # ------------------------------------------------------------------ run-time parameters
     def _refuse_on_channel_host(self, params):

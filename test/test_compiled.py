@@ -11,6 +11,7 @@ import math
 import os
 import subprocess
 import sys
+import time
 
 import numba
 import numpy as np
@@ -179,3 +180,169 @@ def test_the_cache_directory_follows_the_core_sources(tmp_path):
     # A base that cannot be written: no cache (each process compiles) rather than an error.
     (tmp_path / 'file').write_text('')
     assert cache_directory(core, str(tmp_path / 'file' / 'cache')) is None
+
+
+def odd_arrays():
+    """One-problem BearingSets built directly with float32, Fortran-ordered and read-only
+    arrays (the constructor keeps what it is given)."""
+    sets = []
+    for bs, z in problems()[:24:6]:
+        arrays = [bs.positions, bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el]
+        sets.append(BearingSet(*[a.astype(np.float32) for a in arrays]))
+        sets.append(BearingSet(*[np.asfortranarray(a) for a in arrays]))
+        frozen = [a.copy() for a in arrays]
+        for a in frozen:
+            a.flags.writeable = False
+        sets.append(BearingSet(*frozen))
+    return sets
+
+
+def solve_odd_arrays():
+    from bearing_loc_ros.core.estimators import locate
+    from bearing_loc_ros.core.horizontal import locate_horizontal
+    for bs in odd_arrays():
+        locate('wmle', bs, robust=True)
+        locate('mle', bs)
+        locate_horizontal('wmle', bs, 1000.0, 10.0, robust=True)
+
+
+def test_arrays_of_other_types_compile_nothing_after_warm_up():
+    # The compiled entry points take C-contiguous writeable float64 (core/jit.plain_array):
+    # a BearingSet built directly from float32, Fortran-ordered or read-only arrays must not
+    # compile new versions during a fix.
+    if numba.config.DISABLE_JIT:
+        pytest.skip('NUMBA_DISABLE_JIT is set: nothing is compiled')
+    code = (f'import json, sys, numba; sys.path.insert(0, {HERE!r}); import test_compiled\n'
+            'from bearing_loc_ros.core import ctls_single, horizontal_robust, robust_single, '
+            'warmup\n'
+            'def signatures():\n'
+            '    return {f"{m.__name__}.{k}": len(v.signatures) for m in (ctls_single, '
+            'horizontal_robust, robust_single) for k, v in vars(m).items() '
+            'if isinstance(v, numba.core.registry.CPUDispatcher)}\n'
+            'warmup.warm_up()\n'
+            'before = signatures()\n'
+            'test_compiled.solve_odd_arrays()\n'
+            'print(json.dumps([before, signatures()]))\n')
+    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          check=True, timeout=600)
+    before, after = json.loads(done.stdout.splitlines()[-1])
+    assert after == before
+
+
+def test_cache_failures_are_warnings_not_errors():
+    # A damaged entry (a file left empty by a power cut) or a full disk must not stop a fix:
+    # the read failure clears the function's index and compiles, the save failure is skipped.
+    from bearing_loc_ros.core.jit import _TolerantCache
+
+    class Broken:
+        cache_path = '/var/cache/x'
+        flushed = 0
+
+        def load_overload(self, sig, target_context):
+            raise EOFError('Ran out of input')
+
+        def save_overload(self, sig, cres):
+            raise OSError(28, 'No space left on device')
+
+        def flush(self):
+            self.flushed += 1
+
+    broken = Broken()
+    cache = _TolerantCache(broken)
+    with pytest.warns(RuntimeWarning, match='could not read an entry .*Ran out of input'):
+        assert cache.load_overload('sig', None) is None
+    assert broken.flushed == 1
+    with pytest.warns(RuntimeWarning, match='/var/cache/x: could not save .*No space left'):
+        cache.save_overload('sig', None)
+    assert cache.cache_path == '/var/cache/x'
+
+
+TINY = '''from bearing_loc_ros.core.jit import jit
+
+
+@jit
+def plus_one(x):
+    return x + 1.0
+'''
+
+
+def run_tiny(tmp_path, cache):
+    """Run plus_one of a module in tmp_path in a child with NUMBA_CACHE_DIR=cache."""
+    code = ('import sys, warnings; warnings.simplefilter("always"); '
+            f'sys.path.insert(0, {str(tmp_path)!r}); import tiny; '
+            'print(tiny.plus_one(1.5), sum(tiny.plus_one.stats.cache_hits.values()))')
+    return subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
+                          timeout=300, env=dict(os.environ, NUMBA_CACHE_DIR=str(cache)))
+
+
+def test_a_damaged_cache_entry_is_compiled_again_and_repaired(tmp_path):
+    if numba.config.DISABLE_JIT:
+        pytest.skip('NUMBA_DISABLE_JIT is set: nothing is compiled')
+    (tmp_path / 'tiny.py').write_text(TINY)
+    cache = tmp_path / 'cache'
+    first = run_tiny(tmp_path, cache)
+    assert first.returncode == 0 and first.stdout.split()[0] == '2.5', first.stderr
+    entries = list(cache.rglob('tiny.plus_one-*.nbi'))
+    assert len(entries) == 1 and 'bearing_loc_ros' in entries[0].parts
+    for damaged in (b'', b'\x80\x04garbage'):
+        entries[0].write_bytes(damaged)
+        again = run_tiny(tmp_path, cache)
+        assert again.returncode == 0 and again.stdout.split() == ['2.5', '0'], again.stderr
+        assert 'could not read an entry' in again.stderr
+    repaired = run_tiny(tmp_path, cache)         # the entry was written again
+    assert repaired.returncode == 0 and 'could not' not in repaired.stderr
+    assert repaired.stdout.split()[1] == '1'      # loaded from the cache
+
+
+def test_no_cache_where_numba_would_cache_elsewhere(tmp_path, monkeypatch):
+    # numba falls back to __pycache__ beside the source when its directory under CACHE_DIR
+    # cannot be made; there the fingerprint of the core sources would not apply.
+    if numba.config.DISABLE_JIT:
+        pytest.skip('NUMBA_DISABLE_JIT is set: nothing is compiled')
+    from bearing_loc_ros.core import jit
+    (tmp_path / 'file').write_text('')
+    monkeypatch.setattr(jit, 'CACHE_DIR', str(tmp_path / 'file' / 'cache'))
+    src = tmp_path / 'src'
+    src.mkdir()
+    (src / 'tiny_elsewhere.py').write_text(TINY)
+    monkeypatch.syspath_prepend(str(src))
+    import tiny_elsewhere
+    assert isinstance(tiny_elsewhere.plus_one._cache, numba.core.caching.NullCache)
+    assert tiny_elsewhere.plus_one(1.0) == 2.0
+    assert not list(src.rglob('*.nbi'))
+
+
+def test_processes_that_start_together_take_turns(tmp_path, monkeypatch):
+    # While one process holds the cache lock (compiling), another waits for it.
+    from bearing_loc_ros.core import jit
+    pytest.importorskip('fcntl')
+    monkeypatch.setattr(jit, 'CACHE_DIR', str(tmp_path))
+    probe = ('import fcntl, sys; f = open(sys.argv[1], "a")\n'
+             'try:\n    fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB); print("free")\n'
+             'except BlockingIOError:\n    print("held")\n')
+
+    def other():
+        return subprocess.run([sys.executable, '-c', probe, str(tmp_path / 'lock')],
+                              capture_output=True, text=True, timeout=60).stdout.strip()
+
+    with jit.cache_lock():
+        assert other() == 'held'
+    assert other() == 'free'
+
+
+def test_old_cache_directories_are_pruned(tmp_path):
+    from bearing_loc_ros.core.jit import cache_directory, PRUNE_AFTER_DAYS
+    core = tmp_path / 'core'
+    core.mkdir()
+    (core / 'a.py').write_text('X = 1\n')
+    base = tmp_path / 'cache'
+    old = time.time() - (PRUNE_AFTER_DAYS + 1) * 86400.0
+    recent = time.time() - (PRUNE_AFTER_DAYS - 1) * 86400.0
+    for name, when in (('0123456789abcdef', old), ('fedcba9876543210', recent),
+                       ('not-a-fingerprint', old)):
+        (base / name / 'core_x').mkdir(parents=True)
+        os.utime(base / name, (when, when))
+    mine = cache_directory(core, str(base))
+    left = sorted(p.name for p in base.iterdir())
+    assert left == sorted([os.path.basename(mine), 'fedcba9876543210', 'not-a-fingerprint'])
+    assert time.time() - os.stat(mine).st_mtime < 60      # marked as used

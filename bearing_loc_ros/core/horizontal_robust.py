@@ -74,7 +74,7 @@ import math
 import numpy as np
 
 from .conventions import azimuth_elevation, wrap_angle, wrap_angle_scalar
-from .jit import jit, jit_numpy
+from .jit import jit, jit_numpy, plain_array
 from .fix import FixResult, STATUS_DEGENERATE, STATUS_LOW_CONFIDENCE, STATUS_OK
 from .robust import _c2, chi2_upper, CONSISTENCY_PROBABILITY
 from .horizontal_single import inverse2 as _inverse2_py
@@ -274,8 +274,9 @@ def _test_inversions(bs, X, P, kept, use_el, d_ref, sigma_z, specs, iterations=4
     K = len(specs)
     if not (np.all(np.isfinite(P)) and np.all(np.isfinite(X)) and np.any(kept)):
         return np.full((K, 3, 3), np.inf)
-    return _inversions(bs.positions[0][kept], bs.sigma_az[0][kept], bs.sigma_el[0][kept],
-                       use_el[kept], X, np.ascontiguousarray(P[:3, :3]),
+    return _inversions(plain_array(bs.positions[0][kept]), plain_array(bs.sigma_az[0][kept]),
+                       plain_array(bs.sigma_el[0][kept]), use_el[kept], X,
+                       np.ascontiguousarray(P[:3, :3]),
                        np.array([z for z, _ in specs], dtype=float),
                        np.array([o for _, o in specs], dtype=np.bool_), float(d_ref),
                        float(sigma_z), int(iterations))
@@ -415,9 +416,11 @@ def calm_grown_one(bs, result, use_el, d_ref, sigma_z):
     if str(result.status[0]) != STATUS_OK:
         return None
     n_angles = bs.N + int(np.count_nonzero(use_el))
-    calm, cov, nu = _calm_grown(bs.positions[0], bs.azimuth[0], bs.elevation[0],
-                                bs.sigma_az[0], bs.sigma_el[0], use_el, result.position[0],
-                                np.ascontiguousarray(result.covariance[0, :3, :3]),
+    calm, cov, nu = _calm_grown(plain_array(bs.positions[0]), plain_array(bs.azimuth[0]),
+                                plain_array(bs.elevation[0]), plain_array(bs.sigma_az[0]),
+                                plain_array(bs.sigma_el[0]), use_el,
+                                plain_array(result.position[0]),
+                                plain_array(result.covariance[0, :3, :3]),
                                 float(d_ref), float(sigma_z), _c2(),
                                 _upper_cached(max(n_angles - 2, 1), CONSISTENCY_PROBABILITY),
                                 SCREEN_MARGIN)

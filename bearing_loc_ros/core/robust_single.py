@@ -44,7 +44,7 @@ from math import acos, atan2, ceil, cos, inf, isfinite, log, nan, pi, sin, sqrt
 from numba import objmode
 import numpy as np
 
-from .jit import jit
+from .jit import jit, plain_array
 from .robust_consensus import _station_masks, ACCEPT_TOL, STEP_TOL
 from .robust_model import (_upper_cached, chi2_band, CONSISTENCY_PROBABILITY, DECISIVE_PROBABILITY,
                            MAX_REGION_NONLINEARITY, max_nonlinearity, MULTIMODE_PROBABILITY,
@@ -976,8 +976,9 @@ def refine(bearings, X_ml, d_ref=None):
     masks, upper, lower = _tables(bearings.N)
     try:
         return _refine_arrays(
-            bearings.positions[0], bearings.azimuth[0], bearings.elevation[0],
-            bearings.sigma_az[0], bearings.sigma_el[0], grown, float(d_ref) if grown else 1.0,
+            plain_array(bearings.positions[0]), plain_array(bearings.azimuth[0]),
+            plain_array(bearings.elevation[0]), plain_array(bearings.sigma_az[0]),
+            plain_array(bearings.sigma_el[0]), grown, float(d_ref) if grown else 1.0,
             tuple(float(x) for x in X_ml), outlier_c2(), masks, upper, lower,
             max_nonlinearity(grown), outlier_c2(DECISIVE_PROBABILITY),
             _upper(3, MULTIMODE_PROBABILITY))
