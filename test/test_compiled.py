@@ -104,11 +104,9 @@ def test_compiled_numerics_equal_their_python_source(tmp_path):
     assert worst <= 1e-12
 
 
-def test_warm_up_compiles_every_specialisation_a_fix_uses():
-    # A fresh process: after warm_up(), solving varied problems (outliers, azimuth-only
-    # stations, calm and not calm horizontal fixes, ctls_am) compiles nothing more.
-    if numba.config.DISABLE_JIT:
-        pytest.skip('NUMBA_DISABLE_JIT is set: nothing is compiled')
+def signatures_around(step):
+    """In a fresh process: the number of compiled signatures of every entry point after
+    warm_up(), then after test_compiled.<step>() ({name: count} twice)."""
     code = (f'import json, sys, numba; sys.path.insert(0, {HERE!r}); import test_compiled\n'
             'from bearing_loc_ros.core import ctls_single, horizontal_robust, robust_single, '
             'warmup\n'
@@ -118,11 +116,19 @@ def test_warm_up_compiles_every_specialisation_a_fix_uses():
             'if isinstance(v, numba.core.registry.CPUDispatcher)}\n'
             'warmup.warm_up()\n'
             'before = signatures()\n'
-            'test_compiled.solve_all()\n'
+            f'test_compiled.{step}()\n'
             'print(json.dumps([before, signatures()]))\n')
     done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
                           check=True, timeout=600)
-    before, after = json.loads(done.stdout.splitlines()[-1])
+    return json.loads(done.stdout.splitlines()[-1])
+
+
+def test_warm_up_compiles_every_specialisation_a_fix_uses():
+    # A fresh process: after warm_up(), solving varied problems (outliers, azimuth-only
+    # stations, calm and not calm horizontal fixes, ctls_am) compiles nothing more.
+    if numba.config.DISABLE_JIT:
+        pytest.skip('NUMBA_DISABLE_JIT is set: nothing is compiled')
+    before, after = signatures_around('solve_all')
     # (the entry points called from Python; the functions they call are compiled into them)
     assert len(before) >= 30 and sum(before.values()) >= 8
     assert after == before
@@ -212,20 +218,7 @@ def test_arrays_of_other_types_compile_nothing_after_warm_up():
     # compile new versions during a fix.
     if numba.config.DISABLE_JIT:
         pytest.skip('NUMBA_DISABLE_JIT is set: nothing is compiled')
-    code = (f'import json, sys, numba; sys.path.insert(0, {HERE!r}); import test_compiled\n'
-            'from bearing_loc_ros.core import ctls_single, horizontal_robust, robust_single, '
-            'warmup\n'
-            'def signatures():\n'
-            '    return {f"{m.__name__}.{k}": len(v.signatures) for m in (ctls_single, '
-            'horizontal_robust, robust_single) for k, v in vars(m).items() '
-            'if isinstance(v, numba.core.registry.CPUDispatcher)}\n'
-            'warmup.warm_up()\n'
-            'before = signatures()\n'
-            'test_compiled.solve_odd_arrays()\n'
-            'print(json.dumps([before, signatures()]))\n')
-    done = subprocess.run([sys.executable, '-c', code], capture_output=True, text=True,
-                          check=True, timeout=600)
-    before, after = json.loads(done.stdout.splitlines()[-1])
+    before, after = signatures_around('solve_odd_arrays')
     assert after == before
 
 
