@@ -2,7 +2,7 @@
 
 One station (the observer) measures azimuth and elevation of a target over time. The target
 moves at constant velocity; the prior speed v_c fixes the scale that bearings alone leave
-free. Equation numbers (T1)...(T18) refer to docs/tma.md, which derives
+free. Equation numbers (T1)...(T23) refer to docs/tma.md, which derives
 them from the text of Lin et al. (its formulas did not survive in our copy).
 
 Conventions (docs/conventions.md). ENU world frame, metres, seconds, radians. Azimuth θ is ENU
@@ -33,7 +33,8 @@ Modules: :mod:`.model` (options, input checks, observer track, simulation), :mod
 (pseudo-linear moments (T6)-(T13)), :mod:`.closed_form` (ple, ctls, ctls6),
 :mod:`.observability` (Fisher information, constrained CRLB, gates), :mod:`.confidence`
 (the tests (T19)-(T22) that mark a fix whose covariance would be too small
-``low_confidence``), :mod:`.mle` (tma_mle),
+``low_confidence``), :mod:`.mle` (tma_mle), :mod:`.roots` (the two ranges of a ground-speed
+prior (T23)),
 :mod:`.accumulator` (the recursive window of the fusion node) and :mod:`.methods` (by name).
 Every public name is importable from ``bearing_loc_ros.core.tma``.
 """

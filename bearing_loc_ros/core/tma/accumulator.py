@@ -15,6 +15,7 @@ from .methods import _CLOSED_FORMS, tma_function
 from .mle import _mle_start, _options, tma_mle
 from .model import prepare, SPEED_REFERENCES
 from .observability import finish
+from .roots import resolve
 from .sums import bearing_terms, TmaSums
 
 
@@ -190,5 +191,7 @@ class TmaAccumulator:
         p0, v, status, reason = estimate_from_sums(sums, method, np.array([vc]),
                                                    self.speed_reference, fo['min_bearings'],
                                                    fo['alpha'])
+        p0, v, status, reason, _ = resolve(data, p0, v, status, reason, status == STATUS_OK,
+                                           self.speed_reference)
         return finish(method, data, p0, v, status, reason, np.zeros(1, int),
                       status == STATUS_OK, fo)

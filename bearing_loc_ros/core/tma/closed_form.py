@@ -12,6 +12,7 @@ from ..estimator_spec import BEARING_SIGMA, declare, TMA
 from ..fix import STATUS_DEGENERATE, STATUS_OK, STATUS_UNOBSERVABLE
 from .model import prepare, TMA_OPTIONS
 from .observability import finish
+from .roots import resolve
 from .sums import batch_sums
 
 
@@ -42,8 +43,10 @@ def _smallest_generalized_eigvec(P, Om, rcond=1e-13):
 def _scale_from_speed(b, speed, v_o, speed_reference):
     """Initial range r0 from the speed prior (T8): |r0 b| = v_c or |r0 b + v_o| = v_c.
 
-    'relative': r0 = v_c / |b| (Lin et al. sec. 3.1). 'ground': the positive root of
-    |b|² r0² + 2 (b·v_o) r0 + |v_o|² − v_c² = 0. NaN where no positive root exists.
+    'relative': r0 = v_c / |b| (Lin et al. sec. 3.1). 'ground': the larger positive root of
+    |b|² r0² + 2 (b·v_o) r0 + |v_o|² − v_c² = 0 (the smaller one, when positive too, is the
+    mirror of (T23), which the estimators weigh against it). NaN where no positive root
+    exists.
     """
     bb = np.sum(b * b, axis=-1)
     with np.errstate(divide='ignore', invalid='ignore'):
@@ -56,8 +59,27 @@ def _scale_from_speed(b, speed, v_o, speed_reference):
     return np.where(np.isfinite(r0) & (r0 > 0), r0, np.nan)
 
 
+def _prior_inconsistent(b, v_o, speed, speed_reference):
+    """Reason of a speed prior that no positive range fits (T8), for one problem.
+
+    'ground': the target's ground speed |r0 b + v_o| over r0 > 0 is at least
+    |v_o − (v_o·b̂) b̂| when b·v_o < 0 (the closest approach of the line r0 b + v_o to the
+    origin) and more than |v_o| otherwise; a smaller v_c has no positive root.
+    """
+    if speed_reference != 'ground':
+        return ('speed prior inconsistent with the bearings: they show no line-of-sight '
+                'motion, so no finite range gives the stated relative speed')
+    nb = float(np.linalg.norm(b))
+    bv = float(np.dot(b, v_o)) / nb if nb > 0 and np.isfinite(nb) else 0.0
+    floor = (float(np.sqrt(max(float(np.dot(v_o, v_o)) - bv * bv, 0.0))) if bv < 0
+             else float(np.linalg.norm(v_o)))
+    return (f'speed prior inconsistent with the bearings: no positive range gives the target '
+            f'a ground speed of {speed:.4g} m/s (the bearings need at least {floor:.4g} m/s '
+            "from the observer's fitted straight track (T2)); check target_speed")
+
+
 def estimate_from_sums(sums, method, speed, speed_reference='relative', min_bearings=3,
-                       alpha=1e-3):
+                       alpha=1e-3, closest=False):
     """Closed-form ple/ctls/ctls6 relative state (p0, v) from :class:`TmaSums` of shape S.
 
     ple (T7): b = −(HᵀWH)⁻¹ HᵀW y = −A2⁻¹ A1 e0 (Lin et al. sec. 3.1).
@@ -67,6 +89,9 @@ def estimate_from_sums(sums, method, speed, speed_reference='relative', min_bear
     v = r0 b. Gates (T18): n < ``min_bearings`` or a constant line of sight (λ_min(Q) below
     the chi-square (2n − 2) quantile 1 − ``alpha``) -> 'unobservable'. ``speed`` (m/s)
     broadcasts against S. The CRLB range gate needs the bearings: see :func:`tma_ple`.
+    ``closest`` (a start of :func:`tma_mle` only): where a 'ground' prior has no positive
+    root but b·v_o < 0, r0 = −b·v_o/|b|², the range whose ground speed is closest to v_c
+    (the pseudo-linear b assumes a straight observer; a manoeuvre can move it off the prior).
 
     Returns (p0 (S, 3) m, v (S, 3) m/s, status (S,) str, reason (S,) str); NaN unless ok.
     """
@@ -113,11 +138,20 @@ def estimate_from_sums(sums, method, speed, speed_reference='relative', min_bear
     else:
         raise ValueError(f'method: unknown closed-form TMA estimator {method!r}')
     v_o = sums.observer_velocity()
-    r0 = _scale_from_speed(b, np.asarray(speed, dtype=float), v_o, speed_reference)
-    bad = (status == STATUS_OK) & ~(good & np.isfinite(r0))
-    status[bad] = STATUS_DEGENERATE
-    reason[bad] = (f'{method}: singular pseudo-linear system or no positive range '
-                   'matching the speed prior')
+    vc = np.broadcast_to(np.asarray(speed, dtype=float), S)
+    r0 = _scale_from_speed(b, vc, v_o, speed_reference)
+    if closest and speed_reference == 'ground':
+        with np.errstate(divide='ignore', invalid='ignore'):
+            near = -np.sum(b * v_o, axis=-1) / np.sum(b * b, axis=-1)
+        r0 = np.where(np.isfinite(r0), r0, np.where(np.isfinite(near) & (near > 0), near,
+                                                    np.nan))
+    singular = (status == STATUS_OK) & ~good
+    status[singular] = STATUS_DEGENERATE
+    reason[singular] = f'{method}: singular pseudo-linear system'
+    noroot = (status == STATUS_OK) & ~np.isfinite(r0)
+    status[noroot] = STATUS_DEGENERATE
+    for idx in zip(*np.nonzero(noroot)):
+        reason[idx] = _prior_inconsistent(b[idx], v_o[idx], float(vc[idx]), speed_reference)
     p0 = r0[..., None] * e0
     v = r0[..., None] * b
     nok = status != STATUS_OK
@@ -133,6 +167,8 @@ def _closed_form(method, bearings, times, speed, options, fn):
     p0, v, status, reason = estimate_from_sums(sums, method, data.speed,
                                                opts['speed_reference'], opts['min_bearings'],
                                                opts['alpha'])
+    p0, v, status, reason, _ = resolve(data, p0, v, status, reason, status == STATUS_OK,
+                                       opts['speed_reference'])
     M = data.M
     return data, p0, v, status, reason, finish(
         method, data, p0.copy(), v.copy(), status, reason, np.zeros(M, int),
@@ -154,6 +190,9 @@ def tma_ple(bearings, times, speed, **options):
     (M,)). Options: ``speed_reference`` ('relative' | 'ground', T5), ``min_bearings``,
     ``alpha`` (constant-LOS test level), ``max_range_ratio`` (CRLB range gate),
     ``covariance`` (compute the CRLB). Returns a FixResult with the velocity fields (core/fix.py).
+    With 'ground' and two positive roots of (T8) both fixes are evaluated on the bearings
+    and the better one taken, or the fix is 'unobservable' when they fit alike (T23,
+    :mod:`.roots`).
     """
     return _closed_form('ple', bearings, times, speed, options, tma_ple)[-1]
 

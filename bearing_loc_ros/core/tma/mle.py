@@ -8,9 +8,11 @@ import numpy as np
 from ..estimator_spec import BEARING_SIGMA, declare, TMA
 from ..fix import STATUS_DEGENERATE, STATUS_MAX_ITERATIONS, STATUS_OK
 from .closed_form import estimate_from_sums
-from .confidence import residuals, tangent_basis, whitened_jacobian
+from .confidence import (MANOEUVRE_FRACTION, manoeuvre_speed, residuals, tangent_basis,
+                         whitened_jacobian)
 from .model import prepare, TMA_OPTIONS
 from .observability import finish
+from .roots import mirror_scale, resolve
 from .sums import batch_sums
 
 
@@ -31,16 +33,30 @@ def _options(options, fn=None):
 def _mle_start(data, sums, opts, methods=('ctls', 'ctls6', 'ple')):
     """Start of :func:`tma_mle`: of the closed forms, the one with the lowest ML cost (T17).
 
+    With a 'ground' prior that no closed form's b fits and a manoeuvring observer (u of
+    (T22) above 1 % of v_c: the closed forms assume a straight track, so their b can miss
+    the prior), each closed form's b scaled to the ground speed closest to v_c (``closest``
+    of :func:`estimate_from_sums`) competes too; the iteration then projects it onto the
+    constraint. For a straight observer no root means the prior does not fit the bearings.
     Returns (p0, v, status, reason); status/reason of the first method where none is ok.
     """
     best = None
     best_cost = np.full(data.M, np.inf)
-    for m in methods:
+    tries = [(m, False) for m in methods]
+    turning = np.zeros(data.M, dtype=bool)
+    if opts['speed_reference'] == 'ground':
+        turning = manoeuvre_speed(data) > MANOEUVRE_FRACTION * data.speed
+        if np.any(turning):
+            tries += [(m, True) for m in methods]
+    for m, closest in tries:
+        if closest and np.all(np.isfinite(best_cost) | ~turning):
+            break
         p0, v, st, rs = estimate_from_sums(sums, m, data.speed, opts['speed_reference'],
-                                           opts['min_bearings'], opts['alpha'])
+                                           opts['min_bearings'], opts['alpha'],
+                                           closest=closest)
         if best is None:
             best = [p0.copy(), v.copy(), st.copy(), rs.copy()]
-        ok = st == STATUS_OK
+        ok = (st == STATUS_OK) & (turning | (not closest))
         if np.any(ok):
             e, _ = residuals(data, np.where(ok[:, None], p0, 0.0),
                              np.where(ok[:, None], v, 0.0))
@@ -90,13 +106,56 @@ def tma_mle(bearings, times, speed, **options):
         status[bad], reason[bad] = STATUS_DEGENERATE, 'start: non-finite initial state'
     M = data.M
     vc = data.speed
-    off = data.v_o if opts['speed_reference'] == 'ground' else np.zeros((M, 3))
+    ref = opts['speed_reference']
+    off = data.v_o if ref == 'ground' else np.zeros((M, 3))
     active = status == STATUS_OK
     # Project the start onto the constraint manifold (T5).
     s = np.where(active[:, None], v + off, [1.0, 0.0, 0.0])
     s = s / np.where(np.linalg.norm(s, axis=-1) > 0, np.linalg.norm(s, axis=-1), 1.0)[:, None]
     p0 = np.where(active[:, None], p0, 0.0)
     v = vc[:, None] * s - off
+    k = mirror_scale(v, data.v_o, vc) if ref == 'ground' else np.full(M, np.nan)
+    k = np.where(active, k, np.nan)
+    p0_b, v_b = k[:, None] * p0, k[:, None] * v
+    p0, v, iters, converged = _refine(data, p0, v, active, off, max_it, dtol, xtol)
+    status = status.copy()
+    reason = reason.copy()
+    two = np.isfinite(k)
+    if np.any(two):
+        # (T23): the mirror of the start is the other range of the ground-speed prior;
+        # refine from it too, keep the better fit, or neither when they fit alike.
+        i = np.nonzero(two)[0]
+        sub = data.take(i)
+        pb, vb, it_b, cv_b = _refine(sub, p0_b[i], v_b[i], np.ones(len(i), bool), off[i],
+                                     max_it, dtol, xtol)
+        alt_p, alt_v = np.full((M, 3), np.nan), np.full((M, 3), np.nan)
+        alt_p[i], alt_v[i] = pb, vb
+        p0, v, status, reason, take_b = resolve(data, p0, v, status, reason, two, ref,
+                                                alternative=(alt_p, alt_v))
+        tb = np.nonzero(take_b[i])[0]
+        iters[i] += it_b
+        converged[i[tb]] = cv_b[tb]
+        gone = status != STATUS_OK
+        active &= ~gone
+    nc = active & ~converged
+    status[nc] = STATUS_MAX_ITERATIONS
+    reason[nc] = f'mle: not converged in {max_it} iterations (estimate kept, cost reduced)'
+    p0 = np.where(active[:, None], p0, np.nan)
+    v = np.where(active[:, None], v, np.nan)
+    return finish('mle', data, p0, v, status, reason, iters, converged, opts)
+
+
+def _refine(data, p0, v, active, off, max_it, dtol, xtol):
+    """Marquardt iteration of (T17) from (p0, v) on the constraint, for the ``active`` rows.
+
+    ``off`` (M, 3): v_o for 'ground', 0 for 'relative' (v + off = v_c s). Returns
+    (p0, v, iterations (M,), converged (M,)); a step is kept only if it lowers the cost.
+    """
+    M = data.M
+    vc = data.speed
+    p0, v = p0.copy(), v.copy()
+    s = v + off
+    s = s / np.where(np.linalg.norm(s, axis=-1) > 0, np.linalg.norm(s, axis=-1), 1.0)[:, None]
     e, d = residuals(data, p0, v)
     cost = np.sum(e * e, axis=(1, 2))
     mu = np.full(M, 1e-9)
@@ -155,11 +214,4 @@ def tma_mle(bearings, times, speed, **options):
         done = (dec < dtol ** 2) | (rel < xtol) | (mu[r] > 1e12)
         converged[r[done]] = True
         running[r[done]] = False
-    status = status.copy()
-    reason = reason.copy()
-    nc = active & ~converged
-    status[nc] = STATUS_MAX_ITERATIONS
-    reason[nc] = f'mle: not converged in {max_it} iterations (estimate kept, cost reduced)'
-    p0 = np.where(active[:, None], p0, np.nan)
-    v = np.where(active[:, None], v, np.nan)
-    return finish('mle', data, p0, v, status, reason, iters, converged, opts)
+    return p0, v, iters, converged
