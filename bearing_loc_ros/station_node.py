@@ -135,7 +135,9 @@ class StationNode(Node):
         self.poses = None
         if p['platform_odometry']:
             self.poses = PoseBuffer(p['odometry_buffer_size'],
-                                    int(round(p['odometry_tolerance'] * 1e9)))
+                                    int(round(p['odometry_tolerance'] * 1e9)),
+                                    int(round(p['odometry_max_gap'] * 1e9)),
+                                    int(round(p['odometry_jump'] * 1e9)))
             self.odom_sub = self.create_subscription(Odometry, p['platform_odometry'],
                                                      self._on_odometry, INPUT_QOS)
             self.sources.append(f'odometry {self.odom_sub.topic_name}')
@@ -281,9 +283,13 @@ class StationNode(Node):
         status = self.poses.add(pose)
         if status == 'duplicate':
             self._reject('odometry_duplicate', 'odometry', 'same stamp as the previous pose')
+        elif status == 'late':
+            self._reject('odometry_late', 'odometry', 'stamped before the newest pose by at '
+                         f'most odometry_jump ({self.poses.jump_ns / 1e9:g} s)')
         elif status == 'reset':
             self.received['odometry_resets'] += 1
-            self.get_logger().warning('odometry time jumped backwards: pose buffer cleared',
+            self.get_logger().warning('odometry time jumped backwards by more than '
+                                      'odometry_jump: pose buffer cleared',
                                       throttle_duration_sec=LOG_THROTTLE_S)
 
     # ------------------------------------------------------------------ processing

@@ -424,16 +424,56 @@ def test_pose_buffer_slerp_takes_the_short_way():
 
 
 def test_pose_buffer_bounded_ordered_and_reset():
-    buf = PoseBuffer(maxlen=3, tolerance_ns=0)
+    buf = PoseBuffer(maxlen=3, tolerance_ns=0, jump_ns=100)
     for k in range(1, 6):
         buf.add(_pose(k * 100, float(k), 0.0))
     assert len(buf) == 3 and buf.interval == (300, 500)
     assert buf.add(_pose(500, 9.0, 0.0)) == 'duplicate'
+    assert buf.add(_pose(400, 9.0, 0.0)) == 'late'   # back by exactly jump_ns: reordered
     assert buf.interval == (300, 500)
-    assert buf.add(_pose(50, 0.0, 0.0)) == 'reset'  # time jumped back (bag restarted)
-    assert len(buf) == 1 and buf.interval == (50, 50)
-    with pytest.raises(ValueError):
-        PoseBuffer(maxlen=1)
+    assert buf.add(_pose(399, 0.0, 0.0)) == 'reset'  # further: time jumped (bag restarted)
+    assert len(buf) == 1 and buf.interval == (399, 399)
+    for bad in (dict(maxlen=1), dict(max_gap_ns=0), dict(jump_ns=-1)):
+        with pytest.raises(ValueError):
+            PoseBuffer(**bad)
+
+
+S_NS = 1_000_000_000
+
+
+def test_pose_buffer_does_not_interpolate_across_an_odometry_outage():
+    # Heading east at 1 s, west at 61 s (the car turned during a 60 s outage): the pose at
+    # 31 s is unknown, not the midpoint heading north.
+    buf = PoseBuffer()
+    assert buf.max_gap_ns == 2 * S_NS
+    buf.add(_pose(1 * S_NS, 0.0, 0.0))
+    buf.add(_pose(61 * S_NS, 0.0, 180.0))
+    with pytest.raises(ReadingError) as info:
+        buf.interpolate(31 * S_NS)
+    assert info.value.reason == 'odometry_gap' and '60.000 s' in str(info.value)
+    # The poses themselves (within the hold tolerance) still serve.
+    np.testing.assert_allclose(buf.interpolate(61 * S_NS).position, [0.0, 0.0, 0.0])
+    # A gap of exactly the limit is interpolated, one nanosecond more is not.
+    buf = PoseBuffer(max_gap_ns=2 * S_NS)
+    buf.add(_pose(S_NS, 0.0, 0.0))
+    buf.add(_pose(3 * S_NS, 10.0, 0.0))
+    np.testing.assert_allclose(buf.interpolate(2 * S_NS).position, [5.0, 10.0, 0.0])
+    buf.add(_pose(5 * S_NS + 1, 20.0, 0.0))
+    with pytest.raises(ReadingError) as info:
+        buf.interpolate(4 * S_NS)
+    assert info.value.reason == 'odometry_gap'
+
+
+def test_one_late_odometry_message_does_not_wipe_the_buffer():
+    buf = PoseBuffer()
+    for k in range(1, 101):                      # 0.1 ... 10 s at 10 Hz
+        assert buf.add(_pose(k * S_NS // 10, float(k), 0.0)) == 'ok'
+    assert buf.add(_pose(95 * S_NS // 10 - 1, 9.5, 0.0)) == 'late'
+    assert len(buf) == 100 and buf.interval == (S_NS // 10, 10 * S_NS)
+    # An earlier bearing still finds its pose.
+    np.testing.assert_allclose(buf.interpolate(5 * S_NS).position, [50.0, 100.0, 0.0])
+    # A jump back by more than jump_ns (1 s) is a new clock: the buffer restarts.
+    assert buf.add(_pose(8 * S_NS, 0.0, 0.0)) == 'reset' and len(buf) == 1
 
 
 def test_pose_sample_rejections():

@@ -224,6 +224,11 @@ def test_moving_platform(h):
     assert node.rejected['after_odometry'] == before[0] + 1
     assert node.rejected['before_odometry'] == before[1] + 1
     assert len(h.received['boat']) == 1
+    # A late (reordered) odometry message is dropped and counted; the buffer stays.
+    h.odom_pub.publish(_odom(t2 - 500_000_000, p1, yaw1))
+    spin_until(h.executor, lambda: node.rejected['odometry_late'] == 1, 3.0)
+    assert node.rejected['odometry_late'] == 1 and len(node.poses) == 2
+    assert node.received['odometry_resets'] == 0
     # Odometry in another frame is rejected, not used.
     bad = _odom(t2 + 1, p2, yaw2)
     bad.header.frame_id = 'odom'

@@ -328,6 +328,12 @@ def _station_schema():
           deprecated=('odometry_tolerance_s',)),
         P('odometry_buffer_size', INTEGER, 200, 'Odometry messages kept for interpolation',
           '', 2, 100000),
+        P('odometry_max_gap', DOUBLE, 2.0, 'Readings between two odometry messages further '
+          'apart than this are dropped (odometry_gap), not interpolated', 's', 0.001,
+          3600.0),
+        P('odometry_jump', DOUBLE, 1.0, 'An odometry stamp this much or less before the '
+          'newest is dropped as late (odometry_late); further back the clock jumped and the '
+          'buffer is cleared', 's', 0.0, 86400.0),
         P('diagnostics_period', DOUBLE, 1.0, 'Period of the /diagnostics status', 's', 0.05,
           3600.0, deprecated=('diagnostics_period_s',)),
         P('qos_reliability', STRING, 'best_effort', 'QoS reliability of the bearing '

@@ -54,27 +54,47 @@ def pose_sample(stamp_ns, position, quaternion, position_covariance=None):
     return PoseSample(stamp_ns, p, q / n, cov)
 
 
+#: Default largest gap between the two poses a reading is interpolated between, ns (2 s: a
+#: 1 Hz odometry source with a late message still passes).
+MAX_GAP_NS = 2_000_000_000
+#: Default clock jump, ns: an odometry stamp more than this before the newest pose means the
+#: clock went back (a restarted bag) and clears the buffer; a less late one is dropped.
+JUMP_NS = 1_000_000_000
+
+
 class PoseBuffer:
     """A bounded, time-ordered buffer of platform poses, interpolated to bearing stamps.
 
     For t_i ≤ t ≤ t_{i+1}, with s = (t − t_i) / (t_{i+1} − t_i): position and position
     covariance are linear, p = (1 − s) p_i + s p_{i+1}; the orientation is the spherical
-    linear interpolation (slerp, shortest arc) of q_i and q_{i+1}. A stamp outside the
-    buffered interval by at most ``tolerance_ns`` gets the nearest pose (held, never
-    extrapolated); further out it is rejected (``before_odometry`` / ``after_odometry``;
-    ``no_odometry`` when empty). At most ``maxlen`` poses are kept (oldest dropped).
+    linear interpolation (slerp, shortest arc) of q_i and q_{i+1}. Only across a gap
+    t_{i+1} − t_i ≤ ``max_gap_ns``: over a longer outage the platform may have turned or
+    stopped in ways no interpolation knows, and the reading is rejected (``odometry_gap``).
+    A stamp outside the buffered interval by at most ``tolerance_ns`` gets the nearest pose
+    (held, never extrapolated); further out it is rejected (``before_odometry`` /
+    ``after_odometry``; ``no_odometry`` when empty). At most ``maxlen`` poses are kept
+    (oldest dropped).
 
-    Time must increase: a duplicate stamp is ignored; a stamp earlier than the newest one
-    means the clock jumped back (bag replay restarted) and clears the buffer.
+    Time must increase: a duplicate stamp is ignored ('duplicate'); a stamp before the
+    newest one by at most ``jump_ns`` is a late (reordered) message and is dropped ('late',
+    the buffer is kept); one earlier by more means the clock jumped back (a bag replay
+    restarted) and clears the buffer ('reset').
     """
 
-    def __init__(self, maxlen=200, tolerance_ns=100_000_000):
+    def __init__(self, maxlen=200, tolerance_ns=100_000_000, max_gap_ns=MAX_GAP_NS,
+                 jump_ns=JUMP_NS):
         if int(maxlen) < 2:
             raise ValueError('maxlen: need at least 2 poses to interpolate')
         if int(tolerance_ns) < 0:
             raise ValueError('tolerance_ns: must be >= 0')
+        if int(max_gap_ns) <= 0:
+            raise ValueError('max_gap_ns: must be > 0')
+        if int(jump_ns) < 0:
+            raise ValueError('jump_ns: must be >= 0')
         self.maxlen = int(maxlen)
         self.tolerance_ns = int(tolerance_ns)
+        self.max_gap_ns = int(max_gap_ns)
+        self.jump_ns = int(jump_ns)
         self._samples = []
 
     def __len__(self):
@@ -88,13 +108,17 @@ class PoseBuffer:
         return self._samples[0].stamp_ns, self._samples[-1].stamp_ns
 
     def add(self, sample):
-        """Append a :class:`PoseSample`; return 'ok', 'duplicate' (ignored) or 'reset'."""
+        """Append a :class:`PoseSample`; return 'ok', 'duplicate' (ignored), 'late'
+        (ignored: at most ``jump_ns`` before the newest pose) or 'reset' (the clock jumped
+        back by more: the buffer is cleared and holds this pose)."""
         status = 'ok'
         if self._samples:
             last = self._samples[-1].stamp_ns
             if sample.stamp_ns == last:
                 return 'duplicate'
             if sample.stamp_ns < last:
+                if last - sample.stamp_ns <= self.jump_ns:
+                    return 'late'
                 self._samples.clear()
                 status = 'reset'
         self._samples.append(sample)
@@ -127,7 +151,11 @@ class PoseBuffer:
         stamps = np.array([s.stamp_ns for s in self._samples], dtype=np.int64)
         i = int(np.searchsorted(stamps, t, side='right')) - 1
         a, b = self._samples[i], self._samples[i + 1]
-        s = (t - a.stamp_ns) / (b.stamp_ns - a.stamp_ns)
+        gap = b.stamp_ns - a.stamp_ns
+        if gap > self.max_gap_ns:
+            raise ReadingError('odometry_gap', f'{gap / 1e9:.3f} s between the poses around '
+                                               f'it (limit {self.max_gap_ns / 1e9:.3g} s)')
+        s = (t - a.stamp_ns) / gap
         pos = (1.0 - s) * a.position + s * b.position
         cov = (1.0 - s) * a.position_covariance + s * b.position_covariance
         q = Slerp([0.0, 1.0], Rotation.from_quat([a.quaternion, b.quaternion]))(s).as_quat()
