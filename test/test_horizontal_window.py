@@ -217,3 +217,75 @@ def test_window_closed_forms_are_never_confidently_wrong():
         wrong[est] = sum(v > 18.42 for v in nees[est])
     assert len(nees['ls']) > 30 and len(nees['tls']) > 8
     assert wrong == {'ls': 0, 'tls': 0}
+
+
+class _Registry:
+    """The one thing WindowStrategy reads from its registry while it only collects bearings."""
+
+    def __init__(self, **cfg):
+        self.config = FusionConfig(**dict(dict(estimator='mle', trigger='timer'), **cfg))
+
+
+def _old_prune(window, cfg):
+    """The window's former pruning, a full scan per bearing (kept here as the reference)."""
+    w = list(window)
+    while len(w) > int(cfg.window_max_bearings):
+        w.pop(0)
+    if w:
+        oldest = max(b.stamp_ns for b in w) - int(round(float(cfg.window) * 1e9))
+        w = [b for b in w if b.stamp_ns >= oldest]
+    return w
+
+
+@pytest.mark.parametrize('window_s, max_bearings', [(5.0, 1000), (1e6, 37), (3.0, 25)])
+def test_window_pruning_without_scans_keeps_what_the_scan_kept(window_s, max_bearings):
+    # Bearings of three stations arrive out of stamp order (latency up to 4 s, some far
+    # older), with the count bound and the time bound both acting: the window after every
+    # bearing equals that of the former full scan, and so do the rejected-id bookkeeping
+    # and a station's removal.
+    from bearing_loc_ros.core.fusion.window import WindowStrategy
+    rng = np.random.default_rng(5)
+    reg = _Registry(window=window_s, window_max_bearings=max_bearings)
+    strat = WindowStrategy(reg)
+    ref = []
+    for k in range(3000):
+        t = 0.01 * k - rng.exponential(1.0) - (30.0 if rng.random() < 0.02 else 0.0)
+        b = Bearing(f's{k % 3}', int(round(max(t, 0.001) * 1e9)), np.zeros(3), 0.0)
+        strat.on_bearing(b, 0)
+        ref = _old_prune(ref + [b], reg.config)
+        assert [id(x) for x in strat._window] == [id(x) for x in ref], k
+        if k % 500 == 250:
+            strat._rejected_ids.update(id(x) for x in list(strat._window)[:5])
+        assert strat._rejected_ids <= {id(x) for x in strat._window}
+    strat.station_removed('s1')
+    assert [id(x) for x in strat._window] == [id(x) for x in ref if x.station != 's1']
+
+
+class _CountedStamp:
+    """A bearing stand-in that counts how often its stamp is read."""
+
+    reads = 0
+
+    def __init__(self, station, stamp_ns):
+        self.station, self._stamp = station, stamp_ns
+
+    @property
+    def stamp_ns(self):
+        _CountedStamp.reads += 1
+        return self._stamp
+
+
+def test_adding_to_a_full_window_does_not_scan_it():
+    # At a full window of 5000 bearings (timer trigger: no fix per bearing), 1000 more
+    # bearings read a bounded number of stamps each; a scan per bearing read 5000+.
+    from bearing_loc_ros.core.fusion.window import WindowStrategy
+    n = 5000
+    strat = WindowStrategy(_Registry(window=1e6, window_max_bearings=n))
+    for k in range(n):
+        strat.on_bearing(_CountedStamp('car', (k + 1) * 10_000_000), 0)
+    _CountedStamp.reads = 0
+    for k in range(n, n + 1000):
+        strat.on_bearing(_CountedStamp('car', (k + 1) * 10_000_000), 0)
+    assert strat.window_bearings == n
+    # append reads its stamp once; the heap and deque rebuild (every ~n adds) reads n.
+    assert _CountedStamp.reads <= 1000 * 2 + 2 * n

@@ -16,9 +16,11 @@ one station at different times are independent measurements (independent noise),
 information adds up as the platform moves and the CRLB of the accumulated bearings
 (core.horizontal_crlb / core.crlb) shrinks with the baseline the platform has driven.
 
-Bounds: at most ``window_max_bearings`` bearings (the oldest leave first) and none older
-than the newest stamp minus ``window``; one fix costs O(N) per iteration (the estimators
-are vectorised over bearings), plus O(K² N) for the robust consensus (K ≤ 16).
+Bounds: at most ``window_max_bearings`` bearings (the oldest arrivals leave first) and none
+stamped before the newest stamp minus ``window`` (wherever it arrived: stamps of several
+stations need not arrive in order); :class:`BearingWindow` keeps both in amortised
+O(log N) per added bearing. One fix costs O(N) per iteration (the estimators are
+vectorised over bearings), plus O(K² N) for the robust consensus (K ≤ 16).
 
 Outliers (reflections, the car body, a wrong heading): estimators that declare ``robust``
 (``mle``, ``wmle``) run with it unless ``outlier_gate`` is 1; the horizontal solve's
@@ -37,7 +39,8 @@ parallel). Triggers as TMA: ``event`` one epoch per accepted bearing, ``timer`` 
 per tick when bearings arrived. A backward time jump empties the window.
 """
 
-from collections import deque
+from collections import deque, OrderedDict
+import heapq
 
 import numpy as np
 
@@ -69,6 +72,77 @@ def _window_gate(est, bs, pos, kwargs, gate):
     return d2, dof, np.where(dof == 2, gate_threshold(gate, 2), gate_threshold(gate, 1))
 
 
+class BearingWindow:
+    """The window's bearings in arrival order, pruned by count and by stamp without scans.
+
+    Holds bearings (any object with ``stamp_ns``, int ns) under arrival numbers. ``newest``
+    is the largest stamp held, from a monotone deque of arrivals whose stamps no later
+    arrival reaches (the sliding-window maximum: its first live entry is the maximum);
+    ``prune_before`` removes every bearing stamped before a cutoff, wherever it arrived,
+    from a min-heap of (stamp, arrival). Entries of bearings that left by another way stay
+    in the deque and the heap until they surface, and both are rebuilt when they hold more
+    than twice the window (so memory stays O(N)). Costs: ``append`` O(log N), ``popleft``
+    O(1), ``prune_before`` O(log N) per removed bearing, ``newest`` amortised O(1).
+    """
+
+    def __init__(self, bearings=()):
+        self._items = OrderedDict()    # arrival number -> bearing, arrival order
+        self._next = 0
+        self._heap = []                # (stamp_ns, arrival)
+        self._max = deque()            # (arrival, stamp_ns), stamps strictly decreasing
+        for b in bearings:
+            self.append(b)
+
+    def __len__(self):
+        return len(self._items)
+
+    def __iter__(self):
+        return iter(self._items.values())
+
+    def append(self, bearing):
+        """Add ``bearing`` as the newest arrival."""
+        k, stamp = self._next, int(bearing.stamp_ns)
+        self._next += 1
+        self._items[k] = bearing
+        heapq.heappush(self._heap, (stamp, k))
+        while self._max and self._max[-1][1] <= stamp:
+            self._max.pop()
+        self._max.append((k, stamp))
+        if len(self._heap) > 2 * len(self._items) + 64 or \
+                len(self._max) > 2 * len(self._items) + 64:
+            self._rebuild()
+
+    def popleft(self):
+        """Remove and return the oldest arrival."""
+        return self._items.popitem(last=False)[1]
+
+    def newest(self):
+        """The largest stamp held (ns), or None when empty."""
+        while self._max and self._max[0][0] not in self._items:
+            self._max.popleft()
+        return self._max[0][1] if self._max else None
+
+    def prune_before(self, cutoff_ns):
+        """Remove every bearing stamped before ``cutoff_ns``; return them."""
+        out = []
+        heap, items = self._heap, self._items
+        while heap and heap[0][0] < cutoff_ns:
+            b = items.pop(heapq.heappop(heap)[1], None)
+            if b is not None:
+                out.append(b)
+        return out
+
+    def _rebuild(self):
+        self._heap = [(int(b.stamp_ns), k) for k, b in self._items.items()]
+        heapq.heapify(self._heap)
+        self._max = deque()
+        for k, b in self._items.items():
+            stamp = int(b.stamp_ns)
+            while self._max and self._max[-1][1] <= stamp:
+                self._max.pop()
+            self._max.append((k, stamp))
+
+
 class WindowStrategy:
     """Epochs of the window mode over a station registry (module docstring)."""
 
@@ -76,7 +150,7 @@ class WindowStrategy:
 
     def __init__(self, registry):
         self.registry = registry
-        self._window = deque()        # accepted Bearings, arrival order
+        self._window = BearingWindow()    # accepted Bearings, arrival order
         self._pending = False
         self._rejected_ids = set()    # id() of window bearings already counted as rejected
         self.low_confidence = 0
@@ -98,12 +172,12 @@ class WindowStrategy:
 
     def station_removed(self, station):
         """Drop the removed station's bearings from the window."""
-        self._window = deque(b for b in self._window if b.station != station)
-        self._forget_rejected()
+        self._window = BearingWindow(b for b in self._window if b.station != station)
+        self._rejected_ids &= {id(b) for b in self._window}
 
     def reset(self, now):
         """After a backward time jump: empty the window."""
-        self._window.clear()
+        self._window = BearingWindow()
         self._rejected_ids.clear()
         self._pending = False
 
@@ -147,19 +221,20 @@ class WindowStrategy:
 
     # ----------------------------------------------------------------- window
     def _prune(self):
+        """At most ``window_max_bearings`` (oldest arrivals leave first), then none stamped
+        before the newest stamp minus ``window``; a bearing that leaves is forgotten as
+        rejected. Amortised O(log N) per bearing that leaves (:class:`BearingWindow`)."""
         cfg = self.registry.config
         w = self._window
+        gone = []
         while len(w) > int(cfg.window_max_bearings):
-            w.popleft()
-        if w:
-            oldest = max(b.stamp_ns for b in w) - int(round(float(cfg.window) * NS_PER_S))
-            if any(b.stamp_ns < oldest for b in w):
-                self._window = deque(b for b in w if b.stamp_ns >= oldest)
-        self._forget_rejected()
-
-    def _forget_rejected(self):
+            gone.append(w.popleft())
+        newest = w.newest()
+        if newest is not None:
+            gone += w.prune_before(newest - int(round(float(cfg.window) * NS_PER_S)))
         if self._rejected_ids:
-            self._rejected_ids &= {id(b) for b in self._window}
+            for b in gone:
+                self._rejected_ids.discard(id(b))
 
     # ----------------------------------------------------------------- epochs
     def epoch(self, now):
