@@ -12,11 +12,17 @@ can state for a turning observer: docs/tma.md, "Model".
 
     .venv/bin/python bench/tma_manoeuvre.py [--runs 200]
     .venv/bin/python bench/tma_manoeuvre.py --noise     # u of a straight, noisy observer
+    .venv/bin/python bench/tma_manoeuvre.py --gps-step  # a step in the observer positions
 
 ``--noise``: the departure u of test (T22) (core.tma.confidence.manoeuvre_speed) for the
 paper's straight observer (Lin et al.: 250 m/s north) whose positions carry white noise of
 1, 3 and 5 m per axis, over windows of 20, 50 and 100 s: median and largest over the runs,
 against the bound 0.01 v_c = 3.8 m/s.
+
+``--gps-step``: the paper's straight observer whose reported positions are off by a step of
+30-1000 m along x from 50 s on (a GPS fault: the bearings are taken from the true track),
+``tma_mle`` with both priors (``relative`` 380.13 m/s, the exact relative speed; ``ground``
+349.3 m/s): how many fixes are ``ok``, their mean NEES and how many exceed χ²₃ 0.9999.
 """
 import argparse
 import math
@@ -38,9 +44,13 @@ def main():
     ap.add_argument('--seed', type=int, default=3)
     ap.add_argument('--noise', action='store_true',
                     help='u of (T22) for a straight observer with noisy positions')
+    ap.add_argument('--gps-step', action='store_true',
+                    help='fixes of a straight observer whose positions step from 50 s on')
     a = ap.parse_args()
     if a.noise:
         return noise_table(a.runs, a.seed)
+    if a.gps_step:
+        return gps_step_table(a.runs, a.seed)
     t = np.arange(0.0, 100.01, 0.2)
     north, east = np.array([0.0, 250.0, 0.0]), np.array([250.0, 0.0, 0.0])
     obs = np.where(t[:, None] < 50, north * t[:, None], 50.0 * north + east * (t[:, None] - 50))
@@ -78,6 +88,34 @@ def noise_table(runs, seed):
                                bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el)
             u = confidence.manoeuvre_speed(model.prepare(noisy, tk, 380.0, 'relative'))
             print(f'{window:8.0f}  {noise:7.0f}  {np.median(u):12.2f}  {u.max():9.2f}')
+
+
+def gps_step_table(runs, seed):
+    """Print the fixes of a straight observer with a step in its positions (docstring)."""
+    from bearing_loc_ros.core.bearings import BearingSet
+    t = np.arange(0.0, 100.01, 0.2)
+    v_o = np.array([0.0, 250.0, 0.0])
+    p0, v = np.array([100e3, 100e3, 10e3]), np.array([-340.0, 80.0, -1.21])
+    bs, tk = simulate_tma(t, p0, v, v_o * t[:, None], math.radians(0.1),
+                          rng=np.random.default_rng(seed), M=runs)
+    truth = p0 + v * t[-1]
+    print('step m  speed_reference  ok    mean NEES of ok  ok NEES > 21.1  RMSE of ok m')
+    for step in (0.0, 30.0, 100.0, 300.0, 1000.0):
+        pos = bs.positions.copy()
+        pos[:, t >= 50.0, 0] += step
+        moved = BearingSet(pos, bs.azimuth, bs.elevation, bs.sigma_az, bs.sigma_el)
+        for ref, speed in (('relative', float(np.linalg.norm(v - v_o))),
+                           ('ground', float(np.linalg.norm(v)))):
+            r = tma('tma_mle', moved, tk, speed, speed_reference=ref)
+            ok = np.nonzero(r.status == 'ok')[0]
+            e = r.position[ok] - truth
+            nees = np.array([x @ np.linalg.solve(c[:3, :3], x)
+                             for x, c in zip(e, r.covariance[ok])])
+            mean = f'{nees.mean():15.3g}' if len(ok) else f'{"–":>15s}'
+            rmse = f'{math.sqrt(float((e * e).sum(axis=1).mean())):12.0f}' if len(ok) \
+                else f'{"–":>12s}'
+            print(f'{step:6.0f}  {ref:15s}  {len(ok):4d}  {mean}  '
+                  f'{int((nees > CONFIDENT_WRONG_NEES).sum()):14d}  {rmse}')
 
 
 if __name__ == '__main__':
