@@ -391,3 +391,13 @@ def test_a_singular_step_system_is_solved_alone_without_changing_the_others():
         assert np.array_equal(x, np.linalg.solve(A[m:m + 1], b[m:m + 1, :, None])[0, :, 0])
     x1 = tma_mle._solve_alone(A[1], b[1])
     assert np.allclose(x1, np.linalg.lstsq(A[1], b[1], rcond=None)[0])
+
+
+def test_simulated_bearings_stay_valid_at_any_sigma():
+    # Elevations are clipped as in simulate_bearings: σ = 0.6 rad used to give elevations
+    # beyond ±π/2 that the estimators reject.
+    bs, t = T.simulate_tma(TIMES[:50], P_T, V_T, OBS[:50], 0.6,
+                           rng=np.random.default_rng(1), M=20)
+    assert np.all(np.abs(bs.elevation) < np.pi / 2)
+    r = T.tma('tma_ctls6', bs, t, VC)
+    assert len(r.status) == 20

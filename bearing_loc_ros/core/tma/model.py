@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..bearings import _check_bearing_fields, BearingSet
+from ..bearings import _check_bearing_fields, BearingSet, MAX_ELEVATION
 from ..conventions import azimuth_elevation, wrap_angle
 from ..estimator_spec import MAX_ITERATIONS, Option
 from .confidence import MAX_ML_DISTANCE, MAX_NONLINEARITY
@@ -150,6 +150,9 @@ def simulate_tma(times, target_position, target_velocity, observer_positions, si
         or (M, 3) m/s. observer_positions: (K, 3) or (M, K, 3) m. sigma_az/sigma_el: rad
         (σ_el defaults to σ_az). rng: numpy Generator or None (noise-free). M: number of
         problems (default from the shapes).
+    Noisy elevations are clipped to |ψ| ≤ π/2 − 1e-9 (``bearings.MAX_ELEVATION``, as
+    :func:`bearing_loc_ros.core.bearings.simulate_bearings`), so that any σ gives valid
+    bearings.
     Returns (BearingSet (M, K) of ENU angles, times (M, K)).
     """
     t = np.asarray(times, dtype=float)
@@ -167,7 +170,7 @@ def simulate_tma(times, target_position, target_velocity, observer_positions, si
                           (M, K))
     if rng is not None:
         az = az + saz * rng.standard_normal((M, K))
-        el = el + sel * rng.standard_normal((M, K))
+        el = np.clip(el + sel * rng.standard_normal((M, K)), -MAX_ELEVATION, MAX_ELEVATION)
     bs = BearingSet.from_arrays(np.broadcast_to(o, (M, K, 3)), wrap_angle(az), el, saz, sel,
                                 validate=False)
     return bs, np.broadcast_to(t, (M, K)).copy()
