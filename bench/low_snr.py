@@ -28,6 +28,7 @@ Two parts, both on core.evaluation (the numbers of ``bearing_loc evaluate``):
     python bench/low_snr.py --sigma-points --seeds 0,1,2,3,4    # a covariance not kept
     python bench/low_snr.py --line-posterior --seeds 0,1,2,3,4  # an estimate not kept
     python bench/low_snr.py --line-mse --seeds 0,1,2,3,4        # a covariance not kept
+    python bench/low_snr.py --range-inflation 1.5 --seeds 0,1,2,3,4   # a covariance not kept
 
 ``--sigma-points``: the constant-sigma scenario's ok fixes of the default mle, their mean NEES
 and confidently wrong count per sweep point, pooled over ``--seeds``, with the reported
@@ -40,7 +41,8 @@ steps of 0.1), with that likelihood's variance along v in place of s^2 (the Baye
 posterior moments of the range coordinate alone); the last column is the RMSE of the moved
 fixes over that of the fixes as reported. ``--line-mse``: the fixes as reported, with the
 second moment of that likelihood about them (its variance plus its mean offset squared) in
-place of s^2.
+place of s^2. ``--range-inflation C``: the fixes as reported, s^2 multiplied by 1 + C s / r,
+r the distance from the stations' centroid (s / r the fix's relative range uncertainty).
 """
 
 import argparse
@@ -318,9 +320,9 @@ def line_posterior(b, X, P):
             P + ((var - 1.0) * s * s)[:, None, None] * v[:, :, None] * v[:, None, :])
 
 
-def covariance_variants(n, seeds, variant):
-    """Print the ``--sigma-points``, ``--line-posterior`` or ``--line-mse`` table (module
-    docstring)."""
+def covariance_variants(n, seeds, variant, c=None):
+    """Print the ``--sigma-points``, ``--line-posterior``, ``--line-mse`` or
+    ``--range-inflation`` (factor ``c``) table (module docstring)."""
     from bearing_loc_ros.core.crlb import crlb
     q = float(chisq.ppf(0.9999, 3))
     acc = {}
@@ -332,6 +334,10 @@ def covariance_variants(n, seeds, variant):
             at = [crlb(X + d, b.positions, b.sigma_az, sel, b.has_elevation)
                   for d in (step, -step)]
             X2, P2 = X, 2.0 / 3.0 * P + (at[0] + at[1]) / 6
+        elif variant == 'range inflation':
+            v, s = major_axes(X, P, b.positions)
+            kappa = s / np.linalg.norm(X - b.positions.mean(axis=1), axis=1)
+            X2, P2 = X, P + (c * kappa * s * s)[:, None, None] * v[:, :, None] * v[:, None, :]
         else:
             X2, P2 = line_posterior(b, X, P)
             if variant == 'line MSE':
@@ -389,13 +395,18 @@ def main():
     ap.add_argument('--line-mse', action='store_true',
                     help='constant sigma: the ok fixes kept, their major variance replaced by '
                          'the second moment of that likelihood about them')
+    ap.add_argument('--range-inflation', type=float, default=None, metavar='C',
+                    help='constant sigma: the ok fixes kept, their major variance s^2 '
+                         'multiplied by 1 + C s / r (r the range from the stations\' centroid)')
     a = ap.parse_args()
     global SEED
     SEED = a.seed
-    if a.sigma_points or a.line_posterior or a.line_mse:
+    if a.sigma_points or a.line_posterior or a.line_mse or a.range_inflation is not None:
         covariance_variants(a.trials, [int(v) for v in (a.seeds or '0,1,2,3,4').split(',')],
                             'sigma points' if a.sigma_points else
-                            'line posterior' if a.line_posterior else 'line MSE')
+                            'line posterior' if a.line_posterior else
+                            'line MSE' if a.line_mse else 'range inflation',
+                            a.range_inflation)
     elif a.near_stations:
         near_stations(a.trials)
     elif a.seeds:
