@@ -403,27 +403,60 @@ class FoxgloveView:
         self.server.stop()
 
 
+def bag_plan(paths, topics=None):
+    """The requested topics that no bag of ``paths`` holds (sorted); ValueError when the
+    bags list no message to forward.
+
+    The counts are those metadata.yaml lists (:class:`bearing_loc_ros.bagio.BagReader`);
+    ``topics``: forward only these (default: all). A bag that cannot be opened raises its
+    one-line ValueError.
+    """
+    from . import bagio
+    counts = {}
+    for p in paths:
+        with bagio.BagReader(p) as r:
+            for name, info in r.topics.items():
+                counts[name] = counts.get(name, 0) + info.count
+    missing = sorted(set(topics or ()) - set(counts))
+    if not sum(n for name, n in counts.items() if not topics or name in topics):
+        which = f' on the topics {", ".join(sorted(topics))}' if topics else ''
+        absent = f' (no bag has {", ".join(missing)})' if missing else ''
+        raise ValueError(f'bag: {" + ".join(map(str, paths))} holds no message{which} to '
+                         f'serve{absent}')
+    return missing
+
+
 def serve_bag(view, paths, rate=1.0, loop=False, stop=None, topics=None, log=print):
     """Forward the messages of one or more bags (merged by bag time) at ``rate`` x real time.
 
     Raw CDR bytes from :class:`bearing_loc_ros.bagio.BagReader`; the server time follows
     ``/clock`` when the bag has it, else the bag time of each message. ``stop``: a
-    threading.Event that ends the replay; ``topics``: forward only these (default: all).
-    With ``loop`` every pass after the first starts the picture afresh
-    (:meth:`FoxgloveView.restart`): the bag's stamps start again. Returns the number of
-    messages forwarded.
+    threading.Event that ends the replay (checked before every pass and every message);
+    ``topics``: forward only these (default: all); a requested topic that no bag holds is
+    named in a warning through ``log``. ValueError, before anything is served, when the bags
+    list no message to forward (:func:`bag_plan`). With ``loop`` every pass after the first
+    starts the picture afresh (:meth:`FoxgloveView.restart`): the bag's stamps start again;
+    a pass that forwards nothing (the storage holds fewer messages than listed) ends the
+    replay instead of starting another. The picture is published once more at the end of a
+    pass, with the log time of the pass's last message. Returns the number of messages
+    forwarded.
     """
     import heapq
     from . import bagio
     if not rate > 0:
         raise ValueError(f'rate: must be > 0, got {rate}')
+    missing = bag_plan(paths, topics)
+    if missing:
+        log(f'view: warning: no bag has the requested topic(s) {", ".join(missing)}; '
+            'they are not served')
     stop = stop or threading.Event()
     sent = 0
     passes = 0
-    while True:
+    while not stop.is_set():
         if passes:
             view.restart()
         passes += 1
+        sent_before = sent
         readers = [bagio.BagReader(p) for p in paths]
         try:
             for r in readers:
@@ -435,7 +468,7 @@ def serve_bag(view, paths, rate=1.0, loop=False, stop=None, topics=None, log=pri
                         view.advertise(name, info.msgtype)
             streams = [r.messages() for r in readers]
             merged = heapq.merge(*streams, key=lambda m: m.log_time_ns)
-            t0_bag = t0_wall = None
+            t0_bag = t0_wall = t_last = None
             for m in merged:
                 if stop.is_set():
                     return sent
@@ -450,11 +483,18 @@ def serve_bag(view, paths, rate=1.0, loop=False, stop=None, topics=None, log=pri
                 view.forward(m.topic, m.msgtype, m.raw, m.log_time_ns)
                 if not has_clock:
                     view.set_time(m.log_time_ns)
+                t_last = m.log_time_ns
                 sent += 1
-            view.publish_geojson(t0_bag or 0, force=True)
+            if t_last is not None:
+                view.publish_geojson(t_last, force=True)
         finally:
             for r in readers:
                 r.close()
         if not loop:
             return sent
+        if sent == sent_before:
+            log('view: warning: a pass forwarded no message (the bags hold fewer than '
+                'metadata.yaml lists); not replaying again')
+            return sent
         log(f'view: {sent} messages forwarded; replaying again')
+    return sent

@@ -581,3 +581,50 @@ def test_bag_loop_picture_follows_every_pass(tmp_path):
     for _, sent, held, shown in seen:
         assert held == sent and shown == sent / 1e9
     assert v.stats()['rejected'] == {}
+
+
+def test_a_bag_with_nothing_to_serve_is_an_error_not_a_busy_loop(tmp_path):
+    """``view --bag EMPTY --loop`` (or ``--topics`` naming a topic the bag lacks) spun
+    replaying nothing, about 100 passes a second, and Ctrl-C could not stop it (the stop
+    event was only looked at between messages). Nothing to serve is now an error before
+    the first pass; a requested topic the bag lacks is named in a warning."""
+    import subprocess
+    import sys
+    from bearing_loc_ros import bagio
+    from bearing_loc_ros.core.bearings import Bearing
+    from bearing_loc_ros.foxglove_view import FoxgloveView, serve_bag
+    empty, full = tmp_path / 'empty', tmp_path / 'full'
+    with bagio.BagWriter(empty) as w:
+        w.add_topic('/station_1/bearing', FIX_TYPE)
+    with bagio.BagWriter(full) as w:
+        w.add_topic('/station_1/bearing', FIX_TYPE)
+        w.write('/station_1/bearing', 10**9, bagio.bearing_message(
+            Bearing('station_1', 10**9, np.array([0.0, 0.0, 0.0]), 0.5)))
+    lines = []
+
+    def log(text):              # the old loop would call it for ever: fail instead
+        lines.append(text)
+        assert len(lines) < 5, lines
+    v = FoxgloveView(port=0, log=lambda text: None)
+    try:
+        with pytest.raises(ValueError, match='holds no message to serve'):
+            serve_bag(v, [str(empty)], rate=1000.0, loop=True, log=log)
+        with pytest.raises(ValueError, match=r'no message on the topics /typo .*no bag has '
+                                             r'/typo'):
+            serve_bag(v, [str(full)], rate=1000.0, loop=True, topics={'/typo'}, log=log)
+        assert lines == []
+        stop = threading.Event()
+        stop.set()              # Ctrl-C before a pass: no pass at all
+        assert serve_bag(v, [str(full)], loop=True, stop=stop, log=log) == 0
+        sent = serve_bag(v, [str(full)], rate=1000.0, topics={'/typo', '/station_1/bearing'},
+                         log=log)
+        assert sent == 1 and lines == ['view: warning: no bag has the requested topic(s) '
+                                       '/typo; they are not served']
+    finally:
+        v.stop()
+    cli = [sys.executable, '-c',
+           'import sys; from bearing_loc_ros.cli import main; sys.exit(main())']
+    proc = subprocess.run(cli + ['view', '--bag', str(empty), '--loop', '--port', '0'],
+                          cwd=REPO, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2 and 'holds no message to serve' in proc.stderr, proc
+    assert 'serving' not in proc.stdout

@@ -62,12 +62,17 @@ def _check(args):
 def run_bag(args):
     """Serve bags until they end (or Ctrl-C; forever with --loop)."""
     from .. import bagio
-    from ..foxglove_view import DEFAULT_BACKLOG, FoxgloveView, serve_bag
+    from ..foxglove_view import bag_plan, DEFAULT_BACKLOG, FoxgloveView, serve_bag
+    topics = set(args.topics) if args.topics else None
     for p in args.bag:
         try:
             bagio.BagReader(p)
         except ValueError as exc:
             raise InputError(str(exc)) from None
+    try:
+        bag_plan(args.bag, topics)      # nothing to serve: an error before listening
+    except ValueError as exc:
+        raise InputError(str(exc)) from None
     try:
         view = FoxgloveView(host=args.host, port=args.port, origin=args.origin, use_time=True,
                             backlog=args.max_backlog or DEFAULT_BACKLOG,
@@ -82,8 +87,8 @@ def run_bag(args):
     print(f'serving {" + ".join(args.bag)} on ws://{args.host}:{view.port} '
           f'(foxglove.sdk.v1), rate {args.rate:g}', flush=True)
     try:
-        n = serve_bag(view, args.bag, args.rate, args.loop, stop,
-                      set(args.topics) if args.topics else None)
+        n = serve_bag(view, args.bag, args.rate, args.loop, stop, topics,
+                      log=lambda text: print(text, file=sys.stderr, flush=True))
         print(f'{n} messages forwarded; {view.stats()}', flush=True)
         if not stop.is_set():
             print('replay done; serving the last picture until Ctrl-C', flush=True)
