@@ -6,8 +6,10 @@ foxglove-sdk, understood by Foxglove and by Lichtblick releases that speak it):
 
 * every forwarded ROS topic as a channel with ``cdr`` message encoding and a ``ros2msg``
   schema (:mod:`bearing_loc_ros.msgdefs`); the CDR bytes are forwarded unchanged;
-* ``accuracy_map`` (and every other latched channel) is sent again to each new subscriber,
-  so late joiners get the transient-local map;
+* ``accuracy_map`` (and every other latched channel: ``/map_geojson`` and the stations'
+  ``navsat``) is sent to each new subscriber, to that client alone (foxglove-sdk's per-sink
+  log; the sink id of a WebSocket client is its client id), so late joiners get the
+  transient-local map and the clients already subscribed get nothing twice;
 * ``/map_geojson`` (foxglove schema ``foxglove.GeoJSON``, as foxglove-sdk ships it): the
   current picture for the Map panel (stations, last bearing rays, last fix, its error
   ellipse and the fix trail, :class:`~bearing_loc_ros.core.gis.LivePicture`), at most every
@@ -171,7 +173,7 @@ class FoxgloveView:
 
         class Listener(ServerListener):
             def on_subscribe(self, client, channel):
-                view._on_subscribe(channel.id)
+                view._on_subscribe(client.id, channel.id)
 
         caps = [Capability.Time] if use_time else []
         self.server = foxglove.start_server(
@@ -205,8 +207,7 @@ class FoxgloveView:
         self._channels[topic] = ch
         self._types[topic] = msgtype
         leaf = topic.rstrip('/').rsplit('/', 1)[-1]
-        if leaf in LATCHED_LEAVES or topic.endswith('/navsat') and station_of(
-                topic[:-len('navsat')] + 'bearing'):
+        if leaf in LATCHED_LEAVES:
             self._latched_topics.add(topic)
         return ch
 
@@ -214,8 +215,9 @@ class FoxgloveView:
         if topic in self._latched_topics:
             self._latched[channel_id] = (topic, payload, log_time)
 
-    def _on_subscribe(self, channel_id):
-        """A client subscribed: send it the channel's latched message (a broadcast)."""
+    def _on_subscribe(self, client_id, channel_id):
+        """A client subscribed: send the channel's latched message to that client alone (its
+        sink id is its client id)."""
         with self._lock:
             self.subscriptions += 1
             item = self._latched.get(channel_id)
@@ -223,9 +225,9 @@ class FoxgloveView:
                 return
             topic, payload, log_time = item
             if topic == GEOJSON_TOPIC:
-                self._geo_channel.log(payload, log_time=log_time)
+                self._geo_channel.log(payload, log_time=log_time, sink_id=client_id)
             else:
-                self._channels[topic].log(payload, log_time=log_time)
+                self._channels[topic].log(payload, log_time=log_time, sink_id=client_id)
 
     # ----------------------------------------------------------------------------- messages
 
@@ -362,6 +364,7 @@ class FoxgloveView:
                             self.frame_id)
         self._station_pos[b.station] = key
         navsat = topic[:-len('bearing')] + 'navsat'
+        self._latched_topics.add(navsat)      # the view's own station topic (not fix/navsat)
         self.forward(navsat, 'sensor_msgs/msg/NavSatFix', serialize_message(msg), log_time_ns)
 
     def publish_geojson(self, log_time_ns, force=False):

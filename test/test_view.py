@@ -628,3 +628,42 @@ def test_a_bag_with_nothing_to_serve_is_an_error_not_a_busy_loop(tmp_path):
                           cwd=REPO, capture_output=True, text=True, timeout=120)
     assert proc.returncode == 2 and 'holds no message to serve' in proc.stderr, proc
     assert 'serving' not in proc.stdout
+
+
+def test_latched_messages_reach_each_new_client_once_and_no_one_else(view):
+    """Every new subscriber of a latched topic made the server broadcast its last message,
+    so the first of 4 clients got 4 copies of /accuracy_map (and of /map_geojson and
+    /station_1/navsat); /fix/navsat was latched by accident (/fix/bearing read as a station
+    'fix'). Now each client gets the latched messages once, on its own, and /fix/navsat is
+    not latched. A message broadcast after the last subscription, received by every client,
+    orders the check: whatever was sent before it has arrived."""
+    from rclpy.serialization import serialize_message
+    from sensor_msgs.msg import NavSatFix
+    view.forward('/accuracy_map', 'nav_msgs/msg/OccupancyGrid',
+                 serialize_message(OccupancyGrid()), 1)
+    view.forward('/station_1/bearing', FIX_TYPE, bearing_cdr(1), 1)
+    view.forward('/fix', FIX_TYPE, fix_cdr(1), 1)
+    view.forward('/fix/navsat', 'sensor_msgs/msg/NavSatFix', serialize_message(NavSatFix()), 1)
+    view.advertise('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray')
+    latched = ['/accuracy_map', '/map_geojson', '/station_1/navsat']
+    url = f'ws://127.0.0.1:{view.port}'
+
+    async def clients(n=4):
+        cs = []
+        for _ in range(n):
+            c = await FoxgloveClient(url).connect()
+            await c.pump(10.0, lambda c: all(t in c.by_topic for t in latched + ['/diagnostics']))
+            await c.subscribe(latched + ['/fix/navsat', '/diagnostics'])
+            await c.pump(10.0, lambda c: all(c.messages.get(t) for t in latched))
+            cs.append(c)
+        view.forward('/diagnostics', 'diagnostic_msgs/msg/DiagnosticArray', b'\0\1\0\0', 2)
+        await asyncio.gather(*(c.pump(10.0, lambda c: c.messages.get('/diagnostics'))
+                               for c in cs))
+        for c in cs:
+            await c.close()
+        return cs
+    cs = asyncio.run(clients())
+    for c in cs:
+        assert c.messages.get('/diagnostics')
+        assert {t: len(c.messages.get(t, ())) for t in latched + ['/fix/navsat']} == \
+            {'/accuracy_map': 1, '/map_geojson': 1, '/station_1/navsat': 1, '/fix/navsat': 0}
