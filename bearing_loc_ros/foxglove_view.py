@@ -19,13 +19,17 @@ foxglove-sdk, understood by Foxglove and by Lichtblick releases that speak it):
   ``dropped`` / ``rejected`` (:meth:`FoxgloveView.stats`) and logged at most once per
   :data:`LOG_THROTTLE_S` per reason. A stamp going back by more than
   :data:`~bearing_loc_ros.core.gis.CLOCK_JUMP_NS` is a clock restart (bag replayed, simulation
-  restarted, an earlier stamp in the future): the picture starts afresh from it;
+  restarted, an earlier stamp in the future): the picture starts afresh from it. One picture
+  per namespace (:func:`namespace_of`: ``<ns>/fix`` and ``<ns>/<station>/bearing``, the
+  fusion node's channels) on ``<ns>/map_geojson``, the root namespace's on
+  ``/map_geojson``;
 * ``/<station>/navsat`` (sensor_msgs/NavSatFix, latched) for every station seen in a bearing
   message, when a geodetic origin is set;
 * ``/view/fix_stats`` (JSON, schema :data:`STATS_SCHEMA_NAME`): for every fix in the world
   frame, its σ (sqrt of the covariance diagonal and horizontal sqrt(C_xx + C_yy), m) and the
   fix rate (fixes per second of fix stamps over the last :data:`RATE_WINDOW_NS`,
-  :class:`~bearing_loc_ros.core.gis.FixRate`), for the layout's plot;
+  :class:`~bearing_loc_ros.core.gis.FixRate`), for the layout's plot; per namespace as the
+  picture (``<ns>/view/fix_stats``);
 * the server time (Foxglove ``time`` capability) from ``/clock`` when ``use_time`` is set
   (a node running with ``use_sim_time``, or a bag).
 
@@ -119,16 +123,66 @@ def message_class(msgtype):
 
 
 def station_of(topic):
-    """Station name of a '<ns>/<station>/bearing' topic, else None."""
+    """Station of a '<ns>/<station>/bearing' topic with its namespace, without the leading
+    '/' ('/station_1/bearing': 'station_1'; '/uhf/north/bearing': 'uhf/north'), else None.
+    Keyed so, one station heard on two channels is two stations."""
     parts = topic.strip('/').split('/')
     if len(parts) >= 2 and parts[-1] == 'bearing':
-        return parts[-2]
+        return '/'.join(parts[:-1])
     return None
+
+
+def namespace_of(topic):
+    """Namespace of the picture a fix or bearing topic belongs to, without leading '/' ('' is
+    the root): '<ns>/fix' and '<ns>/<station>/bearing' are namespace '<ns>'; else None.
+
+    One picture per namespace keeps the channels of a receiver apart ('/uhf/fix' and
+    '/uhf/<station>/bearing' in namespace 'uhf', as the fusion node's ``channels``
+    publish them; docs/nodes.md "Several channels")."""
+    parts = topic.strip('/').split('/')
+    if parts[-1] == 'fix':
+        return '/'.join(parts[:-1])
+    if parts[-1] == 'bearing' and len(parts) >= 2:
+        return '/'.join(parts[:-2])
+    return None
+
+
+def space_topic(namespace, topic):
+    """A view topic of a namespace's picture: '/map_geojson' in 'uhf' is '/uhf/map_geojson'
+    (the root keeps the topic)."""
+    return f'/{namespace}{topic}' if namespace else topic
+
+
+class _Space:
+    """What the view keeps per picture namespace (:func:`namespace_of`): the picture (None
+    without an origin), its fix rate, its /map_geojson and /view/fix_stats channels and the
+    monotonic time of its last picture."""
+
+    def __init__(self, view, namespace):
+        from foxglove import Channel, Schema
+        self.namespace = namespace
+        self.picture = (gis.LivePicture(view.origin, view.probability) if view.origin
+                        else None)
+        self.fix_rate = gis.FixRate(RATE_WINDOW_NS)
+        self.stats_channel = Channel(
+            space_topic(namespace, STATS_TOPIC), message_encoding='json',
+            context=view.context,
+            schema=Schema(name=STATS_SCHEMA_NAME, encoding='jsonschema',
+                          data=json.dumps(STATS_SCHEMA).encode('utf-8')))
+        self.geo_channel = None
+        if self.picture is not None:
+            from foxglove.channels import GeoJsonChannel
+            self.geo_channel = GeoJsonChannel(space_topic(namespace, GEOJSON_TOPIC),
+                                              context=view.context)
+        self.last_geojson = 0.0
 
 
 class FoxgloveView:
     """Channels, forwarding, latched re-send and the map picture (module docstring).
 
+    One picture per namespace (:func:`namespace_of`): the root's on ``/map_geojson`` and
+    ``/view/fix_stats``, namespace ``uhf``'s on ``/uhf/map_geojson`` and
+    ``/uhf/view/fix_stats`` (created with the namespace's first fix or bearing topic).
     Thread-safe: :meth:`forward` may be called from any thread; the server's listener
     callbacks run on foxglove-sdk's threads. ``frame_id``: the world frame of the ENU
     picture; fixes and bearings in any other frame are not drawn. ``log(text)``: warnings
@@ -144,14 +198,15 @@ class FoxgloveView:
         self.log = log or _stderr_log
         self.frame_id = frame_id
         self.origin = gis.check_origin(origin) if origin else None
-        self.picture = gis.LivePicture(self.origin, probability) if self.origin else None
+        gis.ellipse_scale(probability)
+        self.probability = float(probability)
         self.geojson_period = float(geojson_period)
-        self._last_geojson = 0.0
         self._lock = threading.Lock()
         self._channels = {}       # topic -> foxglove Channel
         self._types = {}          # topic -> msgtype
-        self._latched = {}        # channel id -> (topic, payload bytes or callable, log_time)
+        self._latched = {}        # channel id -> (channel, payload, log_time)
         self._latched_topics = set()
+        self._spaces = {}         # namespace -> _Space
         self._station_pos = {}    # station -> last position tuple published as NavSatFix
         self.forwarded = 0
         self.forwarded_bytes = 0
@@ -162,12 +217,9 @@ class FoxgloveView:
         self.time_ns = None
         self._throttle = Throttle()
         self.context = foxglove.Context()
-        self._fix_rate = gis.FixRate(RATE_WINDOW_NS)
-        from foxglove import Channel, Schema
-        self._stats_channel = Channel(
-            STATS_TOPIC, message_encoding='json', context=self.context,
-            schema=Schema(name=STATS_SCHEMA_NAME, encoding='jsonschema',
-                          data=json.dumps(STATS_SCHEMA).encode('utf-8')))
+        root = self._space('')
+        # The root picture's (the only one without channels), as attributes for callers.
+        self.picture, self._geo_channel = root.picture, root.geo_channel
         throttle_sdk_client_errors()
         view = self
 
@@ -180,11 +232,14 @@ class FoxgloveView:
             name=name, host=host, port=int(port), capabilities=caps,
             server_listener=Listener(), context=self.context,
             message_backlog_size=int(backlog))
-        self._geo_channel = None
-        if self.picture is not None:
-            from foxglove.channels import GeoJsonChannel
-            self._geo_channel = GeoJsonChannel(GEOJSON_TOPIC, context=self.context)
-            self._latched_topics.add(GEOJSON_TOPIC)
+
+    def _space(self, namespace):
+        """The :class:`_Space` of a namespace, created on first use."""
+        with self._lock:
+            space = self._spaces.get(namespace)
+            if space is None:
+                space = self._spaces[namespace] = _Space(self, namespace)
+            return space
 
     @property
     def port(self):
@@ -211,9 +266,9 @@ class FoxgloveView:
             self._latched_topics.add(topic)
         return ch
 
-    def _remember(self, topic, channel_id, payload, log_time):
+    def _remember(self, topic, channel, payload, log_time):
         if topic in self._latched_topics:
-            self._latched[channel_id] = (topic, payload, log_time)
+            self._latched[channel.id()] = (channel, payload, log_time)
 
     def _on_subscribe(self, client_id, channel_id):
         """A client subscribed: send the channel's latched message to that client alone (its
@@ -223,11 +278,8 @@ class FoxgloveView:
             item = self._latched.get(channel_id)
             if item is None:
                 return
-            topic, payload, log_time = item
-            if topic == GEOJSON_TOPIC:
-                self._geo_channel.log(payload, log_time=log_time, sink_id=client_id)
-            else:
-                self._channels[topic].log(payload, log_time=log_time, sink_id=client_id)
+            channel, payload, log_time = item
+            channel.log(payload, log_time=log_time, sink_id=client_id)
 
     # ----------------------------------------------------------------------------- messages
 
@@ -243,7 +295,7 @@ class FoxgloveView:
         with self._lock:
             ch = self._channel(topic, msgtype)
             ch.log(raw, log_time=log_time_ns)
-            self._remember(topic, ch.id(), raw, log_time_ns)
+            self._remember(topic, ch, raw, log_time_ns)
             self.forwarded += 1
             self.forwarded_bytes += len(raw)
         if msgtype == CLOCK_TYPE and topic == '/clock':
@@ -295,7 +347,8 @@ class FoxgloveView:
         from rclpy.serialization import deserialize_message
         from .ros_conversions import bearing_from_msg, fix_from_msg
         leaf = topic.rstrip('/').rsplit('/', 1)[-1]
-        if leaf not in ('fix', 'bearing') or leaf == 'bearing' and self.picture is None:
+        namespace = namespace_of(topic)
+        if namespace is None or leaf == 'bearing' and self.origin is None:
             return
         try:
             msg = deserialize_message(raw, PoseWithCovarianceStamped)
@@ -319,26 +372,27 @@ class FoxgloveView:
         except ValueError as exc:  # contract-breaking message: counted, never fatal
             self._drop(topic, getattr(exc, 'reason', f'bad_{leaf}'), str(exc))
             return
+        space = self._space(namespace)
         if leaf == 'fix':
-            order = self._fix_stats(item.stamp_ns, item.covariance, log_time_ns)
-            if self.picture is not None:
-                order = self.picture.update_fix(item)
+            order = self._fix_stats(space, item.stamp_ns, item.covariance, log_time_ns)
+            if space.picture is not None:
+                order = space.picture.update_fix(item)
         else:
-            order = self.picture.update_bearing(item)
+            order = space.picture.update_bearing(item)
             if order != gis.OUT_OF_ORDER:
                 self._station_navsat(topic, item, log_time_ns)
         self._ordered(topic, order, item.stamp_ns)
-        self.publish_geojson(log_time_ns)
+        self._publish_space(space, log_time_ns)
 
-    def _fix_stats(self, stamp, cov, log_time_ns):
+    def _fix_stats(self, space, stamp, cov, log_time_ns):
         """Log σ (m) and the fix rate (Hz, :class:`~bearing_loc_ros.core.gis.FixRate`) of a
-        fix; return the rate's time-order result."""
-        rate, order = self._fix_rate.add(stamp)
+        fix on its namespace's fix_stats; return the rate's time-order result."""
+        rate, order = space.fix_rate.add(stamp)
         d = [float(cov[i, i]) for i in range(3)]
 
         def root(v):
             return math.sqrt(v) if math.isfinite(v) and v >= 0 else None
-        self._stats_channel.log({
+        space.stats_channel.log({
             'stamp_ns': int(stamp), 'stamp_s': stamp / 1e9, 'sigma_east_m': root(d[0]),
             'sigma_north_m': root(d[1]), 'sigma_up_m': root(d[2]),
             'sigma_horizontal_m': root(d[0] + d[1]),
@@ -348,10 +402,11 @@ class FoxgloveView:
         return order
 
     def restart(self):
-        """Start the picture and the fix rate afresh (a bag replayed again)."""
-        if self.picture is not None:
-            self.picture.reset()
-        self._fix_rate = gis.FixRate(RATE_WINDOW_NS)
+        """Start every picture and fix rate afresh (a bag replayed again)."""
+        for space in list(self._spaces.values()):
+            if space.picture is not None:
+                space.picture.reset()
+            space.fix_rate = gis.FixRate(RATE_WINDOW_NS)
 
     def _station_navsat(self, topic, b, log_time_ns):
         """Publish a station's position as NavSatFix when it is new or moved."""
@@ -368,27 +423,38 @@ class FoxgloveView:
         self.forward(navsat, 'sensor_msgs/msg/NavSatFix', serialize_message(msg), log_time_ns)
 
     def publish_geojson(self, log_time_ns, force=False):
-        """Send the current picture on /map_geojson (rate-limited unless ``force``)."""
-        if self.picture is None or not (self.picture.changed or force):
+        """Send each namespace's current picture on its /map_geojson (rate-limited per
+        picture unless ``force``); True when any was sent."""
+        sent = False
+        for space in list(self._spaces.values()):
+            sent |= self._publish_space(space, log_time_ns, force)
+        return sent
+
+    def _publish_space(self, space, log_time_ns, force=False):
+        """Send one namespace's picture when it changed (or ``force``), at most every
+        ``geojson_period`` s unless ``force``."""
+        picture = space.picture
+        if picture is None or not (picture.changed or force):
             return False
         now = time.monotonic()
-        if not force and now - self._last_geojson < self.geojson_period:
+        if not force and now - space.last_geojson < self.geojson_period:
             return False
         from foxglove.messages import GeoJson
         from .gis_export import geojson_text
         try:
-            text = geojson_text(self.picture.collection())
+            text = geojson_text(picture.collection())
         except ValueError as exc:
             # Never again (inputs are checked), but a picture that cannot be drawn must not
             # stop the map: it is dropped and the map starts afresh.
-            self.picture.reset()
-            self._drop(GEOJSON_TOPIC, 'undrawable', f'{exc}; the map starts again')
+            picture.reset()
+            self._drop(space_topic(space.namespace, GEOJSON_TOPIC), 'undrawable',
+                       f'{exc}; the map starts again')
             return False
         msg = GeoJson(geojson=text)
         with self._lock:
-            self._geo_channel.log(msg, log_time=int(log_time_ns))
-            self._latched[self._geo_channel.id()] = (GEOJSON_TOPIC, msg, int(log_time_ns))
-        self._last_geojson = now
+            space.geo_channel.log(msg, log_time=int(log_time_ns))
+            self._latched[space.geo_channel.id()] = (space.geo_channel, msg, int(log_time_ns))
+        space.last_geojson = now
         return True
 
     def stats(self):

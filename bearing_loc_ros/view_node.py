@@ -3,13 +3,14 @@
 Subscribes with ``raw=True`` (no deserialisation) to the package's topics as they appear in
 the ROS graph and forwards the CDR bytes unchanged to Foxglove/Lichtblick clients
 (:mod:`bearing_loc_ros.foxglove_view`): ``fix``, ``fix/navsat``, ``markers``,
-``accuracy_map`` (transient local: sent again to every new WebSocket subscriber), ``track``,
+``accuracy_map`` (transient local: sent to each new WebSocket subscriber), ``track``,
 ``truth``, every ``<station>/bearing``, ``/diagnostics`` and ``/clock`` (the server time
 when the node runs with ``use_sim_time``). With ``geodetic_origin`` set it also serves the
-GeoJSON picture on ``/map_geojson`` and each station's position as NavSatFix on
-``/<station>/navsat``. The picture and ``/view/fix_stats`` use fixes and bearings in the
-world frame ``frame_id`` only; the other messages are counted and logged (at most every
-10 s per reason, with the count so far) and reported on ``/diagnostics`` (every
+GeoJSON picture on ``/map_geojson`` (``<ns>/map_geojson`` per channel namespace) and each
+station's position as NavSatFix on ``/<station>/navsat``. The picture and
+``/view/fix_stats`` use fixes and bearings in the world frame ``frame_id`` only; the other
+messages are counted and logged (at most every 10 s per reason, with the count so far) and
+reported on ``/diagnostics`` (every
 ``diagnostics_period`` s: forwarded messages and bytes, channels, dropped, dropped by
 reason, clock restarts; WARN while messages are being left out).
 

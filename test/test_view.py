@@ -383,8 +383,8 @@ def view():
 def geojson_text_of(v):
     """The GeoJSON text of the picture the view last sent on /map_geojson."""
     from bearing_loc_ros.foxglove_view import GEOJSON_TOPIC
-    topic, msg, _ = v._latched[v._geo_channel.id()]
-    assert topic == GEOJSON_TOPIC
+    channel, msg, _ = v._latched[v._geo_channel.id()]
+    assert channel.topic() == GEOJSON_TOPIC
     return geojson_payload(bytes(msg.encode()))
 
 
@@ -432,7 +432,7 @@ def test_view_draws_only_fixes_and_bearings_in_its_world_frame(view):
     assert view.picture.fix is None and not view.picture.bearings
     assert view.stats()['rejected'] == {'wrong_frame': 3}
     assert len(view.lines) == 1 and "'base_link'" in view.lines[0] and "'map'" in view.lines[0]
-    assert not view._fix_rate.stamps                   # no σ plotted for them either
+    assert not view._spaces[''].fix_rate.stamps                   # no σ plotted for them either
     view.forward('/fix', FIX_TYPE, fix_cdr(3), 3)
     view.forward('/station_1/bearing', FIX_TYPE, bearing_cdr(3), 3)
     fc = json.loads(geojson_text_of(view))
@@ -500,15 +500,16 @@ def test_view_survives_a_future_stamp_and_bounds_its_fix_rate_memory(view):
     raw = fix_cdr(0)
     for k in range(gis.RATE_MAX_STAMPS + 500):                  # all stamped 0 (restart)
         view.forward('/fix', FIX_TYPE, raw, k)
-    assert len(view._fix_rate.stamps) <= gis.RATE_MAX_STAMPS
+    assert len(view._spaces[''].fix_rate.stamps) <= gis.RATE_MAX_STAMPS
     assert view.publish_geojson(0, force=True) and shown_fix_stamp_s(view) == 0.0
     assert view.stats()['clock_restarts'] == 2
 
 
 def test_fix_stats_channel_has_a_stable_schema_name(view):
     from bearing_loc_ros.foxglove_view import STATS_SCHEMA, STATS_SCHEMA_NAME
-    assert view._stats_channel.schema_name() == STATS_SCHEMA_NAME == 'bearing_loc_ros.FixStats'
-    schema = view._stats_channel.schema()
+    channel = view._spaces[''].stats_channel
+    assert channel.schema_name() == STATS_SCHEMA_NAME == 'bearing_loc_ros.FixStats'
+    schema = channel.schema()
     assert schema.encoding == 'jsonschema' and json.loads(bytes(schema.data)) == STATS_SCHEMA
 
 
@@ -667,3 +668,39 @@ def test_latched_messages_reach_each_new_client_once_and_no_one_else(view):
         assert c.messages.get('/diagnostics')
         assert {t: len(c.messages.get(t, ())) for t in latched + ['/fix/navsat']} == \
             {'/accuracy_map': 1, '/map_geojson': 1, '/station_1/navsat': 1, '/fix/navsat': 0}
+
+
+def test_each_channel_namespace_has_its_own_picture(view):
+    """The fusion node's channels publish /<ch>/fix and read /<ch>/<station>/bearing: the
+    view drew them all in one picture, a station of two channels as one ('a') with the
+    last ray of either, and the fixes of both emitters in one trail. Each namespace now
+    has its own picture on <ns>/map_geojson (stations named with their namespace) and its
+    own fix statistics on <ns>/view/fix_stats."""
+    from rclpy.serialization import serialize_message
+    from bearing_loc_ros.core.bearings import Bearing
+    from bearing_loc_ros.ros_conversions import bearing_to_msg
+    for k in range(1, 5):
+        for ch, az, pos in (('uhf', 0.5, (10000.0, 5000.0, 0.0)),
+                            ('vhf', 2.0, (-20000.0, 8000.0, 0.0))):
+            b = Bearing('a', k * 10**9, np.array([0.0, 0.0, 0.0]), az)
+            view.forward(f'/{ch}/a/bearing', FIX_TYPE, serialize_message(bearing_to_msg(b)),
+                         k * 10**9)
+            view.forward(f'/{ch}/fix', FIX_TYPE, fix_cdr(k, pos=pos), k * 10**9)
+    assert sorted(view._spaces) == ['', 'uhf', 'vhf']
+    assert view.picture.fix is None and not view.picture.bearings
+    for ch, az, x in (('uhf', 0.5, 10000.0), ('vhf', 2.0, -20000.0)):
+        space = view._spaces[ch]
+        assert space.geo_channel.topic() == f'/{ch}/map_geojson'
+        assert space.stats_channel.topic() == f'/{ch}/view/fix_stats'
+        _, msg, _ = view._latched[space.geo_channel.id()]
+        fc = json.loads(geojson_payload(bytes(msg.encode())))
+        rays = [f['properties'] for f in fc['features'] if f['properties']['kind'] == 'bearing']
+        assert [r['station'] for r in rays] == [f'{ch}/a']
+        assert rays[0]['azimuth_rad'] == pytest.approx(az, abs=1e-12)
+        fixes = [f['properties'] for f in fc['features'] if f['properties']['kind'] == 'fix']
+        assert [f['position_enu_m'][0] for f in fixes] == [x]
+        track = [f['properties'] for f in fc['features'] if f['properties']['kind'] == 'track']
+        assert track[0]['fixes'] == 4
+        assert len(space.fix_rate.stamps) == 4
+    assert view.stats()['rejected'] == {}
+    assert {'/uhf/a/navsat', '/vhf/a/navsat'} <= set(view._channels)
