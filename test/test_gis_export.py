@@ -259,3 +259,43 @@ def test_kml_holds_any_station_id_as_valid_xml(tmp_path):
     assert [pm.findtext(f'{KML}name') for pm in marks] == expect
     assert [{d.get('name'): d.findtext(f'{KML}value') for d in pm.iter(f'{KML}Data')}[
         'station'] for pm in marks] == expect
+
+
+def two_station_bag(path, elevation_bias=0.0):
+    """A bag of ten epochs of two stations' bearings on a target at (10, 8, 3) km; station
+    s2's elevation off by ``elevation_bias`` rad (0.05: every fix fails its consistency
+    checks and is low_confidence)."""
+    from bearing_loc_ros.core.bearings import Bearing
+    stations = {'s1': (0.0, 0.0, 0.0), 's2': (20000.0, 0.0, 0.0)}
+    target = np.array([10000.0, 8000.0, 3000.0])
+    t0 = 1_700_000_000 * 10**9
+    with bagio.BagWriter(path) as bag:
+        for s in stations:
+            bag.add_topic(f'/{s}/bearing', bagio.POSE_COV_STAMPED, bagio.qos_profile(10))
+        for k in range(10):
+            t = t0 + k * 10**9
+            for s, q in stations.items():
+                d = target - np.array(q)
+                el = math.atan2(d[2], math.hypot(d[0], d[1])) + (elevation_bias if s == 's2'
+                                                                 else 0.0)
+                bag.write(f'/{s}/bearing', t, bagio.bearing_message(Bearing(
+                    s, t, np.array(q), math.atan2(d[1], d[0]), el, 0.001, 0.001)))
+    return path
+
+
+def test_bag_process_refuses_a_geo_csv_over_its_own_fix_csv(tmp_path):
+    """``--out o2 --geo-csv o2.csv`` silently replaced the fixes CSV that --out promises
+    never to overwrite; the map image of --kml over another output likewise. Both are
+    refused before any processing."""
+    bag = two_station_bag(tmp_path / 'in')
+    for extra, flag in (((('--out', tmp_path / 'o2', '--geo-csv', tmp_path / 'o2.csv')),
+                         '--geo-csv'),
+                        ((('--out', tmp_path / 'o2/', '--geojson', tmp_path / 'o2')),
+                         '--geojson'),
+                        ((('--kml', tmp_path / 'm.kml', '--geo-csv',
+                           tmp_path / 'm_accuracy.png')), '--kml')):
+        proc = run_cli('bag', 'process', bag, *extra, '--origin', *ORIGIN, check=False)
+        assert proc.returncode == 2 and proc.stdout == '', proc
+        assert proc.stderr.count('\n') == 1 and flag in proc.stderr
+        assert 'is also the file of' in proc.stderr
+        assert not any(p.name.startswith(('o2', 'm')) for p in tmp_path.iterdir())

@@ -293,10 +293,13 @@ def run_process(args):
     from ..bag_process import fusion_params, process_bag
     _check_bag_dir(args.bag)
     params = fusion_params(args.params_file, args.param, args.estimator, args.namespace)
+    reserved = ()
     if args.out is not None:
         check_out_parent(args.out)
+        out = args.out.rstrip('/')
+        reserved = (('--out', out), ('--out', out + '.csv'))     # OUT/ and OUT.csv
     from . import gisargs
-    gisargs.check(args, params)
+    gisargs.check(args, params, reserved)
     t0 = time.perf_counter()
     s = process_bag(args.bag, args.out, params, args.storage, args.namespace, args.fix_topic)
     dt = time.perf_counter() - t0

@@ -73,10 +73,12 @@ def _same_file(a, b):
         return os.path.realpath(a) == os.path.realpath(b)
 
 
-def _check_paths(args):
+def _check_paths(args, reserved=()):
     """Every output path names a file in an existing directory, not the input, not another
-    output's file; --ellipse-probability in (0, 1). InputError naming the flag."""
-    given = []
+    output's file (nor one of ``reserved``: (flag, path) pairs the verb writes itself, as
+    ``bag process --out``'s OUT.csv), nor the accuracy image of --kml;
+    --ellipse-probability in (0, 1). InputError naming the flag."""
+    given = list(reserved)
     source = getattr(args, 'input', None)
     for flag in ('geojson', 'kml', 'geo_csv'):
         path = getattr(args, flag, None)
@@ -96,6 +98,12 @@ def _check_paths(args):
                 raise InputError(f'{name}: {path!r} is also the file of {other}')
         given.append((name, path))
     kml = getattr(args, 'kml', None)
+    if kml:
+        overlay = overlay_png_path(kml)
+        for other, other_path in given:
+            if other != '--kml' and _same_file(overlay, other_path):
+                raise InputError(f'--kml: its map image {overlay!r} is also the file of '
+                                 f'{other}')
     if kml and getattr(args, 'verb', None) == 'plan':
         # plan map --kml writes its map image next to the KML: not over the heat map.
         overlay = overlay_png_path(kml)
@@ -109,11 +117,12 @@ def _check_paths(args):
         raise InputError(f'--ellipse-probability: must be in (0, 1), got {p:g}')
 
 
-def check(args, params=None):
-    """Validate the flags before the work starts; return the origin (or None if unused)."""
+def check(args, params=None, reserved=()):
+    """Validate the flags before the work starts; return the origin (or None if unused).
+    ``reserved``: (flag, path) of the files the verb writes besides these (never shared)."""
     if not wanted(args):
         return None
-    _check_paths(args)
+    _check_paths(args, reserved)
     return origin_of(args, params)
 
 
