@@ -299,3 +299,18 @@ def test_bag_process_refuses_a_geo_csv_over_its_own_fix_csv(tmp_path):
         assert proc.stderr.count('\n') == 1 and flag in proc.stderr
         assert 'is also the file of' in proc.stderr
         assert not any(p.name.startswith(('o2', 'm')) for p in tmp_path.iterdir())
+
+
+def test_bag_process_kml_near_the_antimeridian_is_written_without_its_overlay(tmp_path):
+    """Near ±180° the accuracy raster cannot be one GroundOverlay: ``bag process --kml``
+    stopped (exit 2, no KML at all). The KML is now written without the optional overlay,
+    with a warning."""
+    bag = two_station_bag(tmp_path / 'in')
+    proc = run_cli('bag', 'process', bag, '--kml', tmp_path / 'a.kml', '--geojson',
+                   tmp_path / 'a.geojson', '--origin', 0.0, 179.9, 0.0)
+    assert 'accuracy map left out' in proc.stderr and 'antimeridian' in proc.stderr
+    root = ET.parse(tmp_path / 'a.kml').getroot()
+    assert len([pm for pm in root.iter(f'{KML}Placemark')
+                if pm.findtext(f'{KML}name').startswith('fix')]) == 10
+    assert not list(root.iter(f'{KML}GroundOverlay'))
+    assert not (tmp_path / 'a_accuracy.png').exists() and (tmp_path / 'a.geojson').exists()

@@ -159,7 +159,12 @@ def _auto_grid(st, altitude):
 
 
 def export_epochs(args, params, epochs, printer=print):
-    """``bag process`` exports of the fusion epochs (fixes only); prints what was written."""
+    """``bag process`` exports of the fusion epochs (fixes only); prints what was written.
+
+    The accuracy overlay of --kml is optional: when it cannot be placed (a raster across the
+    antimeridian, nothing finite to draw) the KML is written without it and a warning on
+    stderr says why."""
+    import sys
     from ..core import gis
     from .. import gis_export as gx
     if not wanted(args):
@@ -180,10 +185,14 @@ def export_epochs(args, params, epochs, printer=print):
             alt = float(np.median([e.position[2] for e in fixes]))
             amap = accuracy_map(st, _auto_grid(st, alt), 'crlb')
             png = overlay_png_path(args.kml)
-            with writing('--kml', png):
-                overlays.append(gx.accuracy_overlay(amap.grid, amap.error, origin, png,
-                                                    'CRLB expected position error'))
-            written.append(png)
+            try:
+                with writing('--kml', png):
+                    overlays.append(gx.accuracy_overlay(amap.grid, amap.error, origin, png,
+                                                        'CRLB expected position error'))
+                written.append(png)
+            except ValueError as exc:
+                print(f'warning: --kml: accuracy map left out of {args.kml} ({exc})',
+                      file=sys.stderr)
         with writing('--kml', args.kml):
             gx.write_kml(args.kml, fc, 'bearing_loc bag process', overlays)
         written.append(args.kml)
