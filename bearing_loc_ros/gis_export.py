@@ -100,7 +100,9 @@ def _name(props):
     if kind == 'bearing':
         return f'{props.get("station", "")} {props.get("time") or ""}'.strip()
     if kind == 'fix':
-        return f'fix {props.get("time") or ""}'.strip()
+        status = props.get('status')
+        tag = f' ({status})' if status and status != 'ok' else ''    # low_confidence shows
+        return f'fix{tag} {props.get("time") or ""}'.strip()
     if kind == 'ellipse':
         return f'{100 * props.get("probability", 0):g}% ellipse {props.get("time") or ""}'.strip()
     return kind

@@ -314,3 +314,35 @@ def test_bag_process_kml_near_the_antimeridian_is_written_without_its_overlay(tm
                 if pm.findtext(f'{KML}name').startswith('fix')]) == 10
     assert not list(root.iter(f'{KML}GroundOverlay'))
     assert not (tmp_path / 'a_accuracy.png').exists() and (tmp_path / 'a.geojson').exists()
+
+
+def test_bag_process_draws_low_confidence_fixes_as_its_csv_lists_them(tmp_path):
+    """A bag whose fixes all fail their consistency checks gave an empty GeoJSON (no
+    stations, no rays) with exit 0 while the CSV of ``-p publish_low_confidence=true`` listed
+    them. The map files now follow that parameter as the CSV does: the low-confidence fixes
+    drawn with status low_confidence, their rays and stations; without it the stations are
+    drawn and a line says why no fix is."""
+    bag = two_station_bag(tmp_path / 'in', elevation_bias=0.05)
+    proc = run_cli('bag', 'process', bag, '--out', tmp_path / 'o', '--geojson',
+                   tmp_path / 'a.geojson', '--kml', tmp_path / 'a.kml', '--geo-csv',
+                   tmp_path / 'a_geo.csv', '--origin', *ORIGIN,
+                   '-p', 'publish_low_confidence=true')
+    assert '(10 fixes, 10 of them low_confidence' in proc.stdout
+    with open(tmp_path / 'o.csv', encoding='utf-8') as f:
+        csv_rows = list(csv.DictReader(f))
+    fc = json.loads((tmp_path / 'a.geojson').read_text())
+    k = kinds(fc)
+    assert len(k['station']) == 2 and len(k['bearing']) == 20 and len(k['ellipse']) == 10
+    assert [f['properties']['stamp_ns'] for f in k['fix']] == \
+        [int(r['stamp_ns']) for r in csv_rows]
+    assert {f['properties']['status'] for f in k['fix'] + k['ellipse']} == {'low_confidence'}
+    with open(tmp_path / 'a_geo.csv', encoding='utf-8') as f:
+        assert {r['status'] for r in csv.DictReader(f)} == {'low_confidence'}
+    names = [pm.findtext(f'{KML}name') for pm in
+             ET.parse(tmp_path / 'a.kml').getroot().iter(f'{KML}Placemark')]
+    assert sum(n.startswith('fix (low_confidence) ') for n in names) == 10
+    proc = run_cli('bag', 'process', bag, '--geojson', tmp_path / 'b.geojson', '--origin',
+                   *ORIGIN)
+    assert '10 low_confidence fixes' in proc.stdout and 'publish_low_confidence' in proc.stdout
+    k = kinds(json.loads((tmp_path / 'b.geojson').read_text()))
+    assert len(k['station']) == 2 and 'fix' not in k

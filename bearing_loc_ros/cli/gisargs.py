@@ -170,8 +170,13 @@ def export_epochs(args, params, epochs, printer=print):
     if not wanted(args):
         return []
     origin = origin_of(args, params)
-    fixes = [e for e in epochs if e.ok]
-    fc = gis.features_from_epochs(fixes, origin, args.ellipse_probability)
+    # As the CSV of --out: the low-confidence fixes too with publish_low_confidence.
+    low = bool(params and params.get('publish_low_confidence'))
+    fixes = gis.drawn_epochs(epochs, low)
+    n_low = sum(1 for e in fixes if not e.ok)
+    left_out = 0 if low else len(gis.drawn_epochs(epochs, True)) - len(fixes)
+    fc = gis.features_from_epochs(epochs, origin, args.ellipse_probability,
+                                  low_confidence=low)
     written = []
     if args.geojson:
         with writing('--geojson', args.geojson):
@@ -198,10 +203,14 @@ def export_epochs(args, params, epochs, printer=print):
         written.append(args.kml)
     if args.geo_csv:
         with writing('--geo-csv', args.geo_csv):
-            gx.write_geo_csv(args.geo_csv, [gis.GeoFix.from_epoch(e) for e in fixes], origin)
+            gx.write_geo_csv(args.geo_csv, gis.geofixes_of(fixes), origin)
         written.append(args.geo_csv)
-    printer('wrote ' + ', '.join(written) + f' ({len(fixes)} fixes, '
+    low_text = f', {n_low} of them low_confidence' if n_low else ''
+    printer('wrote ' + ', '.join(written) + f' ({len(fixes)} fixes{low_text}, '
             f'{100 * args.ellipse_probability:g}% ellipses)')
+    if left_out:
+        printer(f'{left_out} low_confidence fixes (failed their consistency checks) not drawn; '
+                '-p publish_low_confidence=true draws them, with status low_confidence')
     return written
 
 

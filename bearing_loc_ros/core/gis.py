@@ -425,8 +425,9 @@ def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
            'orientation_rad': ang}
     props['ellipse'] = ell
     eprops = {'kind': 'ellipse', 'time': props['time'], 'stamp_ns': props['stamp_ns']}
-    if 'estimator' in props:
-        eprops['estimator'] = props['estimator']
+    for key in ('status', 'estimator'):
+        if key in props:
+            eprops[key] = props[key]
     eprops.update(ell)
     if fix_id is not None:
         eprops['fix_id'] = fix_id
@@ -501,19 +502,45 @@ def feature_collection(origin, fixes=(), bearings=(), stations=None,
     return {'type': 'FeatureCollection', 'features': feats}
 
 
-def features_from_epochs(epochs, origin, probability=DEFAULT_PROBABILITY, last_bearings=False):
-    """FeatureCollection of fusion epochs with a fix (core.fusion.Epoch objects).
+#: The fusion's reason (and status) of a fix that failed its consistency checks.
+LOW_CONFIDENCE = 'low_confidence'
 
-    Every fix with its ellipse; the bearings of every fix (or of the last one only with
-    ``last_bearings``), each ray drawn a bit beyond its fix; the stations at their last
-    reported position.
+
+def drawn_epochs(epochs, low_confidence=False):
+    """The fusion epochs (core.fusion.Epoch) that are drawn as fixes: those with a fix
+    (``ok``) and, with ``low_confidence``, those whose fix failed its consistency checks
+    (reason :data:`LOW_CONFIDENCE`, position kept), as the fusion node's
+    ``publish_low_confidence`` publishes them."""
+    return [e for e in epochs if e.ok or low_confidence and e.reason == LOW_CONFIDENCE
+            and e.position is not None and e.covariance is not None]
+
+
+def geofixes_of(epochs):
+    """:class:`GeoFix` of each epoch with a position (:meth:`GeoFix.from_epoch`); status
+    ``low_confidence`` for a fix that failed its consistency checks (reason
+    :data:`LOW_CONFIDENCE`)."""
+    out = [GeoFix.from_epoch(e) for e in epochs]
+    for f, e in zip(out, epochs):
+        if e.reason == LOW_CONFIDENCE:
+            f.status = LOW_CONFIDENCE
+    return out
+
+
+def features_from_epochs(epochs, origin, probability=DEFAULT_PROBABILITY, last_bearings=False,
+                         low_confidence=False):
+    """FeatureCollection of fusion epochs (core.fusion.Epoch objects).
+
+    Every fix of :func:`drawn_epochs` (``low_confidence``: also the fixes that failed their
+    consistency checks, with status ``low_confidence``) with its ellipse; the bearings of
+    every drawn fix (or of the last one only with ``last_bearings``), each ray drawn a bit
+    beyond its fix; every station seen in any epoch at its last reported position.
     """
-    eps = [e for e in epochs if e.ok]
-    fixes = [GeoFix.from_epoch(e) for e in eps]
+    eps = drawn_epochs(epochs, low_confidence)
+    fixes = geofixes_of(eps)
     chosen = eps[-1:] if last_bearings else eps
     rays = [(b, np.asarray(e.position, float)) for e in chosen for b in e.bearings]
     stations = {}
-    for e in eps:
+    for e in epochs:
         for b in e.bearings:
             stations[b.station] = np.asarray(b.position, dtype=float)
     return feature_collection(origin, fixes, rays, stations, probability)
