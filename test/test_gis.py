@@ -328,3 +328,29 @@ def test_a_fix_without_provenance_draws_no_status_estimator_or_stations():
     assert not {'status', 'estimator', 'stations'} & set(live['properties'])
     full = gis.fix_features(gis.GeoFix(1, np.zeros(3), np.eye(3), 'ok', 'mle', ['a']), MUNICH)
     assert full[0]['properties']['status'] == 'ok' and full[1]['properties']['estimator'] == 'mle'
+
+
+@pytest.mark.parametrize('north_km', [50.0, 500.0, 1000.0])
+def test_ellipse_far_from_the_origin_is_the_local_covariance_as_navsat_has_it(north_km):
+    """The ellipse was C[:2, :2] in the origin's tangent plane: a fix with local σ 100 m
+    East/North and 3 km up, 1000 km north of a 40° N origin, was drawn 1150 m (not 245 m)
+    long northwards, while fix/navsat rotated the covariance. Now the ring is the k-σ set
+    of the covariance in the fix's own ENU axes, as fix/navsat gives it."""
+    import pymap3d
+    from bearing_loc_ros.ros_conversions import fix_to_navsat
+    origin = (40.0, 0.0, 0.0)
+    p = np.array([0.0, north_km * 1e3, 5000.0])
+    lat, lon, h = (float(v) for v in geodesy.enu_to_geodetic(p, origin))
+    c_local = np.diag([100.0**2, 100.0**2, 3000.0**2])
+    rot = geodesy.enu_axes_rotation(origin, lat, lon)
+    c = rot.T @ c_local @ rot
+    feats = gis.fix_features(gis.GeoFix(1, p, c), origin)
+    ring = np.array(feats[1]['geometry']['coordinates'][0])
+    e, n, _ = pymap3d.geodetic2enu(ring[:, 1], ring[:, 0], h, lat, lon, h)
+    navsat = np.array(fix_to_navsat(p, c, 1, origin, 'map').position_covariance).reshape(3, 3)
+    d = np.stack([e, n], 1)
+    m = np.einsum('ij,jk,ik->i', d, np.linalg.inv(navsat[:2, :2]), d)
+    k2 = gis.ellipse_scale(0.95) ** 2
+    assert np.max(np.abs(m / k2 - 1.0)) < 1e-3
+    ell = feats[1]['properties']
+    assert ell['semi_major_m'] == pytest.approx(math.sqrt(k2) * 100.0, rel=1e-6)

@@ -14,10 +14,15 @@ Conventions (DESIGN.md "Frames, units, angles"):
   leaves the station with the same direction expressed in the station's own ENU axes
   (meridian convergence applied with :func:`~bearing_loc_ros.core.geodesy.enu_axes_rotation`),
   i.e. the ground track of the horizontal component of the line of sight.
-* Error ellipse: the horizontal marginal of the fix covariance, C₂ = C[:2, :2] (m²), drawn
-  at probability p as the set {x : (x − x̂)ᵀ C₂⁻¹ (x − x̂) = k²} with k² = χ²₂(p) =
-  −2 ln(1 − p) (the 2-degree-of-freedom chi-square quantile), so a Gaussian error of
-  covariance C₂ falls inside with probability p (default 95 %, k = 2.4477).
+* Error ellipse: the horizontal marginal of the fix covariance in the local ENU axes at the
+  fix, C' = R C Rᵀ (R from :func:`~bearing_loc_ros.core.geodesy.enu_axes_rotation`, the
+  rotation ``fix/navsat`` applies to its covariance) and C₂ = C'[:2, :2] (m²), drawn at
+  probability p as the set {d : dᵀ C₂⁻¹ d = k²} of East/North offsets d in the tangent
+  plane at the fix (converted with :func:`~bearing_loc_ros.core.geodesy.enu_to_geodetic`
+  about the fix), with k² = χ²₂(p) = −2 ln(1 − p) (the 2-degree-of-freedom chi-square
+  quantile), so a Gaussian error of covariance C₂ falls inside with probability p (default
+  95 %, k = 2.4477). Near the origin R is the identity; 1000 km away C[:2, :2] itself (the
+  origin's axes, tilted by 9° there) would draw the ellipse several times too long.
 * Antimeridian: lines and polygons that cross ±180° of longitude are split into
   ``MultiLineString`` / ``MultiPolygon`` parts that meet at ±180° (RFC 7946 section 3.1.9).
   A line passing over a pole (a longitude step of nearly 180° between two vertices) is split
@@ -379,14 +384,32 @@ def _feature(geometry, props):
     return {'type': 'Feature', 'geometry': geometry, 'properties': props}
 
 
+def local_covariance(covariance, origin, lat_deg, lon_deg):
+    """A covariance (3, 3) in the origin's ENU axes, m², expressed in the ENU axes at the
+    point (lat_deg, lon_deg): C' = R C Rᵀ with R of
+    :func:`~bearing_loc_ros.core.geodesy.enu_axes_rotation` (as ``fix/navsat``). A
+    non-finite vertical part (an unobserved height) is left out of the rotation (taken as 0)
+    rather than spread into the horizontal; ValueError when C[:2, :2] is not finite."""
+    c = np.array(covariance, dtype=float)
+    if c.shape != (3, 3):
+        raise ValueError(f'covariance: expected shape (3, 3), got {c.shape}')
+    if not np.all(np.isfinite(c[:2, :2])):
+        raise ValueError('covariance: horizontal block is not finite (unobservable fix)')
+    if not np.all(np.isfinite(c)):
+        c[2, :] = c[:, 2] = 0.0
+    rot = geodesy.enu_axes_rotation(check_origin(origin), float(lat_deg), float(lon_deg))
+    return rot @ c @ rot.T
+
+
 def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
     """Point feature of a fix and, when drawable, its error-ellipse polygon feature.
 
     Point properties: kind 'fix', time (ISO 8601 UTC), stamp_ns, status, estimator,
     stations (each left out when None), position_enu_m, covariance_enu_m2 (row-major 3x3),
     sigma_east_m, sigma_north_m, sigma_up_m, sigma_horizontal_m = sqrt(C_xx + C_yy), sigma_3d_m =
-    sqrt(trace C), and ellipse (probability, semi-axes m, orientation rad ENU) or
-    ellipse_error (why none is drawn: non-finite covariance, too large, ...).
+    sqrt(trace C) (C and σ in the origin's ENU axes), and ellipse (probability, semi-axes m,
+    orientation rad counter-clockwise from East, all in the local ENU axes at the fix: module
+    docstring) or ellipse_error (why none is drawn: non-finite covariance, too large, ...).
     """
     p = np.asarray(fix.position, dtype=float)
     c = np.asarray(fix.covariance, dtype=float)
@@ -414,9 +437,10 @@ def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
         props['id'] = fix_id
     out = [_feature(point_geometry(lon, lat, alt), props)]
     try:
-        a, b, ang = horizontal_ellipse(c, probability)
-        ring = ellipse_ring_enu(p, c, probability)
-        rlon, rlat, _ = enu_to_lonlat(ring, origin)
+        local = local_covariance(c, origin, lat, lon)
+        a, b, ang = horizontal_ellipse(local, probability)
+        ring = ellipse_ring_enu(np.zeros(3), local, probability)
+        rlat, rlon, _ = geodesy.enu_to_geodetic(ring, (float(lat), float(lon), float(alt)))
         geom = polygon_geometry(rlon, rlat)
     except ValueError as exc:
         props['ellipse_error'] = str(exc)
