@@ -354,3 +354,23 @@ def test_ellipse_far_from_the_origin_is_the_local_covariance_as_navsat_has_it(no
     assert np.max(np.abs(m / k2 - 1.0)) < 1e-3
     ell = feats[1]['properties']
     assert ell['semi_major_m'] == pytest.approx(math.sqrt(k2) * 100.0, rel=1e-6)
+
+
+def test_a_ray_passing_near_a_pole_is_split_there_whatever_its_vertex_spacing():
+    """Two nearly parallel north bearings from Munich (locate par.json) meet 5000 km away:
+    their 6250 km rays pass 0.2° from the North Pole, and the vertices either side of it
+    differ by 178.6° of longitude, missing the old fixed 1° tolerance: the step was taken as
+    an antimeridian crossing and drawn along the map's top edge. A step is now a pole pass
+    when its great circle comes within POLE_PASS_DEG of the pole between its vertices."""
+    origin = (48.137, 11.575, 520.0)
+    for station, az in (((0.0, 0.0, 0.0), 1.5707), ((1000.0, 0.0, 0.0), 1.5709)):
+        b = Bearing('a', None, np.array(station), az, sigma_azimuth=0.01)
+        geom = gis.bearing_feature(b, origin, 6_250_000.0)['geometry']
+        assert geom['type'] == 'MultiLineString' and len(geom['coordinates']) == 2
+        first, second = geom['coordinates']
+        assert first[-1][1] == 90.0 and second[0][1] == 90.0
+        for part in (first, second):
+            assert all(abs(q[0] - p[0]) < 5.0 for p, q in zip(part, part[1:]))
+    assert gis.passes_pole(11.7, 88.42, -169.66, 89.83) == 90.0
+    assert gis.passes_pole(0.0, 10.0, 100.0, 10.0) is None       # a long step, far away
+    assert gis.passes_pole(179.0, 10.0, -179.0, 12.0) is None

@@ -25,8 +25,8 @@ Conventions (DESIGN.md "Frames, units, angles"):
   origin's axes, tilted by 9° there) would draw the ellipse several times too long.
 * Antimeridian: lines and polygons that cross ±180° of longitude are split into
   ``MultiLineString`` / ``MultiPolygon`` parts that meet at ±180° (RFC 7946 section 3.1.9).
-  A line passing over a pole (a longitude step of nearly 180° between two vertices) is split
-  at the pole instead: the parts meet at ±90° latitude.
+  A line passing over a pole (:func:`passes_pole`) is split at the pole instead: the parts
+  meet at ±90° latitude.
   Polar origins (|lat0| > :data:`MAX_ORIGIN_LAT_DEG`) are refused with a one-line
   ``ValueError``: a local tangent-plane picture there does not map onto longitude/latitude.
 
@@ -62,8 +62,9 @@ MAX_ORIGIN_LAT_DEG = 85.0
 MAX_ORIGIN_ALT_M = 1e6
 #: Largest |ENU coordinate| of a live fix or station, m: the bearing contract's bound.
 MAX_ABS_ENU_M = MAX_ABS_POSITION
-#: A longitude step within this of 180° between two line vertices is a pass over a pole.
-POLE_STEP_TOL_DEG = 1.0
+#: A line step of more than 90° of longitude whose great circle comes within this of a pole
+#: between its two vertices passes over that pole (:func:`passes_pole`).
+POLE_PASS_DEG = 1.0
 #: Closest approach of a drawn ellipse to a pole, degrees of latitude.
 POLE_MARGIN_DEG = 0.5
 #: Decimal places of output degrees (1e-9 deg is about 0.1 mm).
@@ -182,16 +183,53 @@ def _cross_lat(lon_a, lat_a, lon_b, lat_b, edge):
     return lat_a + f * (lat_b - lat_a)
 
 
+def passes_pole(lon_a, lat_a, lon_b, lat_b):
+    """The pole (+90.0 or −90.0) a line step from a to b (degrees) passes over, else None.
+
+    On the unit sphere (geodetic latitudes as spherical ones: this only decides how to draw
+    a step) with a, b the unit vectors of the vertices and n = a × b / |a × b|, the point of
+    the great circle nearest the pole P (of the hemisphere of φ_a + φ_b, north when 0) is
+    q = (P − (P·n) n) / |P − (P·n) n|. The step passes over P when its wrapped longitude
+    change exceeds 90°, q lies on the arc between a and b ((a × q)·n >= 0 and
+    (q × b)·n >= 0) and q is within :data:`POLE_PASS_DEG` of P. Antipodal vertices (no
+    unique arc) with a 180° longitude step count as a pass.
+    """
+    if abs(float(_wrap_lon(lon_b - lon_a))) <= 90.0:
+        return None
+    pole = -90.0 if lat_a + lat_b < 0.0 else 90.0
+
+    def unit(lon, lat):
+        lo, la = math.radians(lon), math.radians(lat)
+        return np.array([math.cos(la) * math.cos(lo), math.cos(la) * math.sin(lo),
+                         math.sin(la)])
+    a, b = unit(lon_a, lat_a), unit(lon_b, lat_b)
+    p = np.array([0.0, 0.0, 1.0 if pole > 0 else -1.0])
+    n = np.cross(a, b)
+    norm = np.linalg.norm(n)
+    if norm < 1e-12:
+        return pole
+    n /= norm
+    q = p - np.dot(p, n) * n
+    qn = np.linalg.norm(q)
+    if qn < 1e-12:                      # the great circle is the equator
+        return None
+    q /= qn
+    if np.dot(np.cross(a, q), n) < 0.0 or np.dot(np.cross(q, b), n) < 0.0:
+        return None
+    closest = math.degrees(math.acos(min(1.0, float(np.dot(q, p)))))
+    return pole if closest <= POLE_PASS_DEG else None
+
+
 def split_line(lon, lat):
     """Split a polyline at the antimeridian and at the poles: list of (k, 2) [lon, lat] parts.
 
     Between consecutive vertices a and b, with the longitude step Δ = λ_b − λ_a wrapped to
     [−180, 180):
 
-    * |Δ| within :data:`POLE_STEP_TOL_DEG` of 180° is a pass over a pole (an east-west move
-      cannot turn half the globe between two vertices of a line): the line ends at
-      (λ_a, ±90°) and the next part starts at (λ_b, ±90°), the pole of the hemisphere of
-      φ_a + φ_b (north when 0), so nothing is drawn along the map's top or bottom edge;
+    * a pass over a pole (:func:`passes_pole`: |Δ| > 90° and the step's great circle
+      comes within :data:`POLE_PASS_DEG` of the pole between the vertices): the line ends
+      at (λ_a, ±90°) and the next part starts at (λ_b, ±90°), so nothing is drawn along the
+      map's top or bottom edge;
     * otherwise a raw step of more than 180° is an antimeridian crossing: the crossing
       latitude is interpolated linearly in (unwrapped) longitude and both parts end on the
       meridian, at +180 on one side and −180 on the other.
@@ -201,9 +239,8 @@ def split_line(lon, lat):
     parts, cur = [], [[lon[0], lat[0]]]
     for i in range(1, lon.size):
         a, b = lon[i - 1], lon[i]
-        step = float(_wrap_lon(b - a))
-        if abs(step) >= 180.0 - POLE_STEP_TOL_DEG:
-            pole = -90.0 if lat[i - 1] + lat[i] < 0.0 else 90.0
+        pole = passes_pole(a, lat[i - 1], b, lat[i])
+        if pole is not None:
             cur.append([a, pole])
             parts.append(np.array(cur))
             cur = [[b, pole]]
