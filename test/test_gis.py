@@ -374,3 +374,20 @@ def test_a_ray_passing_near_a_pole_is_split_there_whatever_its_vertex_spacing():
     assert gis.passes_pole(11.7, 88.42, -169.66, 89.83) == 90.0
     assert gis.passes_pole(0.0, 10.0, 100.0, 10.0) is None       # a long step, far away
     assert gis.passes_pole(179.0, 10.0, -179.0, 12.0) is None
+
+
+@pytest.mark.parametrize('origin, cov, reason', [
+    ((48.0, 11.0, 0.0), np.diag([100.0, 0.0, 1.0]), 'degenerate'),
+    ((48.0, 11.0, 0.0), np.diag([100.0, -1e-8, 1.0]), 'degenerate'),
+    ((0.0, 11.0, 0.0), np.diag([1.0, 1e14, 1.0]), 'too large'),
+    ((48.0, 11.0, 0.0), np.diag([1e13, 1e13, 1.0]), 'too large'),
+    ((0.0, 11.0, 0.0), np.diag([1.0, 2e11, 1.0]), 'too large')])
+def test_degenerate_and_huge_ellipses_are_refused_with_a_reason(origin, cov, reason):
+    """A zero (or slightly negative) variance drew a Polygon of no area; the size test only
+    looked at the longitude span, so diag(1, 1e14) at the equator (a 24,000 km north axis)
+    was drawn a third of its size while diag(1e13, 1e13) was refused. Both limits are now
+    on the axes themselves; the fix is drawn without an ellipse and says why."""
+    feats = gis.fix_features(gis.GeoFix(0, np.zeros(3), cov), origin)
+    assert len(feats) == 1 and reason in feats[0]['properties']['ellipse_error']
+    ok = gis.fix_features(gis.GeoFix(0, np.zeros(3), np.diag([1.0, 1.6e11, 1.0])), origin)
+    assert ok[1]['properties']['semi_major_m'] < gis.MAX_ELLIPSE_AXIS_M

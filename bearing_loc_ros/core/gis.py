@@ -67,6 +67,11 @@ MAX_ABS_ENU_M = MAX_ABS_POSITION
 POLE_PASS_DEG = 1.0
 #: Closest approach of a drawn ellipse to a pole, degrees of latitude.
 POLE_MARGIN_DEG = 0.5
+#: Drawn ellipses: semi-minor axis at least this (m; thinner is a singular horizontal
+#: covariance, a polygon of no area), semi-major axis at most this (m; beyond it the ring
+#: laid in the tangent plane at the fix is more than 0.8 % off on the ground).
+MIN_ELLIPSE_AXIS_M = 1e-3
+MAX_ELLIPSE_AXIS_M = 1e6
 #: Decimal places of output degrees (1e-9 deg is about 0.1 mm).
 DEG_DECIMALS = 9
 NS_PER_S = 1_000_000_000
@@ -446,7 +451,10 @@ def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
     sigma_east_m, sigma_north_m, sigma_up_m, sigma_horizontal_m = sqrt(C_xx + C_yy), sigma_3d_m =
     sqrt(trace C) (C and σ in the origin's ENU axes), and ellipse (probability, semi-axes m,
     orientation rad counter-clockwise from East, all in the local ENU axes at the fix: module
-    docstring) or ellipse_error (why none is drawn: non-finite covariance, too large, ...).
+    docstring) or ellipse_error (why none is drawn: a non-finite or indefinite covariance, a
+    semi-major axis beyond :data:`MAX_ELLIPSE_AXIS_M` (too large), a semi-minor one below
+    :data:`MIN_ELLIPSE_AXIS_M` (degenerate), one reaching a pole or spanning 180° of
+    longitude).
     """
     p = np.asarray(fix.position, dtype=float)
     c = np.asarray(fix.covariance, dtype=float)
@@ -476,6 +484,13 @@ def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
     try:
         local = local_covariance(c, origin, lat, lon)
         a, b, ang = horizontal_ellipse(local, probability)
+        if a > MAX_ELLIPSE_AXIS_M:
+            raise ValueError(f'ellipse: too large to draw: semi-major axis {a / 1e3:.4g} km, '
+                             f'beyond {MAX_ELLIPSE_AXIS_M / 1e3:g} km')
+        if b < MIN_ELLIPSE_AXIS_M:
+            raise ValueError(f'ellipse: degenerate: semi-minor axis {b:.3g} m, below '
+                             f'{MIN_ELLIPSE_AXIS_M * 1e3:g} mm (singular horizontal '
+                             'covariance)')
         ring = ellipse_ring_enu(np.zeros(3), local, probability)
         rlat, rlon, _ = geodesy.enu_to_geodetic(ring, (float(lat), float(lon), float(alt)))
         geom = polygon_geometry(rlon, rlat)
