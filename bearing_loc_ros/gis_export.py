@@ -8,7 +8,9 @@ serialisers:
   checks the collection (``is_valid``) and writes it.
 * KML 2.2 (Google Earth, QGIS): ``simplekml``. One folder per kind (stations, bearings,
   ellipses, fixes); fixes carry a ``TimeStamp`` and every property as ``ExtendedData``.
-  Geometry is clamped to the ground (a 2D map picture); heights stay in the properties.
+  Points and lines with a height are placed at it (``altitudeMode`` absolute, the WGS84
+  ellipsoidal height read as above mean sea level); polygons (ellipses) and 2D geometry
+  lie on the ground; every height is also in the properties.
 * CSV: one row per fix with ENU metres and latitude/longitude/height next to them.
 * Raster: an error map (m) as a PNG (matplotlib colour map, log scale, transparent where the
   error is not finite) placed with a KML ``GroundOverlay`` whose ``gx:LatLonQuad`` holds the

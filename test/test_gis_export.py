@@ -346,3 +346,13 @@ def test_bag_process_draws_low_confidence_fixes_as_its_csv_lists_them(tmp_path):
     assert '10 low_confidence fixes' in proc.stdout and 'publish_low_confidence' in proc.stdout
     k = kinds(json.loads((tmp_path / 'b.geojson').read_text()))
     assert len(k['station']) == 2 and 'fix' not in k
+
+
+def test_ellipse_probability_is_checked_without_a_geographic_output(tmp_path):
+    """``--ellipse-probability 5`` was accepted silently when no GIS file was asked for."""
+    (tmp_path / 'in.json').write_text(json.dumps({'bearings': [
+        {'position': [0, 0, 0], 'azimuth': 0.5, 'sigma_azimuth': 0.01},
+        {'position': [1000, 0, 0], 'azimuth': 2.0, 'sigma_azimuth': 0.01}]}))
+    proc = run_cli('locate', tmp_path / 'in.json', '--ellipse-probability', 5, check=False)
+    assert proc.returncode == 2 and proc.stdout == ''
+    assert '--ellipse-probability' in proc.stderr

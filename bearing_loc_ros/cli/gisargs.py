@@ -112,6 +112,10 @@ def _check_paths(args, reserved=()):
             if isinstance(other, str) and _same_file(overlay, other):
                 raise InputError(f'--kml: its map image {overlay!r} is also the file of '
                                  f'--{flag}')
+    _check_probability(args)
+
+
+def _check_probability(args):
     p = getattr(args, 'ellipse_probability', 0.5)
     if not (math.isfinite(p) and 0.0 < p < 1.0):
         raise InputError(f'--ellipse-probability: must be in (0, 1), got {p:g}')
@@ -119,7 +123,9 @@ def _check_paths(args, reserved=()):
 
 def check(args, params=None, reserved=()):
     """Validate the flags before the work starts; return the origin (or None if unused).
-    ``reserved``: (flag, path) of the files the verb writes besides these (never shared)."""
+    ``reserved``: (flag, path) of the files the verb writes besides these (never shared).
+    --ellipse-probability is checked even without a geographic output."""
+    _check_probability(args)
     if not wanted(args):
         return None
     _check_paths(args, reserved)
