@@ -320,6 +320,10 @@ def test_view_serves_a_bag_directly(tmp_path):
             # Generous: a loaded machine may take seconds to open the bags and advertise.
             assert await c.pump(30.0, lambda c: '/fix' in c.by_topic), view.output()
             await c.subscribe(list(c.by_topic) + ['/map_geojson'])
+            for _ in range(6):
+                if await c.pump(5.0, lambda c: '/fix' in c.messages):
+                    break
+                await c.subscribe(['/fix'], again=True)     # (view_client.subscribe)
             await c.pump(30.0, lambda c: len(c.messages.get('/fix', ())) >= 5
                          and 'replaying again' in view.output())
             await c.pump(0.5)

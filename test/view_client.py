@@ -83,11 +83,17 @@ class FoxgloveClient:
             self._handle(frame)
         return until(self) if until is not None else True
 
-    async def subscribe(self, topics):
-        """Subscribe to the advertised channels of ``topics``; return the topics subscribed."""
+    async def subscribe(self, topics, again=False):
+        """Subscribe to the advertised channels of ``topics``; return the topics subscribed.
+
+        ``again``: subscribe anew to topics already subscribed (a server that has just
+        advertised a channel can answer a subscription to it with "unknown channel" and
+        drop it: foxglove-sdk advertises before its own lookup table has the channel)."""
         subs, done = [], []
         for topic in topics:
             ch = self.by_topic.get(topic)
+            if ch is not None and again:
+                self.subs = {k: v for k, v in self.subs.items() if v != topic}
             if ch is None or topic in self.subs.values():
                 continue
             sid = self._next_sub
