@@ -206,6 +206,34 @@ def test_event_trigger_waits_for_a_silent_station_at_most_max_latency():
     assert [(e.stamp_ns, sorted(e.stations)) for e in eps] == [(11 * S, ['s1', 's2'])]
 
 
+@pytest.mark.parametrize('offset_ms', [300, -300])
+def test_a_station_clock_off_by_more_than_sync_tolerance_is_named_and_leaves_others_fused(
+        offset_ms):
+    # Four stations at 10 Hz, one whose clock runs 0.3 s ahead of (or behind) the others.
+    # Ahead: its buffered future-stamped bearings used to count as "a station reports
+    # again", which closed every epoch before the fourth station's bearing of that cycle
+    # arrived (that station was fused in 1 of 200 epochs). Either way the station is named
+    # in /diagnostics with its offset from the other stations'.
+    stations = dict(STATIONS, s4=(1000.0, 1000.0, 5.0))
+    c = FusionCore(FusionConfig(estimator='ls', trigger='event'), stations=list(stations))
+    eps = []
+    for k in range(1, 101):
+        now = 1000 * S + k * 100 * MS
+        eps += c.tick(now)
+        for s, pos in stations.items():
+            az, el = azimuth_elevation(TARGET - np.array(pos))
+            stamp = now + (offset_ms * MS if s == 's3' else 0)
+            eps += c.add_bearing(Bearing(s, stamp, np.array(pos), float(az), float(el),
+                                         1e-3, 1e-3), now + MS)
+    honest = [e for e in eps[-50:] if e.ok]
+    assert honest and all({'s1', 's2', 's4'} <= set(e.stations) for e in honest)
+    entries = {e.name: e for e in c.diagnostics(now)}
+    s3 = entries['station s3']
+    side = 'ahead of' if offset_ms > 0 else 'behind'
+    assert s3.level == 'warn' and f"0.3 s {side} the other stations'" in s3.message
+    assert all(entries[f'station {s}'].level == 'ok' for s in ('s1', 's2', 's4'))
+
+
 def test_late_duplicate_and_out_of_order_bearings_are_dropped_and_counted():
     c = FusionCore(FusionConfig(estimator='ls', trigger='event'), stations=['s1', 's2'])
     feed_round(c, 10 * S, stations=['s1', 's2'])

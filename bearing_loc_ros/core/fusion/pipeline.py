@@ -274,7 +274,9 @@ class FusionCore:
 
         Before any station delivered a bearing the overall level is OK ("waiting for
         data") for station_timeout after the start, then WARN; a station whose stamps are
-        far off the node clock is WARN with the likely cause (:func:`.stations.clock_hint`).
+        far off the node clock is WARN with the likely cause (:func:`.stations.clock_hint`),
+        and so is one whose clock offset differs from the other stations' by more than
+        sync_tolerance (:meth:`.stations.StationRegistry.clock_disagreements`).
         """
         now = int(now_ns)
         reg = self.registry
@@ -286,6 +288,8 @@ class FusionCore:
         for _, st in reg.all_stats():
             lost.update(st.lost)
         clock = {s: st.clock_warning for s, st in reg.all_stats() if st.clock_warning}
+        for s, text in reg.clock_disagreements().items():
+            clock.setdefault(s, text)
         non_conv = self.no_fix[NOT_CONVERGED] + self.no_fix[ESTIMATOR_ERROR]
         attempts = self.fixes + non_conv
         values = {
@@ -348,9 +352,9 @@ class FusionCore:
             lvl = LEVEL_OK if states[s] == ALIVE else LEVEL_WARN
             msg = (states[s] if not st.bad
                    else f'{states[s]}, {sum(st.bad.values())} bad message(s)')
-            if st.clock_warning:
-                sv['clock_warning'] = st.clock_warning
-                lvl, msg = LEVEL_WARN, f'{msg}; {st.clock_warning}'
+            if s in clock:
+                sv['clock_warning'] = clock[s]
+                lvl, msg = LEVEL_WARN, f'{msg}; {clock[s]}'
             out.append(DiagnosticEntry(f'station {s}', lvl, msg, sv, hardware_id=s))
         return out
 

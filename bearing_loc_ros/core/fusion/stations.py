@@ -312,6 +312,32 @@ class StationRegistry:
         """Stations currently stale."""
         return [s for s, st in self._stats.items() if st.state == STALE]
 
+    def clock_disagreements(self):
+        """Station -> one sentence, for the stations whose clock offset (median of stamp −
+        now, :meth:`StationStats.clock_offset_s`) differs from the median of all the
+        stations' offsets by more than ``sync_tolerance`` (at least two stations with an
+        offset). Their bearings are matched to other observation cycles than the other
+        stations' (a shared transport delay cancels in the difference)."""
+        offsets = {s: st.clock_offset_s() for s, st in self._stats.items()}
+        offsets = {s: v for s, v in offsets.items() if v is not None}
+        if len(offsets) < 2:
+            return {}
+        ref = statistics.median(offsets.values())
+        tol = self.align.sync_tolerance_ns / NS_PER_S
+        out = {}
+        for s, v in offsets.items():
+            d = v - ref
+            if abs(d) > tol:
+                cause = ('its clock is ahead' if d > 0 else
+                         'its clock is behind, or its bearings take that much longer to '
+                         'arrive')
+                out[s] = (f'stamps are {abs(d):.3g} s {"ahead of" if d > 0 else "behind"} '
+                          f'the other stations\' (sync_tolerance {tol:.3g} s): {cause}; a '
+                          'clock offset matches its bearings to other cycles (synchronise '
+                          'it: NTP/PTP, or use trigger timer with max_latency above the '
+                          'offset)')
+        return out
+
     def state_at(self, st, now):
         """State of StationStats ``st`` at ``now`` (ns) from its newest stamp."""
         if st.last_stamp_ns is None:
@@ -468,7 +494,7 @@ class StationRegistry:
         if self.open_since_ns is None and (last is None or stamp > last):
             self.open_since_ns = now
         newest = buf.newest_stamp_ns
-        if newest is not None and (last is None or newest > last):
+        if newest is not None and (last is None or newest > last) and newest <= now:
             # A station reports again before the pending epoch closed: a new cycle began.
             rep = self.repeat_stamp_ns
             self.repeat_stamp_ns = newest if rep is None or newest > rep else rep
