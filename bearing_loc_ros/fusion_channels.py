@@ -25,6 +25,7 @@ on one channel of a bag.
 
 import re
 
+from rclpy.clock import Clock, ClockType
 from rclpy.parameter import Parameter
 
 #: A channel name: ROS name tokens separated by '/' (a topic namespace).
@@ -63,7 +64,10 @@ class ChannelHost:
         self.nodes = {}
         for name in names:
             self.nodes[name] = make_node(f'{base}/{name}', overrides)
-        self._timer = host.create_timer(0.01, self._join)
+        # A steady-clock timer: on the host's ROS clock it would not fire under use_sim_time
+        # until /clock runs, and the channel nodes would neither fuse nor answer until then.
+        self._timer = host.create_timer(0.01, self._join,
+                                        clock=Clock(clock_type=ClockType.STEADY_TIME))
         host.get_logger().info('channels: ' + ', '.join(
             n.get_fully_qualified_name() for n in self.nodes.values()))
 

@@ -504,6 +504,28 @@ def test_channel_host_refuses_run_time_changes_and_names_the_channel_nodes(ros):
         host.destroy_node()
 
 
+def test_channel_nodes_join_the_executor_under_sim_time_before_any_clock(ros):
+    # The channel nodes join the host's executor from a timer: on the ROS clock it did not
+    # fire under use_sim_time until /clock ran, and the channels neither fused nor answered.
+    host = FusionNode(context=ros, namespace='csim', parameter_overrides=[
+        Parameter('stations', value=['s1', 's2']), Parameter('channels', value=['a']),
+        Parameter('use_sim_time', value=True)])
+    executor = SingleThreadedExecutor(context=ros)
+    try:
+        executor.add_node(host)
+        channel = host.channel_host.nodes['a']
+        for _ in range(100):
+            executor.spin_once(timeout_sec=0.02)
+            if channel in executor.get_nodes():
+                break
+        assert channel in executor.get_nodes()
+    finally:
+        host.channel_host.destroy()
+        executor.remove_node(host)
+        executor.shutdown()
+        host.destroy_node()
+
+
 def _node_topics(h):
     """The topics the fusion node itself subscribes to."""
     return {sub.topic_name for sub in h.fusion.subscriptions}
