@@ -253,7 +253,7 @@ def _trusted_set(bearings):
 
 
 def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=0.999,
-                validated=False, trust=None):
+                validated=False, trust=None, station_positions=True):
     """Fix from aligned bearings (one per station) with χ² outlier gating -> :class:`Epoch`.
 
     Loop: check the counts (at least ``min_stations`` stations, one elevation, three angles:
@@ -287,6 +287,13 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     (a :class:`~bearing_loc_ros.core.station_trust.StationTrust`) every bearing is used with
     its σ_eff and the deletion residuals of the final solve update the trust (deferred:
     applied by ``trust.settle()`` once the fix is out, or before the trust is next read).
+
+    Station position covariance (``station_positions``, default on): when a bearing states
+    one, the set is first solved as it is (the gate counts gᵀ P_i g); the estimator then runs
+    with each station's σ scaled by :func:`station_position_factors` at that fix, so that
+    its weights, robust screen and covariance count the position error too (the gate keeps
+    the stated σ with gᵀ P_i g). Without this a 5 m station position σ (a KrakenSDR's GPS)
+    gave fixes with a mean NEES of 5.8 against 3.
 
     With the gate on (``outlier_gate`` < 1): a ``degenerate_geometry`` set gets, once, the
     drop of the station its peers' fix refutes most among the likeliest culprits
@@ -322,14 +329,25 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
     if validated and not horizontal:
         make_set = _trusted_set
 
-        def run(bs):
+        def solve(bs):
             return _estimators.ESTIMATORS[estimator](bs, **kwargs)
     else:
         def make_set(b):
             return BearingSet.from_bearings(b, validate=False)
 
-        def run(bs):
+        def solve(bs):
             return _registry.solve(estimator, bs, **kwargs)
+    factors = {}
+    if station_positions and any(np.any(b.position_covariance) for b in used):
+        first = solve_epoch(used, estimator, options, min_stations, outlier_gate, validated,
+                            station_positions=False)
+        if first.position is not None and all(map(math.isfinite, first.position.tolist())):
+            pcov = [np.asarray(b.position_covariance, dtype=float) for b in used]
+            factors = station_position_factors(make_set(used), pcov, first.position,
+                                               estimator, kwargs)
+
+    def run(bs):
+        return solve(_scaled(bs, factors) if factors else bs)
     while True:
         if len(used) < int(min_stations):
             return Epoch(TOO_FEW_STATIONS, estimator=estimator, bearings=used,
@@ -472,6 +490,46 @@ def _refuted_station(run, make_set, used, estimator, kwargs, outlier_gate, min_s
         if ratio > best_ratio:          # (NaN: not refuted)
             best, best_ratio = i, ratio
     return best
+
+
+def station_position_factors(bs, pcov, position, estimator, kwargs):
+    """Station -> (f_θ, f_ψ): the factors by which a station's stated σ grow to count its
+    position covariance at the fix ``position`` (3,), m.
+
+    A station displaced by δp_i turns its azimuth by g_θᵀ δp_i (first order; g the angle's
+    gradient, :func:`.crlb.angle_jacobians`, Zong & Cui 2015 eqs. (6)-(8)), an error of
+    variance g_θᵀ P_i g_θ, rad², independent of the angle noise: σ_eff² = σ² + g_θᵀ P_i g_θ
+    with σ the estimator's own at the fix (core.registry.noise_sigmas: grown with range for
+    ``wmle``), so f_θ = σ_eff / σ scales the σ the bearing states whatever the noise model;
+    the same for ψ. (The az and el errors of one station are correlated; the factors leave
+    that out.) 1 where the gradient is not finite (the fix on the station's axis).
+
+    Args:
+        bs: one-problem BearingSet (M = 1) with station ids.
+        pcov: (N, 3, 3) the stations' position covariances P_i, m².
+        position: (3,) fix, m; estimator, kwargs: the estimator and its options.
+    """
+    pos = np.asarray(position, dtype=float)
+    saz, sel = _registry.noise_sigmas(estimator, bs, pos[None], kwargs)
+    g_az, g_el = angle_jacobians(pos, bs.positions[0])
+    P = np.asarray(pcov, dtype=float)
+    with np.errstate(invalid='ignore', divide='ignore'):
+        add_az = np.einsum('ni,nij,nj->n', g_az[0], P, g_az[0])
+        add_el = np.einsum('ni,nij,nj->n', g_el[0], P, g_el[0])
+        f_az = np.sqrt(1.0 + add_az / saz[0] ** 2)
+        f_el = np.sqrt(1.0 + add_el / sel[0] ** 2)
+    f_az = np.where(np.isfinite(f_az), f_az, 1.0)
+    f_el = np.where(np.isfinite(f_el), f_el, 1.0)
+    return {s: (float(a), float(e)) for s, a, e in zip(bs.stations, f_az, f_el)}
+
+
+def _scaled(bs, factors):
+    """``bs`` with each station's σ multiplied by its ``factors`` (station -> (f_θ, f_ψ))."""
+    f = [factors.get(s, (1.0, 1.0)) for s in bs.stations]
+    fa = np.array([[a for a, _ in f]])
+    fe = np.array([[e for _, e in f]])
+    return BearingSet(bs.positions, bs.azimuth, bs.elevation, bs.sigma_az * fa,
+                      bs.sigma_el * fe, bs.stations)
 
 
 def _gate_at(estimator, bs, used, pos, kwargs, outlier_gate):
