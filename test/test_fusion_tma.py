@@ -174,6 +174,9 @@ def test_runtime_switch_within_tma_works_and_across_modes_is_rejected(scenario):
     ms = make_core(FusionConfig(estimator='mle'), stations=['a', 'b'])
     with pytest.raises(ValueError, match='^estimator: tma_ctls is a tma estimator'):
         ms.check_config(estimator='tma_ctls', target_speed=SPEED)
+    # Without a target_speed the reason is still the mode, not the missing speed.
+    with pytest.raises(ValueError, match='^estimator: tma_mle is a tma estimator'):
+        ms.check_config(estimator='tma_mle')
 
 
 def test_time_going_back_resets_the_window(scenario):

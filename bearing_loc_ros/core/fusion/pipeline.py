@@ -89,8 +89,14 @@ class FusionCore:
                              + c.future_tolerance) + 2 * c.period_ns
 
     def check_config(self, **changes):
-        """Validate ``changes`` to the configuration without applying them (ValueError)."""
-        return self._check_mode(self.config.replace(**changes).validate())
+        """Validate ``changes`` to the configuration without applying them (ValueError).
+
+        An estimator of another mode is refused for that reason first (a tma_* estimator in
+        multi-station mode used to be refused for its missing target_speed)."""
+        new = self.config.replace(**changes)
+        if new.estimator in _registry.names():
+            self._check_mode(new)
+        return self._check_mode(new.validate())
 
     def _check_mode(self, config):
         mode = _registry.mode_of(config.estimator)
