@@ -95,7 +95,7 @@ def test_sigma_floor_parameters_reach_the_trust_and_are_checked():
     assert trust.floors == {'s5': pytest.approx(math.radians(4.0))}
     core.reconfigure(sigma_floor_deg=2.0, station_sigma_floors=[])
     assert trust.sigma_floor == pytest.approx(math.radians(2.0)) and trust.floors == {}
-    for bad in (['s1'], ['s1:x'], ['s1:-1'], [':2']):
+    for bad in (['s1'], ['s1:x'], ['s1:-1'], [':2'], ['s1:1', 's1:2'], ['a:b:1']):
         with pytest.raises(ValueError, match='station_sigma_floors'):
             FusionConfig.from_parameters({'station_sigma_floors': bad})
     with pytest.raises(ValueError, match='sigma_floor_deg'):

@@ -159,6 +159,11 @@ class FusionConfig:
             if not sep or not name or not (math.isfinite(v) and 0.0 <= v <= 180.0):
                 raise ValueError(f'station_sigma_floors: expected "<station>:<deg>" with deg '
                                  f'in [0, 180], got {item!r}')
+            if not STATION_ID_RE.match(name):
+                raise ValueError(f'station_sigma_floors: {name!r} is not a valid station id '
+                                 f'(ROS name tokens separated by /), in {item!r}')
+            if name in out:
+                raise ValueError(f'station_sigma_floors: {name!r} is given twice')
             out[name] = math.radians(v)
         return math.radians(g), out
 
