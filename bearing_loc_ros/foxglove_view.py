@@ -365,7 +365,7 @@ class FoxgloveView:
                 stamp, pos, cov = fix_from_msg(msg)
                 # The fix message carries no status, estimator or stations: none are drawn.
                 item = gis.GeoFix(stamp, pos, cov, None, None, None)
-                gis.check_live_fix(item)
+                gis.check_live_fix(item, self.origin)
             else:
                 item = bearing_from_msg(msg, station_of(topic), expected_frame=self.frame_id)
                 gis.check_live_bearing(item)

@@ -165,7 +165,8 @@ def kml_document(fc, name='bearing_loc_ros', overlays=()):
     """simplekml.Kml of a FeatureCollection dict (+ GroundOverlays).
 
     ``overlays``: (name, png_href, corners (4, 2) lon/lat, description) tuples; corners in
-    gx:LatLonQuad order (lower-left, lower-right, upper-right, upper-left).
+    gx:LatLonQuad order (lower-left, lower-right, upper-right, upper-left). A feature
+    without geometry (a fix inside the Earth) has no KML placemark.
     """
     import simplekml
     kml = simplekml.Kml(name=name)
@@ -173,6 +174,8 @@ def kml_document(fc, name='bearing_loc_ros', overlays=()):
     folders = {}
     for ft in fc['features']:
         props = ft.get('properties') or {}
+        if ft.get('geometry') is None:
+            continue        # a fix that cannot be placed (core.gis.fix_altitude_problem)
         kind = props.get('kind', 'feature')
         if kind not in folders:
             folders[kind] = kml.newfolder(name=FOLDERS.get(kind, kind))

@@ -192,6 +192,23 @@ def test_sigma_probability_inverts_ellipse_scale():
     assert ring.shape == (64, 3)
 
 
+def test_a_fix_inside_the_earth_is_exported_without_geometry_and_left_out_of_kml(tmp_path):
+    # z = -1e7 m below a Munich origin lies inside the Earth: its point used to be drawn near
+    # the antipode (-168.4, -48.8) with a clockwise ellipse ring.
+    from bearing_loc_ros.gis_export import kml_document
+    fixes = [gis.GeoFix(1, np.array([0.0, 0.0, -1e7]), np.eye(3), 'ok', 'mle', ['a', 'b']),
+             gis.GeoFix(2, np.array([10.0, 0.0, 0.0]), np.eye(3), 'ok', 'mle', ['a', 'b'])]
+    fc = gis.feature_collection(MUNICH, fixes)
+    points = [f for f in fc['features'] if f['properties']['kind'] == 'fix']
+    assert points[0]['geometry'] is None
+    assert 'below the Earth' in points[0]['properties']['position_error']
+    assert points[1]['geometry']['type'] == 'Point'
+    assert [f['properties']['kind'] for f in fc['features']].count('ellipse') == 1
+    json.loads(geojson_text(fc))
+    kml = kml_document(fc).kml()
+    assert kml.count('<Point') == 1
+
+
 def _fc_text(pic):
     """The picture as GeoJSON text (what the live view sends); raises if it cannot be drawn."""
     return geojson_text(pic.collection())
@@ -200,7 +217,8 @@ def _fc_text(pic):
 @pytest.mark.parametrize('pos, cov', [
     ([math.nan, 0.0, 0.0], np.eye(3)), ([0.0, math.inf, 0.0], np.eye(3)),
     ([1e13, 0.0, 0.0], np.eye(3)), ([0.0, 0.0, 0.0], np.diag([math.inf, 1.0, 1.0])),
-    ([0.0, 0.0, 0.0], np.full((3, 3), math.nan)), ([0.0, 0.0, 0.0], np.eye(2))])
+    ([0.0, 0.0, 0.0], np.full((3, 3), math.nan)), ([0.0, 0.0, 0.0], np.eye(2)),
+    ([0.0, 0.0, -1e7], np.eye(3)), ([1e11, 0.0, 0.0], np.eye(3))])
 def test_live_picture_refuses_an_undrawable_fix_and_goes_on(pos, cov):
     """A NaN/inf fix never enters the picture (it used to sit in the trail, and every later
     picture failed with 'enu: expected finite coordinates')."""

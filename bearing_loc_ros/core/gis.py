@@ -72,6 +72,11 @@ POLE_MARGIN_DEG = 0.5
 #: laid in the tangent plane at the fix is more than 0.8 % off on the ground).
 MIN_ELLIPSE_AXIS_M = 1e-3
 MAX_ELLIPSE_AXIS_M = 1e6
+#: Drawn fixes: ellipsoidal height at least this (m; 100 km below the ellipsoid, deeper than
+#: any place an emitter can be: a fix below it lies inside the Earth, and its point would
+#: be drawn near the antipode) and at most this (m; 100,000 km, beyond geostationary orbit).
+MIN_FIX_ALTITUDE_M = -1e5
+MAX_FIX_ALTITUDE_M = 1e8
 #: Decimal places of output degrees (1e-9 deg is about 0.1 mm).
 DEG_DECIMALS = 9
 NS_PER_S = 1_000_000_000
@@ -454,7 +459,9 @@ def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
     docstring) or ellipse_error (why none is drawn: a non-finite or indefinite covariance, a
     semi-major axis beyond :data:`MAX_ELLIPSE_AXIS_M` (too large), a semi-minor one below
     :data:`MIN_ELLIPSE_AXIS_M` (degenerate), one reaching a pole or spanning 180° of
-    longitude).
+    longitude). A fix at a height :func:`fix_altitude_problem` refuses (inside the Earth,
+    beyond geostationary orbit) is one feature without geometry (``null``, RFC 7946 sec.
+    3.2) and with ``position_error`` saying why.
     """
     p = np.asarray(fix.position, dtype=float)
     c = np.asarray(fix.covariance, dtype=float)
@@ -480,6 +487,10 @@ def fix_features(fix, origin, probability=DEFAULT_PROBABILITY, fix_id=None):
                  sigma_3d_m=num(math.sqrt(max(np.sum(d), 0.0))))
     if fix_id is not None:
         props['id'] = fix_id
+    problem = fix_altitude_problem(float(alt))
+    if problem is not None:
+        props['position_error'] = problem
+        return [_feature(None, props)]
     out = [_feature(point_geometry(lon, lat, alt), props)]
     try:
         local = local_covariance(c, origin, lat, lon)
@@ -662,15 +673,32 @@ def _check_stamp(stamp_ns, what):
         raise ValueError(f'{what}: stamp must be an integer >= 0 ns, got {stamp_ns!r}')
 
 
-def check_live_fix(fix):
+def fix_altitude_problem(alt):
+    """Why a fix at ellipsoidal height ``alt`` (m) is not drawn, or None: below
+    :data:`MIN_FIX_ALTITUDE_M` (inside the Earth) or above :data:`MAX_FIX_ALTITUDE_M`."""
+    if not alt >= MIN_FIX_ALTITUDE_M:
+        return (f'fix position: {-alt / 1e3:.4g} km below the Earth\'s surface (inside the '
+                'Earth), not drawn')
+    if alt > MAX_FIX_ALTITUDE_M:
+        return f'fix position: {alt / 1e3:.4g} km above the Earth, not drawn'
+    return None
+
+
+def check_live_fix(fix, origin=None):
     """ValueError (one line, naming the field) unless a :class:`GeoFix` can be drawn live:
-    position 3 finite ENU coordinates within :data:`MAX_ABS_ENU_M`, covariance a finite
-    (3, 3) array, stamp an integer >= 0 ns (or None)."""
+    position 3 finite ENU coordinates within :data:`MAX_ABS_ENU_M` (with ``origin``, also
+    at a height :func:`fix_altitude_problem` accepts), covariance a finite (3, 3) array,
+    stamp an integer >= 0 ns (or None)."""
     _finite_enu(fix.position, 'fix position')
     c = np.asarray(fix.covariance, dtype=float)
     if c.shape != (3, 3) or not np.isfinite(c).all():
         raise ValueError('fix covariance: expected a finite (3, 3) array, m^2')
     _check_stamp(fix.stamp_ns, 'fix')
+    if origin is not None:
+        problem = fix_altitude_problem(float(enu_to_lonlat(
+            np.asarray(fix.position, dtype=float), origin)[2]))
+        if problem is not None:
+            raise ValueError(problem)
 
 
 def check_live_bearing(bearing):
@@ -787,7 +815,7 @@ class LivePicture:
         """Take ``fix`` (a :class:`GeoFix`) as the current one and extend the trail (class
         docstring rules); return :data:`ACCEPTED`, :data:`RESTARTED` or
         :data:`OUT_OF_ORDER`."""
-        check_live_fix(fix)
+        check_live_fix(fix, self.origin)
         order = self._order(fix.stamp_ns, None if self.fix is None else self.fix.stamp_ns)
         if order == OUT_OF_ORDER:
             return order
