@@ -359,3 +359,28 @@ def test_evaluate_warns_when_no_trial_is_observable(capsys, tmp_path):
     assert cli_main(['evaluate', '--scenario', str(path), '--trials', '5', '--sigma-deg', '1',
                      '--estimator', 'ls', '--sweep', 'none', '--quiet']) == 0
     assert 'warning: the CRLB is infinite for every trial' in capsys.readouterr().err
+
+
+def test_a_stated_altitude_sigma_is_drawn_so_rmse_crlb_and_nees_agree():
+    # --target-altitude-sigma S: the altitude stated to the horizontal solve must be a draw
+    # from N(true altitude, S²). It used to be the exact truth while the bound counted S²
+    # and NEES 3 dof, so the estimator "beat" the bound (RMSE/CRLB 0.47 at S = 2 km, NEES 2).
+    from bearing_loc_ros.cli.evaluate import run_evaluation
+    S = 2000.0
+    rows, meta = run_evaluation('seed000_azimuth_only', ['mle'], [0.5], 2000, seed=0,
+                                sweep='none', target_altitude_sigma=S)
+    r = rows[0]
+    assert meta['target_altitude_m'] == 'truth' and meta['target_altitude_sigma_m'] == S
+    assert r.convergence_rate > 0.99
+    # RMSE over the bound of the same trials: 1 within K standard errors (mle is efficient
+    # at 0.5°; SE(RMSE) from the evaluation itself)
+    assert abs(r.rmse_over_crlb - 1.0) < K * r.rmse_se / (r.rmse / r.rmse_over_crlb)
+    assert abs(r.mean_nees - ev.NEES_DOF) < K * r.nees_se          # 3 dof with σ_z > 0
+    # the altitude error is the stated one: |e_z| ~ S, so the 3D RMSE exceeds S
+    assert r.rmse > S and abs(r.bias_vector[2]) < K * S / math.sqrt(r.converged)
+    again = run_evaluation('seed000_azimuth_only', ['mle'], [0.5], 2000, seed=0,
+                           sweep='none', target_altitude_sigma=S)[0][0]
+    assert again.rmse == r.rmse                                       # seeded draws
+    exact = run_evaluation('seed000_azimuth_only', ['mle'], [0.5], 2000, seed=0,
+                           sweep='none', target_altitude_sigma=0.0)[0][0]
+    assert abs(exact.mean_nees - 2.0) < K * exact.nees_se and exact.rmse < r.rmse

@@ -148,6 +148,7 @@ def parse_outliers(text):
 
 def _solve_options(tr, dimension, target_altitude, target_altitude_sigma):
     """Solve-level options of the study (:func:`run_evaluation`); {} = the 3D solve."""
+    from ..core import evaluation as ev
     horizontal = dimension == 'horizontal' or (dimension in (None, 'auto')
                                                and not tr.has_elevation.any())
     for flag, v in (('target_altitude', target_altitude),
@@ -158,7 +159,9 @@ def _solve_options(tr, dimension, target_altitude, target_altitude_sigma):
         raise InputError(f'target_altitude_sigma: must be >= 0 m (got {target_altitude_sigma})')
     if not horizontal and target_altitude is None:
         return {} if dimension in (None, 'auto') else {'dimension': dimension}
-    z0 = tr.targets[:, 2].copy() if target_altitude is None else float(target_altitude)
+    # Without --target-altitude each trial states its true altitude measured with σ_z
+    # (core.evaluation.stated_altitudes, drawn per noise level from its seeded generator).
+    z0 = ev.TRUTH if target_altitude is None else float(target_altitude)
     return {'dimension': dimension or 'auto', 'target_altitude': z0,
             'target_altitude_sigma': float(target_altitude_sigma or 0.0)}
 
@@ -175,9 +178,10 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
     ``consistency`` to the estimators that accept them.
     ``dimension``, ``target_altitude``, ``target_altitude_sigma`` (m): the solve
     (core.horizontal). A horizontal solve (forced, or a scenario whose stations are all
-    azimuth-only, ``dims: 1``) states the altitude: ``target_altitude``, else each trial's
-    true target altitude; RMSE/CRLB then uses the horizontal bound and NEES has 2 degrees
-    of freedom (σ_z = 0) or 3.
+    azimuth-only, ``dims: 1``) states the altitude: ``target_altitude`` as given, else each
+    trial's true target altitude plus an error drawn from N(0, σ_z²) (seeded; exact for
+    σ_z = 0); RMSE/CRLB then uses the horizontal bound and NEES has 2 degrees of freedom
+    (σ_z = 0) or 3.
     """
     from ..core import evaluation as ev
     from ..core import registry

@@ -386,7 +386,10 @@ def run_level(estimators, trials, level, rng, sweep='joint', options=None, locat
     through core.registry.solve with them; problems solved horizontally are measured against
     the bound of the horizontal solve (core.horizontal_crlb: the stated altitude as a prior
     N(z₀, σ_z²) at the true target) and their NEES has 2 degrees of freedom when σ_z = 0
-    (:func:`nees_values`).
+    (:func:`nees_values`). ``target_altitude`` :data:`TRUTH` states each problem's altitude
+    as a measurement of the true one: z₀_m = z_m + σ_z·u_m, u_m ~ N(0, 1) drawn from ``rng``
+    after the bearing noise (so the bearings do not depend on σ_z), which is what the bound
+    with the prior N(z₀, σ_z²) and a 3-dof NEES assume; z₀ = z exactly when σ_z = 0.
     """
     if locate is None:
         if solve_options:
@@ -401,6 +404,10 @@ def run_level(estimators, trials, level, rng, sweep='joint', options=None, locat
     rep = trials.report_actual[None, :]
     noisy.sigma_az = np.where(rep, saz, level.sigma_az)
     noisy.sigma_el = np.where(noisy.has_elevation, np.where(rep, sel, level.sigma_el), np.nan)
+    if isinstance(solve_options.get('target_altitude'), str):
+        solve_options['target_altitude'] = stated_altitudes(
+            trials, solve_options['target_altitude'],
+            solve_options.get('target_altitude_sigma', 0.0), rng)
     bound = crlb_matrix(trials.targets, trials.stations, saz, sel, trials.has_elevation)
     if solve_options.get('target_altitude') is not None:
         bound = _horizontal_bound(bound, trials, noisy, saz, sel, solve_options)
@@ -413,6 +420,32 @@ def run_level(estimators, trials, level, rng, sweep='joint', options=None, locat
         if on_run is not None:
             on_run()
     return out
+
+
+#: ``solve_options['target_altitude']`` of :func:`run_level` that states each problem's true
+#: altitude, with the error N(0, σ_z²) of ``target_altitude_sigma`` (:func:`stated_altitudes`).
+TRUTH = 'truth'
+
+
+def stated_altitudes(trials, which, sigma_z, rng):
+    """The altitudes (M,), m, stated to the horizontal solve when ``which`` is :data:`TRUTH`.
+
+    z₀_m = z_m + σ_z·u_m with z_m the true target altitude of problem m and u_m ~ N(0, 1)
+    from ``rng`` (no draw when σ_z = 0: z₀ = z): the stated altitude is a measurement of the
+    truth with the σ the solve is told, as the prior N(z₀, σ_z²) of core.horizontal_crlb
+    assumes. ``sigma_z`` m, scalar or (M,), finite and >= 0; ValueError naming
+    target_altitude / target_altitude_sigma otherwise.
+    """
+    if which != TRUTH:
+        raise ValueError(f'target_altitude: a number (m), an (M,) array or {TRUTH!r}, '
+                         f'got {which!r}')
+    sz = np.broadcast_to(np.asarray(sigma_z, dtype=float), (trials.M,))
+    if not np.all(np.isfinite(sz)) or np.any(sz < 0):
+        raise ValueError('target_altitude_sigma: must be finite and >= 0 m')
+    z = trials.targets[:, 2].copy()
+    if np.any(sz > 0):
+        z = z + sz * rng.standard_normal(trials.M)
+    return z
 
 
 def _horizontal_bound(bound, trials, noisy, saz, sel, solve_options):
