@@ -209,9 +209,10 @@ def trials_from_scenario(scenario, trials, seed=0, range_ref=None):
     t = scenario.duration * np.arange(trials) / trials
     tg_rows, st_rows, seed_rows = [], [], []
     for m in range(trials):
+        st_m = [station_position(s, t[m]) for s in scenario.stations]   # once per trial
         for tg in realize_targets(scenario, int(seeds[m])):
             tg_rows.append(target_position(tg, t[m]))
-            st_rows.append([station_position(s, t[m]) for s in scenario.stations])
+            st_rows.append(st_m)
             seed_rows.append(seeds[m])
     g = [s.sigma_growth for s in scenario.stations]
     if range_ref is not None:
