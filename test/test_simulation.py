@@ -369,6 +369,11 @@ BAD = [
     (lambda d: d['stations'][0].update(sigma_az=0.1, sigma_az_deg=1.0),
      'stations[0].sigma_az_deg: give either'),
     (lambda d: d['stations'][0].update(rate=0.0), 'stations[0].rate: must be > 0'),
+    # sigma_el of a 1D (dims: 1) station is unused but still checked (docs/nodes.md)
+    (lambda d: d['stations'][2].update(sigma_el=-5), 'stations[2].sigma_el: must be > 0'),
+    (lambda d: d['stations'][2].update(sigma_el='abc'), 'stations[2].sigma_el: expected a num'),
+    (lambda d: d['stations'][2].update(sigma_el_deg=500.0),
+     'stations[2].sigma_el_deg: must be within'),
     (lambda d: d['stations'][0].update(dropout=1.5), 'stations[0].dropout: must be <= 1'),
     (lambda d: d['stations'][0].update(dims=3), 'stations[0].dims: must be 1'),
     (lambda d: d['stations'][2].update(id='station_1'), 'stations[2].id: duplicate'),

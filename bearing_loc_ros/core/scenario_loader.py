@@ -279,8 +279,11 @@ def _station(src, raw, k, defaults, origin):
     if dims not in (1, 2) or isinstance(dims, bool):
         raise src.error(f'{where}dims', f'must be 1 (azimuth only) or 2 (got {short_repr(dims)})')
     sigma_az = _angle(src, d, 'sigma_az', where, 0.01, bounds=SIGMA_RANGE)
-    sigma_el = (_angle(src, d, 'sigma_el', where, sigma_az, bounds=SIGMA_RANGE) if dims == 2
-                else math.nan)
+    # Checked on a 1D station too (docs/nodes.md: its bounds are sigma_az's), where it is not
+    # used: a bad value is a mistake in the file, and station_defaults may set it for all.
+    sigma_el = _angle(src, d, 'sigma_el', where, sigma_az, bounds=SIGMA_RANGE)
+    if dims == 1:
+        sigma_el = math.nan
     growth = None
     if d.get('sigma_growth') is not None:
         gw = f'{where}sigma_growth'
