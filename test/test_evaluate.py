@@ -402,3 +402,40 @@ def test_trials_times_targets_times_stations_is_bounded(capsys, tmp_path):
         cap = capsys.readouterr()
         assert cap.out == '' and cap.err.count('\n') == 1
         assert 'error: --trials: ' in cap.err and f'use --trials {most} or fewer' in cap.err
+
+
+def test_a_target_on_or_above_a_station_drops_that_bearing_as_the_simulator_does(
+        capsys, tmp_path):
+    # Its azimuth is undefined: evaluate fed the estimators atan2(0, 0) = due East with the
+    # station's σ and printed an all-NaN table blaming the station layout. The simulator
+    # makes no such bearing (core.simulation.MIN_HORIZONTAL_RANGE); evaluate now solves
+    # (and bounds) those problems with the other stations' bearings, and says so.
+    path = tmp_path / 'above.yaml'
+    path.write_text('duration: 10\nstations:\n  - {id: a, position: [0, 0, 0]}\n'
+                    '  - {id: b, position: [5000, 0, 0]}\n  - {id: c, position: [0, 5000, 0]}\n'
+                    'targets:\n  - {namespace: above, position: [0, 0, 800]}\n'
+                    '  - {namespace: aside, position: [3000, 4000, 500]}\n')
+    out = tmp_path / 'out'
+    assert cli_main(['evaluate', '--scenario', str(path), '--trials', '300', '--estimator',
+                     'ls,mle', '--sigma-deg', '1', '--sweep', 'none', '--quiet', '--no-plots',
+                     '--paper', '--out', str(out)]) == 0      # --paper: every fix counts
+    err = capsys.readouterr().err
+    assert err.count('\n') == 1 and 'target on or straight above the station' in err
+    assert err.rstrip().endswith('of 600 problems per level: a 300')
+    doc = json.loads((out / 'evaluation.json').read_text())
+    assert doc['unobserved_bearings'] == {'a': 300}
+    for r in doc['rows']:
+        assert r['convergence_rate'] == 1.0 and r['crlb'] > 0
+        # mle is efficient here: RMSE over the bound of the same trials is 1 within K SE
+        if r['estimator'] == 'mle':
+            assert abs(r['rmse_over_crlb'] - 1.0) < K * r['rmse_se'] * r['rmse_over_crlb'] \
+                / r['rmse']
+    # two stations, the target above one of them: a single bearing is no fix
+    path.write_text('duration: 10\nstations:\n  - {id: a, position: [0, 0, 0]}\n'
+                    '  - {id: b, position: [5000, 0, 0]}\n'
+                    'targets:\n  - {position: [0, 0, 800]}\n')
+    assert cli_main(['evaluate', '--scenario', str(path), '--trials', '5', '--estimator',
+                     'mle', '--sigma-deg', '1', '--sweep', 'none', '--quiet']) == 0
+    cap = capsys.readouterr()
+    assert 'too few bearings left where the target is on or above a station' in cap.err
+    assert ' 0.0 ' in cap.out.splitlines()[-1]                  # conv % 0

@@ -236,6 +236,12 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
                                             consistency=bool(robust)))
             if 'robust' in scoped or 'consistency' in scoped:
                 options[e] = scoped
+    unobserved = tr.unobserved()
+    if unobserved:
+        print('bearing_loc evaluate: warning: bearings not made (target on or straight above '
+              'the station, no azimuth; the problem is solved with the other stations, as the '
+              f'simulator drops them), of {tr.M} problems per level: '
+              + ', '.join(f'{st} {n}' for st, n in unobserved.items()), file=sys.stderr)
     solve_options = _solve_options(tr, dimension, target_altitude, target_altitude_sigma)
     if target_altitude is not None and dimension != 'horizontal' and tr.has_elevation.any():
         why = ('--dimension 3d' if dimension == '3d' else
@@ -251,6 +257,7 @@ def run_evaluation(scenario_path, estimators, sigmas, trials, seed=0, sweep='bot
             'sigma_deg': sigmas, 'sweeps': list(sweeps), 'fixed_sigma_deg': fixed_sigma_deg,
             'options': options, 'elapsed_s': elapsed,
             'stations': tr.station_ids, 'reference_range_m': ref,
+            'unobserved_bearings': unobserved,
             'range_ref_override_m': range_ref, 'robust': robust,
             'dimension': solve_options.get('dimension', dimension or 'auto'),
             'target_altitude_m': (None if solve_options.get('target_altitude') is None else
@@ -407,9 +414,13 @@ def run(args):
           f'{meta["elapsed_s"]:.2f} s')
     print(format_table(rows))
     if rows and not any(math.isfinite(r.crlb) for r in rows):
+        why = ('co-located stations, azimuth-only stations in line with them, or too few '
+               'bearings left where the target is on or above a station'
+               if meta['unobserved_bearings'] else
+               'co-located stations, or azimuth-only stations in line with them')
         print('bearing_loc evaluate: warning: the CRLB is infinite for every trial: these '
-              'stations cannot locate the targets (co-located stations, or azimuth-only '
-              'stations in line with them); the figures are not meaningful', file=sys.stderr)
+              f'stations cannot locate the targets ({why}); the figures are not meaningful',
+              file=sys.stderr)
     if args.out:
         try:
             files = write_outputs(rows, meta, args.out, plots=not args.no_plots)

@@ -186,6 +186,32 @@ class Trials:
         refs = set(self.range_ref[np.isfinite(self.range_ref)].tolist())
         return refs.pop() if len(refs) == 1 else None
 
+    def no_azimuth(self):
+        """(M, N) bool: the target on station n or straight above it in problem m (horizontal
+        range <= core.simulation.MIN_HORIZONTAL_RANGE): its azimuth is undefined, and the
+        simulator makes no bearing there, so neither does the evaluation."""
+        from .simulation import MIN_HORIZONTAL_RANGE
+        d = self.targets[:, None, :2] - self.stations[..., :2]
+        return np.hypot(d[..., 0], d[..., 1]) <= MIN_HORIZONTAL_RANGE
+
+    def unobserved(self):
+        """{station id: problems whose bearing is not made (:meth:`no_azimuth`)}, the stations
+        with any (as core.simulation.Simulation.unobserved)."""
+        n = np.count_nonzero(self.no_azimuth(), axis=0)
+        ids = self.station_ids or [f'station {i}' for i in range(n.size)]
+        return {ids[i]: int(n[i]) for i in np.flatnonzero(n)}
+
+    def take(self, idx, keep):
+        """The problems ``idx`` seen by the stations ``keep`` ((N,) bool) only."""
+        from dataclasses import replace
+        return replace(self, stations=self.stations[idx][:, keep], targets=self.targets[idx],
+                       has_elevation=self.has_elevation[keep], range_ref=self.range_ref[keep],
+                       min_factor=self.min_factor[keep], max_factor=self.max_factor[keep],
+                       report_actual=self.report_actual[keep],
+                       station_ids=[s for s, k in zip(self.station_ids, keep) if k]
+                       if self.station_ids else self.station_ids,
+                       trial_seed=None if self.trial_seed is None else self.trial_seed[idx])
+
 
 def trials_from_scenario(scenario, trials, seed=0, range_ref=None):
     """Monte Carlo geometry of a scenario (core.simulation): trial m uses simulator seed seed+m.
@@ -391,6 +417,10 @@ def run_level(estimators, trials, level, rng, sweep='joint', options=None, locat
     as a measurement of the true one: z₀_m = z_m + σ_z·u_m, u_m ~ N(0, 1) drawn from ``rng``
     after the bearing noise (so the bearings do not depend on σ_z), which is what the bound
     with the prior N(z₀, σ_z²) and a 3-dof NEES assume; z₀ = z exactly when σ_z = 0.
+    A target on a station or straight above it (:meth:`Trials.no_azimuth`) has no azimuth
+    from that station: as in the simulator its bearing is not made, and the problem is
+    solved, and bounded, with the other stations' bearings (problems grouped by the
+    bearings they have; fewer than two: no fix, ``degenerate_geometry``, infinite bound).
     """
     if locate is None:
         if solve_options:
@@ -409,18 +439,88 @@ def run_level(estimators, trials, level, rng, sweep='joint', options=None, locat
         solve_options['target_altitude'] = stated_altitudes(
             trials, solve_options['target_altitude'],
             solve_options.get('target_altitude_sigma', 0.0), rng)
-    bound = crlb_matrix(trials.targets, trials.stations, saz, sel, trials.has_elevation)
-    if solve_options.get('target_altitude') is not None:
-        bound = _horizontal_bound(bound, trials, noisy, saz, sel, solve_options)
+    groups = _observed_groups(trials)
+    parts = []                      # (problems, stations kept, bearings, bound, solve options)
+    for idx, keep in groups:
+        if np.count_nonzero(keep) < 2:      # one bearing or none: no fix, no bound
+            parts.append((idx, keep, None, np.full((idx.size, 3, 3), np.inf), None))
+            continue
+        whole = idx.size == trials.M and bool(np.all(keep))
+        tr = trials if whole else trials.take(idx, keep)
+        nb = noisy if whole else _take_bearings(noisy, idx, keep)
+        so = solve_options if whole else _take_solve_options(solve_options, idx, trials.M)
+        s_az, s_el = (saz, sel) if whole else (saz[idx][:, keep], sel[idx][:, keep])
+        bound = crlb_matrix(tr.targets, tr.stations, s_az, s_el, tr.has_elevation)
+        if so.get('target_altitude') is not None:
+            bound = _horizontal_bound(bound, tr, nb, s_az, s_el, so)
+        parts.append((idx, keep, nb, bound, so))
+    bound = np.empty((trials.M, 3, 3))
+    for idx, _, _, b, _ in parts:
+        bound[idx] = b
     out = []
     for name in estimators:
         t0 = time.perf_counter()
-        res = locate(name, noisy, **options.get(name, {}), **solve_options)
+        results = [(idx, None if nb is None else locate(name, nb, **options.get(name, {}), **so))
+                   for idx, _, nb, _, so in parts]
+        res = (results[0][1] if len(results) == 1 and results[0][1] is not None
+               else _merge_results(name, results, trials.M))
         dt = time.perf_counter() - t0
         out.append(error_statistics(name, sweep, level, trials.targets, res, bound, dt))
         if on_run is not None:
             on_run()
     return out
+
+
+def _observed_groups(trials):
+    """[(problem indices, (N,) bool stations that observe them)]: the problems grouped by
+    which bearings exist (:meth:`Trials.no_azimuth` removes a station's bearing). One group
+    of every problem and station when every target is off the stations' vertical axes."""
+    seen = ~trials.no_azimuth()
+    if np.all(seen):
+        return [(np.arange(trials.M), np.ones(seen.shape[1], dtype=bool))]
+    patterns, inverse = np.unique(seen, axis=0, return_inverse=True)
+    inverse = np.asarray(inverse).reshape(-1)
+    return [(np.flatnonzero(inverse == k), patterns[k]) for k in range(patterns.shape[0])]
+
+
+def _take_bearings(bearings, idx, keep):
+    """The BearingSet of problems ``idx`` and stations ``keep`` (already validated)."""
+    from .bearings import BearingSet
+    return BearingSet(bearings.positions[idx][:, keep], bearings.azimuth[idx][:, keep],
+                      bearings.elevation[idx][:, keep], bearings.sigma_az[idx][:, keep],
+                      bearings.sigma_el[idx][:, keep],
+                      None if bearings.stations is None else
+                      [s for s, k in zip(bearings.stations, keep) if k])
+
+
+def _take_solve_options(solve_options, idx, M):
+    """``solve_options`` of problems ``idx``: per-problem (M,) arrays cut to them."""
+    out = {}
+    for k, v in solve_options.items():
+        a = np.asarray(v) if not isinstance(v, str) else None
+        out[k] = a[idx] if a is not None and a.ndim == 1 and a.shape[0] == M else v
+    return out
+
+
+def _merge_results(method, results, M):
+    """One FixResult of M problems from [(problem indices, FixResult or None)]: position,
+    covariance, iterations, converged and status (what :func:`error_statistics` reads); a
+    group with fewer than two bearings (None) has no fix: NaN, ``degenerate_geometry``."""
+    from .fix import FixResult, STATUS_DEGENERATE
+    pos = np.full((M, 3), np.nan)
+    cov = np.full((M, 3, 3), np.inf)
+    its = np.zeros(M, dtype=int)
+    conv = np.zeros(M, dtype=bool)
+    status = np.full(M, STATUS_DEGENERATE, dtype=object)
+    for idx, r in results:
+        if r is None:
+            continue
+        pos[idx] = r.position
+        cov[idx] = r.position_covariance
+        its[idx] = r.iterations
+        conv[idx] = r.converged
+        status[idx] = np.asarray(r.status).astype(str)
+    return FixResult(pos, cov, its, conv, status.astype(str), method)
 
 
 #: ``solve_options['target_altitude']`` of :func:`run_level` that states each problem's true
