@@ -212,3 +212,23 @@ def test_documented_figures_exist_and_are_small():
     for path in refs:
         assert os.path.exists(path), path
         assert os.path.getsize(path) < 300_000, path
+
+
+def test_an_output_in_a_missing_directory_exits_2_naming_the_flag(capsys, tmp_path):
+    # plan map --png /nonexistent/x.png created /nonexistent (and --csv likewise); docs/cli.md
+    # promises exit 2 naming the flag, as for locate's outputs, before the work.
+    missing = tmp_path / 'missing'
+    base = ['--stations', STATIONS, '--sigma-deg', '0.1', '--altitude', '5000']
+    small = ['--extent-km', '40', '--resolution', '4000']
+    cases = [(['map', *base, *small, '--png', str(missing / 'x.png')], '--png'),
+             (['map', *base, *small, '--csv', str(missing / 'x.csv')], '--csv'),
+             (['map', *base, *small, '--csv', str(tmp_path)], '--csv'),
+             (['place', *base, '--area-km', '-10,10,-10,10', '--area-cells', '4',
+               '--candidates', '3', '--png-after', str(missing / 'a.png')], '--png-after'),
+             (['place', *base, '--area-km', '-10,10,-10,10', '--area-cells', '4',
+               '--candidates', '3', '--png-before', str(missing / 'b.png')], '--png-before')]
+    for argv, flag in cases:
+        rc, out, err = _run(capsys, *argv)
+        assert rc == 2 and out == '' and err.count('\n') == 1, (argv, err)
+        assert f'error: {flag}: cannot write ' in err, err
+        assert not missing.exists()

@@ -28,8 +28,8 @@ from . import InputError, writing
 from .deprecation import DeprecatedOption
 from .helptext import sub_command
 from .plan_args import (color_limits, contour_levels, ctls_unit, finite, grid_spec,
-                        image_path, KM, load_stations, num_or_none, parse_box_km,
-                        parse_values)
+                        image_path, KM, load_stations, num_or_none, output_file,
+                        parse_box_km, parse_values)
 
 
 def add_arguments(parser):
@@ -314,8 +314,6 @@ def plot_map(amap, path, title=None, levels=None, vmax=None, extra=None, vmin=No
     ax.set_title(title or f'{amap.model.upper()} expected error, altitude '
                           f'{g.altitude / KM:g} km', fontsize=10)
     fig.tight_layout()
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
     fig.savefig(path)
     plt.close(fig)
 
@@ -323,8 +321,6 @@ def plot_map(amap, path, title=None, levels=None, vmax=None, extra=None, vmin=No
 def write_csv(amap, path):
     """x_m,y_m,z_m,error_m rows in OccupancyGrid order (row-major, row = y)."""
     pts = amap.grid.points()
-    directory = os.path.dirname(os.path.abspath(path))
-    os.makedirs(directory, exist_ok=True)
     np.savetxt(path, np.column_stack([pts, amap.error.ravel()]), delimiter=',',
                fmt=['%.3f', '%.3f', '%.3f', '%.6g'], header='x_m,y_m,z_m,error_m',
                comments='')
@@ -351,7 +347,11 @@ def run_map(args):
     levels = contour_levels(args)
     color_limits(args)
     if args.png:
-        args.png = image_path('--png', args.png)
+        args.png = output_file('--png', image_path('--png', args.png))
+    if args.csv is None and args.png:
+        args.csv = os.path.splitext(args.png)[0] + '.csv'
+    if args.csv:
+        output_file('--csv', args.csv)
     from .gisargs import check
     check(args)             # --kml and --origin, before the work
     from ..core.planning import horizontal_solve
@@ -368,8 +368,6 @@ def run_map(args):
     out = {'model': args.model, 'solve': amap.solve, 'stations': _stations_json(st),
            'grid': _grid_json(grid), 'stats': amap.stats()}
     csv = args.csv
-    if csv is None and args.png:
-        csv = os.path.splitext(args.png)[0] + '.csv'
     if args.png:
         with writing('--png', args.png):
             plot_map(amap, args.png, args.title, levels, args.vmax, vmin=args.vmin)
@@ -418,7 +416,8 @@ def run_place(args):
     area = parse_box_km(args.area_km, '--area-km')
     for key in ('png_before', 'png_after'):
         if getattr(args, key):
-            setattr(args, key, image_path('--' + key.replace('_', '-'), getattr(args, key)))
+            flag = '--' + key.replace('_', '-')
+            setattr(args, key, output_file(flag, image_path(flag, getattr(args, key))))
     region = parse_box_km(args.region_km, '--region-km') if args.region_km else area
     color_limits(args)
     if args.area_cells < 2 or args.area_cells > 200:

@@ -218,6 +218,18 @@ def image_path(flag, path):
     return path
 
 
+def output_file(flag, path):
+    """``path`` when it names a file in an existing directory (nothing is created); else an
+    InputError naming ``flag``, before the work (docs/cli.md: as ``locate``'s outputs)."""
+    if path.endswith(('/', os.sep)) or os.path.isdir(path):
+        raise InputError(f'{flag}: cannot write {path!r} (is a directory; give a file name)')
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        raise InputError(f'{flag}: cannot write {path!r} (directory {directory!r} does not '
+                         'exist)')
+    return path
+
+
 def num_or_none(v):
     """``float(v)``, or None when it is NaN or infinite (JSON has no such numbers)."""
     v = float(v)
