@@ -46,6 +46,9 @@ BACKOFF = (1.0, 60.0)
 MAX_LINES = 10000
 #: Longest protocol line read (longer output is cut into pieces, each counted as garbage).
 MAX_LINE = 512
+#: Name of the probe's node, followed by its process id: the simulator does not count its
+#: short-lived subscriptions as the subscribers it waits for (simulator_node).
+NODE_NAME_PREFIX = 'discovery_probe_'
 
 
 def parse_command(line):
@@ -356,7 +359,7 @@ def main(argv=None):
     threading.Thread(target=_read_stdin, args=(sys.stdin, lines), daemon=True).start()
     ctx = rclpy.Context()
     rclpy.init(args=[], context=ctx)
-    node = rclpy.create_node(f'discovery_probe_{os.getpid()}', namespace=a.namespace,
+    node = rclpy.create_node(f'{NODE_NAME_PREFIX}{os.getpid()}', namespace=a.namespace,
                              context=ctx, enable_rosout=False,
                              start_parameter_services=False)
     ex = SingleThreadedExecutor(context=ctx)

@@ -26,6 +26,7 @@ from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock as ClockMsg
 
 from .core.simulation import bearing_topic, load_scenario, NS_PER_S, simulate, truth_topic
+from .discovery_probe import NODE_NAME_PREFIX as PROBE_PREFIX
 from .ros_common import declare_schema, Finished, main_for, ParameterError
 from .ros_conversions import bearing_to_msg, ns_to_time, truth_to_msg
 from .scenarios import resolve_scenario, ScenarioNotFoundError
@@ -60,6 +61,15 @@ def resolve_scenario_path(path, cwd=None):
 #: Wall time the bearing topics' subscriber counts must hold before an early start, ns (as
 #: ``bag play`` waits for discovery to settle).
 SETTLE_NS = NS_PER_S
+#: What the subscribers of the bearing topics allow (:meth:`SimulatorNode._subscriber_state`):
+#: keep waiting; release the messages due at the epoch (every topic has a subscriber, some
+#: only a fusion node's discovery probe); start.
+WAIT, PROBED, READY = 'wait', 'probed', 'ready'
+#: Wall seconds the wait may last beyond ``start_delay`` while only probes subscribe to some
+#: topic (:data:`PROBED`): the fusion node subscribes a second or two after its probe saw the
+#: epoch's bearings (a discovery scan, then SETTLE_NS), and the probe itself takes seconds
+#: to start, so the default 5 s often ran out in the middle of that hand-over.
+PROBE_GRACE = 10.0
 
 
 class SimulatorNode(Node):
@@ -135,13 +145,26 @@ class SimulatorNode(Node):
         now = time.monotonic_ns()
         if self._wall0 is None:
             waited = now - self._created
-            if waited < int(self._start_delay * NS_PER_S) and not self._subscribers_ready(now):
+            delay = int(self._start_delay * NS_PER_S)
+            state = (self._subscriber_state(now)
+                     if waited < delay + int(PROBE_GRACE * NS_PER_S) else READY)
+            if waited >= delay and state == WAIT:
+                state = READY               # start_delay is over; no hand-over in progress
+            if state != READY:
+                if state == PROBED:     # clock held at the epoch: what is due there
+                    self._release(self.scenario.epoch_ns)
                 self._publish_clock_at(self.scenario.epoch_ns)
                 return
             self._wall0 = now
             self.get_logger().info(f'simulation started after {waited / NS_PER_S:.2f} s')
         sim_ns = min(self.sim_time_ns(now), self.sim.end_ns)
         self._publish_clock_at(sim_ns)
+        self._release(sim_ns)
+        if sim_ns >= self.sim.end_ns and self._next >= len(self._queue):
+            self._finish()
+
+    def _release(self, sim_ns):
+        """Publish every queued message due at or before ``sim_ns`` (ns), in order."""
         frame = self.scenario.frame_id
         q = self._queue
         while self._next < len(q) and q[self._next][0] <= sim_ns:
@@ -154,23 +177,33 @@ class SimulatorNode(Node):
             else:
                 self._bearing_pubs[ev.topic].publish(bearing_to_msg(ev.bearing))
                 self._sent_bearings += 1
-        if sim_ns >= self.sim.end_ns and self._next >= len(q):
-            self._finish()
 
-    def _subscribers_ready(self, now):
-        """True when waiting may end early: every bearing topic has a matched subscriber and
-        the counts have not changed for SETTLE_NS (``now``, monotonic ns). Several nodes
-        subscribe (a fusion node, a view): the first match must not start the run while the
-        others are still being discovered, or they lose its first seconds."""
+    def _subscriber_state(self, now):
+        """:data:`READY` when waiting may end early: every bearing topic has a matched
+        subscriber that is not a fusion node's discovery probe and the counts have not
+        changed for SETTLE_NS (``now``, monotonic ns). Several nodes subscribe (a fusion
+        node, a view): the first match must not start the run while the others are still
+        being discovered, or they lose its first seconds. A probe (node
+        ``discovery_probe_<pid>``) is a short-lived child that subscribes only until it has
+        seen a valid bearing, and its fusion node subscribes only then: when every topic has
+        a subscriber but some only probes (:data:`PROBED`) the messages due at the epoch are
+        released with the clock held there, so the fusion node can join before the clock
+        runs. :data:`WAIT` otherwise (and always without ``wait_for_subscribers``)."""
         if not self._wait_for_subs:
-            return False
-        counts = tuple(p.get_subscription_count() for p in self._bearing_pubs.values())
+            return WAIT
+        pubs = list(self._bearing_pubs.values())
+        counts = tuple(p.get_subscription_count() for p in pubs)
         if not all(counts):
             self._matched = None
-            return False
-        if self._matched is None or self._matched[0] != counts:
-            self._matched = (counts, now)
-        return now - self._matched[1] >= SETTLE_NS
+            return WAIT
+        real = tuple(sum(not e.node_name.startswith(PROBE_PREFIX)
+                         for e in self.get_subscriptions_info_by_topic(p.topic_name))
+                     for p in pubs)
+        if self._matched is None or self._matched[0] != (counts, real):
+            self._matched = ((counts, real), now)
+        if now - self._matched[1] < SETTLE_NS:
+            return WAIT
+        return READY if all(real) else PROBED
 
     def _finish(self):
         self._done = True

@@ -357,9 +357,12 @@ def _simulator_schema():
         P('duration', DOUBLE, 0.0, "Simulated seconds to run; 0 = the scenario's duration",
           's', 0.0, 1e7),
         P('start_delay', DOUBLE, 5.0, 'Longest wall-clock wait for subscribers before '
-          'starting (the clock is held at the epoch meanwhile)', 's', 0.0, None),
+          'starting (the clock is held at the epoch meanwhile); up to 10 s more while a '
+          "fusion node's discovery probe hands over to the node", 's', 0.0, None),
         P('wait_for_subscribers', BOOL, True, 'Start before start_delay has passed once '
-          'every bearing topic has a matched subscriber and the counts held for 1 s'),
+          'every bearing topic has a matched subscriber other than a discovery probe and the '
+          'counts held for 1 s; while only probes subscribe, the messages due at the epoch '
+          'are published'),
         P('exit_when_done', BOOL, True, 'Shut the node down once every message of the run '
           'has been published and acknowledged'),
     )
