@@ -248,6 +248,24 @@ def test_placement_from_an_unobservable_layout_and_ctls():
     assert r.after < r.before
 
 
+def test_a_new_station_on_a_cell_centre_is_not_rewarded_by_a_dropped_cell():
+    # A cell centre on the new station's vertical axis has no azimuth from it (NaN), and the
+    # objective skipped NaN cells: the placement was rewarded for removing a cell from the
+    # mean or max (2 x 2 cells: 174.8 -> 8.0 m). That cell now keeps the existing stations'
+    # error (the new station makes no bearing there, as in the simulator).
+    st = Stations.from_arrays([[50e3, 0, 0], [50e3, 10e3, 0]], 2e-3)
+    area = GridSpec.from_extent(-2e3, 2e3, -2e3, 2e3, 2e3, 0.0)   # centres at ±1 km
+    before = accuracy_map(st, area).error
+    for objective, reduce in (('mean', np.mean), ('max', np.max)):
+        r = place_station(st, area, (1e3, 1e3, 1e3, 1e3), 0.0, objective=objective,
+                          candidates=2, refine=False)       # forced onto the centre (1, 1) km
+        after = accuracy_map(st.with_station(r.position, 2e-3), area).error
+        assert np.isnan(after[1, 1]) and np.all(np.isfinite(np.delete(after.ravel(), 3)))
+        honest = np.where(np.isnan(after), before, after)
+        assert r.after == pytest.approx(reduce(honest), rel=1e-9)
+    assert r.after >= before[1, 1]                           # max: the cell still counts
+
+
 @pytest.mark.parametrize('kwargs,field', [({'objective': 'median'}, 'objective'),
                                           ({'model': 'gdop'}, 'model'),
                                           ({'region': (1, 0, 0, 1)}, 'region'),

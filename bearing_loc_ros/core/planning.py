@@ -88,7 +88,9 @@ def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=No
     ``region`` = (xmin, xmax, ymin, ymax), m, vectorised (per-station information terms are
     additive, so the existing stations' terms are computed once and each candidate adds its
     own (G, 3, 3) block), then Nelder-Mead refinement (scipy) inside the region from the
-    three best grid candidates.
+    three best grid candidates. A cell centre straight above (or below) the new station gets
+    no term from it (its azimuth is undefined; the simulator makes no such bearing), so the
+    cell keeps the existing stations' error instead of dropping out of the mean or max.
 
     Args:
         stations: existing :class:`Stations` (may be unobservable on their own).
@@ -139,6 +141,12 @@ def place_station(stations, area, region, height=0.0, sigma_az=None, sigma_el=No
         tgt = np.broadcast_to(pts, (C, G, 3)).reshape(-1, 3)
         pos = np.repeat(cands, G, axis=0)[:, None, :]
         A, B = error_terms(tgt, pos, n_saz, n_sel, model, length_unit)
+        # A cell centre on the new station's vertical axis gets no bearing from it (azimuth
+        # undefined, as in the simulator): no information there, not a NaN cell that the
+        # objective would skip (which rewarded putting the station on a cell centre).
+        axis = np.any(np.isnan(A), axis=(-2, -1))
+        A = np.where(axis[:, None, None], 0.0, A)
+        B = None if B is None else np.where(axis[:, None, None], 0.0, B)
         A = A.reshape(C, G, 3, 3) + A0
         B = None if B is None else B.reshape(C, G, 3, 3) + B0
         return error_from_terms(A, B, horizontal)
