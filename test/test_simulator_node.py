@@ -1,5 +1,6 @@
 """simulator_node over DDS: bearings honour the message contract and equal the core's, truth and
 /clock arrive, same seed gives the same bearings, bad parameters / scenarios exit 1."""
+import contextlib
 import os
 
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
@@ -24,17 +25,26 @@ SEED = 3
 QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 
 
-@pytest.fixture(scope='module')
-def listener():
+@contextlib.contextmanager
+def _listening_node(name):
+    """(node, executor) of a node in a context of its own, shut down on exit."""
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
-    node = rclpy.create_node('simulator_test_listener', context=ctx)
+    node = rclpy.create_node(name, context=ctx)
     ex = SingleThreadedExecutor(context=ctx)
     ex.add_node(node)
-    yield node, ex
-    ex.shutdown()
-    node.destroy_node()
-    rclpy.try_shutdown(context=ctx)
+    try:
+        yield node, ex
+    finally:
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+
+
+@pytest.fixture(scope='module')
+def listener():
+    with _listening_node('simulator_test_listener') as pair:
+        yield pair
 
 
 def _subscribe(node, msg_type, topic, box):
@@ -217,17 +227,12 @@ def test_the_readme_pair_starts_once_the_fusion_node_itself_subscribed():
     # station (before, it could not: the node subscribes after a bearing), and its first
     # fix is at most one epoch after the epoch (t = 0 s) the probe consumed.
     from geometry_msgs.msg import PoseWithCovarianceStamped as Fix
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = rclpy.create_node('readme_pair_listener', context=ctx)
-    ex = SingleThreadedExecutor(context=ctx)
-    ex.add_node(node)
     fixes = []
     # in a namespace of its own: the module's listener subscribes to /station_<k>/bearing
     ns = ['-r', '__ns:=/readme_pair']
-    sub = node.create_subscription(Fix, '/readme_pair/fix',
-                                   lambda m: fixes.append(time_to_ns(m.header.stamp)), QOS)
-    try:
+    with _listening_node('readme_pair_listener') as (node, ex):
+        sub = node.create_subscription(Fix, '/readme_pair/fix',
+                                       lambda m: fixes.append(time_to_ns(m.header.stamp)), QOS)
         with start_node('bearing_loc_ros.fusion_node', ['-p', 'use_sim_time:=true', '-p',
                                                         'discover:=true', *ns]) as fusion:
             assert spin_until(ex, lambda: sub.get_publisher_count() > 0, 60.0)
@@ -241,10 +246,6 @@ def test_the_readme_pair_starts_once_the_fusion_node_itself_subscribed():
             # the fusion node logs 'discovered station' when it subscribes itself
             subscribed = [_log_time(fusion.output(), f'discovered station station_{k} ')
                           for k in (1, 2, 3)]
-    finally:
-        ex.shutdown()
-        node.destroy_node()
-        rclpy.try_shutdown(context=ctx)
     assert None not in subscribed and started is not None, (sim.output(), fusion.output())
     assert started > max(subscribed)
     epoch = load_scenario(os.path.join(REPO, 'config/scenarios/seed000.yaml')).epoch_ns
