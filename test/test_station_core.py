@@ -451,8 +451,12 @@ def test_pose_buffer_does_not_interpolate_across_an_odometry_outage():
     with pytest.raises(ReadingError) as info:
         buf.interpolate(31 * S_NS)
     assert info.value.reason == 'odometry_gap' and '60.000 s' in str(info.value)
-    # The poses themselves (within the hold tolerance) still serve.
+    # The poses themselves (within the hold tolerance) still serve, also inside the buffer:
+    # a pose with another after the gap, at its own stamp and 50 ms off (tolerance 100 ms).
     np.testing.assert_allclose(buf.interpolate(61 * S_NS).position, [0.0, 0.0, 0.0])
+    buf.add(_pose(62 * S_NS, 0.0, 180.0))
+    for t in (S_NS, S_NS + 50_000_000, 61 * S_NS - 50_000_000):
+        assert buf.interpolate(t).stamp_ns == t
     # A gap of exactly the limit is interpolated, one nanosecond more is not.
     buf = PoseBuffer(max_gap_ns=2 * S_NS)
     buf.add(_pose(S_NS, 0.0, 0.0))

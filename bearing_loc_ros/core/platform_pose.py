@@ -69,7 +69,8 @@ class PoseBuffer:
     covariance are linear, p = (1 − s) p_i + s p_{i+1}; the orientation is the spherical
     linear interpolation (slerp, shortest arc) of q_i and q_{i+1}. Only across a gap
     t_{i+1} − t_i ≤ ``max_gap_ns``: over a longer outage the platform may have turned or
-    stopped in ways no interpolation knows, and the reading is rejected (``odometry_gap``).
+    stopped in ways no interpolation knows, and the reading is rejected (``odometry_gap``)
+    unless it lies within ``tolerance_ns`` of one of the two poses (that pose is held).
     A stamp outside the buffered interval by at most ``tolerance_ns`` gets the nearest pose
     (held, never extrapolated); further out it is rejected (``before_odometry`` /
     ``after_odometry``; ``no_odometry`` when empty). At most ``maxlen`` poses are kept
@@ -153,6 +154,12 @@ class PoseBuffer:
         a, b = self._samples[i], self._samples[i + 1]
         gap = b.stamp_ns - a.stamp_ns
         if gap > self.max_gap_ns:
+            # Within tolerance of one of the poses around the gap: that pose is held, as at
+            # the ends of the buffer.
+            near = a if t - a.stamp_ns <= b.stamp_ns - t else b
+            if abs(t - near.stamp_ns) <= self.tolerance_ns:
+                return PoseSample(t, near.position.copy(), near.quaternion.copy(),
+                                  near.position_covariance.copy())
             raise ReadingError('odometry_gap', f'{gap / 1e9:.3f} s between the poses around '
                                                f'it (limit {self.max_gap_ns / 1e9:.3g} s)')
         s = (t - a.stamp_ns) / gap
