@@ -281,8 +281,8 @@ class FusionCore:
         Before any station delivered a bearing the overall level is OK ("waiting for
         data") for station_timeout after the start, then WARN; a station whose stamps are
         far off the node clock is WARN with the likely cause (:func:`.stations.clock_hint`),
-        and so is one whose clock offset differs from the other stations' by more than
-        sync_tolerance (:meth:`.stations.StationRegistry.clock_disagreements`).
+        and so is one whose clock offset differs from the other stations'
+        (:meth:`.stations.StationRegistry.clock_disagreements`).
         """
         now = int(now_ns)
         reg = self.registry
@@ -294,7 +294,7 @@ class FusionCore:
         for _, st in reg.all_stats():
             lost.update(st.lost)
         clock = {s: st.clock_warning for s, st in reg.all_stats() if st.clock_warning}
-        for s, text in reg.clock_disagreements().items():
+        for s, text in reg.clock_disagreements(now).items():
             clock.setdefault(s, text)
         non_conv = self.no_fix[NOT_CONVERGED] + self.no_fix[ESTIMATOR_ERROR]
         attempts = self.fixes + non_conv

@@ -312,22 +312,31 @@ class StationRegistry:
         """Stations currently stale."""
         return [s for s, st in self._stats.items() if st.state == STALE]
 
-    def clock_disagreements(self):
+    def clock_disagreements(self, now):
         """Station -> one sentence, for the stations whose clock offset (median of stamp −
-        now, :meth:`StationStats.clock_offset_s`) differs from the median of all the
-        stations' offsets by more than ``sync_tolerance`` (at least two stations with an
-        offset). Their bearings are matched to other observation cycles than the other
-        stations' (a shared transport delay cancels in the difference)."""
-        offsets = {s: st.clock_offset_s() for s, st in self._stats.items()}
-        offsets = {s: v for s, v in offsets.items() if v is not None}
-        if len(offsets) < 2:
+        now, :meth:`StationStats.clock_offset_s`) differs from the median of the stations'
+        offsets by more than ``sync_tolerance`` ahead, or by more than the larger of
+        ``sync_tolerance`` and ``max_latency`` behind (behind is also what a longer transport
+        delay looks like, which the event trigger waits for up to ``max_latency``). Only the
+        stations that sent within ``station_timeout`` count, and at least three: of two, the
+        data cannot say which one is off. Their bearings are matched to other observation
+        cycles than the other stations' (a shared transport delay cancels in the
+        difference)."""
+        offsets = {}
+        for s, st in self._stats.items():
+            v = st.clock_offset_s()
+            if v is not None and st.seen_stamp_ns is not None \
+                    and abs(now + v * NS_PER_S - st.seen_stamp_ns) <= self.timeout_ns:
+                offsets[s] = v
+        if len(offsets) < 3:
             return {}
         ref = statistics.median(offsets.values())
         tol = self.align.sync_tolerance_ns / NS_PER_S
+        late = max(tol, self.max_latency_ns / NS_PER_S)
         out = {}
         for s, v in offsets.items():
             d = v - ref
-            if abs(d) > tol:
+            if d > tol or -d > late:
                 cause = ('its clock is ahead' if d > 0 else
                          'its clock is behind, or its bearings take that much longer to '
                          'arrive')
