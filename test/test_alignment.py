@@ -234,6 +234,23 @@ def test_a_station_clock_off_by_more_than_sync_tolerance_is_named_and_leaves_oth
     assert all(entries[f'station {s}'].level == 'ok' for s in ('s1', 's2', 's4'))
 
 
+def test_no_clock_warning_for_two_stations_or_a_mere_transport_delay():
+    # Of two stations the data cannot say which clock is off (both were blamed, each for
+    # half the offset); a station whose bearings arrive 80 ms later than the others', with
+    # right stamps, is a delay the event trigger waits for (max_latency 0.2 s), not a clock.
+    for delays in ({'s1': 0.0, 's2': 0.12}, {'s1': 0.01, 's2': 0.01, 's3': 0.09}):
+        c = FusionCore(FusionConfig(estimator='ls'), stations=list(delays))
+        for k in range(1, 21):
+            t = 1000 * S + k * 100 * MS
+            for s, d in delays.items():
+                pos = STATIONS[s]
+                az, el = azimuth_elevation(TARGET - np.array(pos))
+                c.add_bearing(Bearing(s, t, np.array(pos), float(az), float(el), 1e-3, 1e-3),
+                              t + int(d * S))
+        entries = c.diagnostics(t + 200 * MS)
+        assert not any('other stations' in e.message for e in entries)
+
+
 def test_late_duplicate_and_out_of_order_bearings_are_dropped_and_counted():
     c = FusionCore(FusionConfig(estimator='ls', trigger='event'), stations=['s1', 's2'])
     feed_round(c, 10 * S, stations=['s1', 's2'])
