@@ -126,6 +126,29 @@ def test_the_fix_covariance_counts_the_stated_station_position_covariance(sigma_
     assert abs(np.mean(nees) - 3.0) <= 2.576 * math.sqrt(6.0 / len(nees))
 
 
+def test_station_trust_still_tests_stations_that_state_a_position_covariance():
+    # The fix weighs each bearing with its σ grown by the station position covariance; the
+    # trust got the stated σ, its deletion step removed more information than the station
+    # had added, and no station was ever tested (nor could a liar be named).
+    from bearing_loc_ros.core.station_trust import StationTrust
+    target = np.array([300.0, 400.0, 50.0])
+    st = np.array([[0, 0, 0], [1000, 0, 0], [0, 1000, 0], [1000, 1000, 0], [500, -300, 0.0]])
+    rng = np.random.default_rng(5)
+    trust = StationTrust()
+    for _ in range(40):
+        bs = []
+        for i, p in enumerate(st):
+            az, el = azimuth_elevation(target - p)
+            bs.append(Bearing(f's{i}', 0, p + rng.normal(0.0, 5.0, 3),
+                              float(az) + rng.normal(0.0, 0.002),
+                              float(el) + rng.normal(0.0, 0.002), 0.002, 0.002,
+                              position_covariance=np.eye(3) * 25.0))
+        assert solve_epoch(bs, 'mle', {}, trust=trust).ok
+        trust.settle()
+    assert all(trust.verified(f's{i}') for i in range(5))
+    assert trust.suspects() == []
+
+
 # ---------------------------------------------------------------- marker maths
 def _matrix_from_quaternion(q):
     x, y, z, w = q

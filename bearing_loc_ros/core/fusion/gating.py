@@ -403,7 +403,8 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
                     used = remaining
                     continue
             if trust is not None:
-                trust.defer_update(used, claims, pos, cov, rejected)
+                trust.defer_update(*_as_weighted(used, claims, factors), pos, cov,
+                                   rejected)
             return Epoch(LOW_CONFIDENCE, position=pos, covariance=0.5 * (cov + cov.T),
                          detail='failed the consistency checks (core.robust)', **common)
         if status != _estimators.STATUS_OK or not bool(res.converged[0]):
@@ -432,7 +433,7 @@ def solve_epoch(bearings, estimator, options=None, min_stations=2, outlier_gate=
                          detail=f'no redundancy left after dropping '
                                 f'{", ".join(b.station for b in rejected)}', **common)
         if trust is not None:
-            trust.defer_update(used, claims, pos, cov, rejected)
+            trust.defer_update(*_as_weighted(used, claims, factors), pos, cov, rejected)
         residuals = {b.station: float(v) for b, v in zip(used, d2)}
         return Epoch(OK, position=pos, covariance=0.5 * (cov + cov.T), residuals=residuals,
                      chi2=_nansum(d2), dof=spare, **common)
@@ -521,6 +522,26 @@ def station_position_factors(bs, pcov, position, estimator, kwargs):
     f_az = np.where(np.isfinite(f_az), f_az, 1.0)
     f_el = np.where(np.isfinite(f_el), f_el, 1.0)
     return {s: (float(a), float(e)) for s, a, e in zip(bs.stations, f_az, f_el)}
+
+
+def _as_weighted(used, claims, factors):
+    """(bearings, claims) for the station trust with the σ the fix weighted them with: the
+    bearings and the claimed σ scaled by the station position ``factors`` (station ->
+    (f_θ, f_ψ)); unchanged without factors. (The trust's deletion step removes each
+    station's information at the σ it is given: at the stated σ it removed more than the
+    station had added, and every station became untestable.)"""
+    if not factors:
+        return used, claims
+    out = []
+    for b in used:
+        fa, fe = factors.get(b.station, (1.0, 1.0))
+        out.append(replace(b, sigma_azimuth=b.sigma_azimuth * fa,
+                           sigma_elevation=b.sigma_elevation * fe))
+    scaled = {}
+    for st, (a, e) in claims.items():
+        fa, fe = factors.get(st, (1.0, 1.0))
+        scaled[st] = (a * fa, e * fe)
+    return out, scaled
 
 
 def _scaled(bs, factors):
