@@ -43,6 +43,22 @@ def test_a_key_given_twice_is_an_error_naming_its_line(tmp_path):
     assert load_text('a: &x {k: 1, j: 2}\nb:\n  <<: *x\n  k: 3\n')['b'] == {'k': 3, 'j': 2}
 
 
+def test_a_huge_or_endless_file_is_refused_before_parsing(tmp_path):
+    """A 200 MB scenario was still being parsed after 120 s."""
+    from bearing_loc_ros.core.yaml_file import MAX_BYTES
+    path = tmp_path / 'huge.yaml'
+    line = 'key: "' + 'x' * 1000 + '"\n'
+    path.write_text('a:\n' + ('  - ' + line) * (MAX_BYTES // 1000 + 10))
+    with pytest.raises(ValueError, match=r'^x: scenario larger than 8 MiB$'):
+        read_yaml(path, 'x', kind='scenario')
+    if os.path.exists('/dev/zero'):
+        with pytest.raises(ValueError, match=r'^x: file larger than'):
+            read_yaml('/dev/zero', 'x')
+    ok = tmp_path / 'ok.yaml'
+    ok.write_text('a: 1\n')
+    assert read_yaml(ok, 'x') == {'a': 1}
+
+
 @pytest.mark.parametrize('params', [False, True])
 def test_aliases_that_expand_to_a_billion_values_are_refused(tmp_path, params):
     """A 441-byte file of nested aliases ("billion laughs") made a MemoryError after 45 s

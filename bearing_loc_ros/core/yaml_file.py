@@ -48,6 +48,10 @@ _FLOAT_TAG = 'tag:yaml.org,2002:float'
 #: Most values (mapping entries, list items and scalars, an alias counted each time it is
 #: used) one YAML document may expand to. Real files hold thousands (a long waypoint list).
 MAX_VALUES = 1_000_000
+#: Largest YAML file read, bytes (8 MiB; PyYAML parses about 1 MB/s, and a scenario with
+#: 10⁵ waypoints is about 4 MB). A larger file, or an endless one such as /dev/zero, is
+#: refused before parsing.
+MAX_BYTES = 8 * 1024 * 1024
 
 _LOADER = None
 
@@ -271,16 +275,21 @@ def read_yaml(path, label, kind='file', params=False):
     :func:`loader` (:func:`params_loader` with ``params``: a ROS 2 parameter file).
 
     Errors are ``ValueError`` of one line, prefixed ``label``: ``<label>: cannot read <kind>
-    (<reason>)``, ``<label>: not a UTF-8 text file``, ``<label>: invalid YAML (<message,
-    whitespace runs made one space>)``, also for a document beyond :data:`MAX_VALUES`.
+    (<reason>)``, ``<label>: <kind> larger than <n> MiB`` (:data:`MAX_BYTES`), ``<label>: not
+    a UTF-8 text file``, ``<label>: invalid YAML (<message, whitespace runs made one
+    space>)``, also for a document beyond :data:`MAX_VALUES`.
     """
     import yaml
     try:
-        with open(path, encoding='utf-8') as f:
-            return check_expansion(yaml.load(f, Loader=params_loader() if params else
-                                             loader()))
+        with open(path, 'rb') as f:
+            data = f.read(MAX_BYTES + 1)
     except OSError as exc:
         raise ValueError(f'{label}: cannot read {kind} ({exc.strerror or exc})') from None
+    if len(data) > MAX_BYTES:
+        raise ValueError(f'{label}: {kind} larger than {MAX_BYTES // 2 ** 20} MiB')
+    try:
+        return check_expansion(yaml.load(data.decode('utf-8'), Loader=params_loader()
+                                         if params else loader()))
     except UnicodeDecodeError:
         raise ValueError(f'{label}: not a UTF-8 text file') from None
     except (yaml.YAMLError, ValueError) as exc:     # ValueError: a scalar's constructor
